@@ -1,0 +1,370 @@
+"""Capture sessions on disk: what a real or virtual rig writes, and all later stages read.
+
+Layout (full description in ``docs/capture-session.md``)::
+
+    SESSION/
+      session.json            metadata: devices, calibration, pattern set, views, images
+      view_000/
+        00_white.png ...      lossless captures, 8 or 16 bit, grey or RGB
+        ground_truth.npz      virtual rig only: per-pixel truth
+
+Everything downstream reads sessions through :func:`load_session`, never simulator
+internals, so real captures drop in.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from slscan import __version__
+from slscan.errors import SlscanError
+from slscan.fsio import atomic_output_dir, read_json, read_png, write_json, write_png
+from slscan.patterns import PatternImage
+from slscan.rig import Rig, _as_pose
+
+SESSION_FORMAT = "slscan.capture-session"
+SESSION_VERSION = 1
+SESSION_FILE = "session.json"
+IMAGE_KINDS = ("pattern", "lit")
+
+# ground-truth visibility labels
+BACKGROUND, SHADOW, LIT = 0, 1, 2
+VISIBILITY_LABELS = {BACKGROUND: "background", SHADOW: "projector shadow", LIT: "lit"}
+
+
+@dataclass(frozen=True)
+class ImageRecord:
+    """One captured image of a view.
+
+    file : name inside the view folder
+    kind : {"pattern", "lit"}; "pattern" is lit by the projector showing ``pattern``,
+        "lit" by ring light ``light`` with the projector dark
+    """
+
+    file: str
+    kind: str
+    pattern: str | None = None
+    light: int | None = None
+
+    def to_dict(self) -> dict:
+        d: dict[str, Any] = {"file": self.file, "kind": self.kind}
+        if self.pattern is not None:
+            d["pattern"] = self.pattern
+        if self.light is not None:
+            d["light"] = self.light
+        return d
+
+
+@dataclass(frozen=True)
+class ViewRecord:
+    """One range map's worth of images.
+
+    rig_from_object : (4, 4) mm or None, the scanned object's pose in the rig frame
+    pose_source : e.g. "ground-truth" (virtual rig), "turntable", or None
+    exposure : free-form capture settings (exposure time factor, gain, ...)
+    ground_truth : name of the view's ground-truth file, or None
+    """
+
+    name: str
+    images: tuple[ImageRecord, ...]
+    rig_from_object: np.ndarray | None = None
+    pose_source: str | None = None
+    exposure: dict = field(default_factory=dict)
+    ground_truth: str | None = None
+
+    def pattern_images(self) -> list[ImageRecord]:
+        return [r for r in self.images if r.kind == "pattern"]
+
+    def lit_images(self) -> list[ImageRecord]:
+        return sorted((r for r in self.images if r.kind == "lit"), key=lambda r: r.light)
+
+    def image_for(self, pattern_id: str) -> ImageRecord:
+        for rec in self.images:
+            if rec.pattern == pattern_id:
+                return rec
+        raise SlscanError(f"view {self.name}: no image of pattern {pattern_id!r}")
+
+    def to_dict(self) -> dict:
+        return {
+            "name": self.name,
+            "rig_from_object": None if self.rig_from_object is None else self.rig_from_object.tolist(),
+            "pose_source": self.pose_source,
+            "exposure": self.exposure,
+            "ground_truth": self.ground_truth,
+            "images": [r.to_dict() for r in self.images],
+        }
+
+
+@dataclass(frozen=True)
+class Session:
+    """A capture session read from (or about to be written to) ``root``.
+
+    camera_size, projector_size : (width, height) px
+    channels : 1 (grey) or 3 (RGB); bit_depth : 8 or 16
+    calibration : the rig's calibration when known (the virtual rig writes its truth)
+    """
+
+    root: Path
+    camera_size: tuple[int, int]
+    projector_size: tuple[int, int]
+    channels: int
+    bit_depth: int
+    patterns: tuple[PatternImage, ...]
+    views: tuple[ViewRecord, ...]
+    calibration: Rig | None = None
+    calibration_source: str | None = None
+    device: dict = field(default_factory=dict)
+
+    def pattern(self, pattern_id: str) -> PatternImage:
+        for p in self.patterns:
+            if p.id == pattern_id:
+                return p
+        raise SlscanError(f"{self.root / SESSION_FILE}: no pattern with id {pattern_id!r}")
+
+    def view(self, name: str) -> ViewRecord:
+        for v in self.views:
+            if v.name == name:
+                return v
+        raise SlscanError(f"{self.root}: no view named {name!r}")
+
+    def image_path(self, view: ViewRecord, rec: ImageRecord) -> Path:
+        return self.root / view.name / rec.file
+
+    def read_image(self, view: ViewRecord, rec: ImageRecord) -> np.ndarray:
+        """Read one capture, checking it against the session's size, channels and depth."""
+        path = self.image_path(view, rec)
+        image = read_png(path)
+        _check_image(path, image.shape, image.dtype.itemsize * 8, self)
+        return image
+
+    def load_ground_truth(self, view: ViewRecord) -> GroundTruth:
+        if view.ground_truth is None:
+            raise SlscanError(f"{self.root / view.name}: this view has no ground truth (only the virtual rig writes it)")
+        return GroundTruth.load(self.root / view.name / view.ground_truth)
+
+    def to_dict(self) -> dict:
+        return {
+            "format": SESSION_FORMAT,
+            "version": SESSION_VERSION,
+            "written_by": f"slscan {__version__}",
+            "device": self.device,
+            "camera": {
+                "width": self.camera_size[0], "height": self.camera_size[1],
+                "channels": self.channels, "bit_depth": self.bit_depth,
+            },
+            "projector": {"width": self.projector_size[0], "height": self.projector_size[1]},
+            "calibration": None if self.calibration is None else {
+                "source": self.calibration_source, **self.calibration.to_dict()
+            },
+            "patterns": [p.to_dict() for p in self.patterns],
+            "views": [v.to_dict() for v in self.views],
+        }
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """Per-pixel truth of one virtual-rig view, all (h, w, ...) over camera pixels.
+
+    point : (h, w, 3) float32 mm, rig frame; NaN on background
+    normal : (h, w, 3) float32, unit, rig frame; NaN on background
+    albedo : (h, w, 3) float32 linear RGB reflectance in [0, 1]; NaN on background
+    projector_uv : (h, w, 2) float32 continuous projector pixel (column, row) of the
+        surface point seen at each camera pixel centre; NaN on background
+    visibility : (h, w) uint8: 0 background, 1 in projector shadow (or outside its
+        frustum, or facing away), 2 lit by the projector
+    """
+
+    point: np.ndarray
+    normal: np.ndarray
+    albedo: np.ndarray
+    projector_uv: np.ndarray
+    visibility: np.ndarray
+
+    def save(self, path: str | os.PathLike) -> None:
+        np.savez_compressed(
+            path, point=self.point, normal=self.normal, albedo=self.albedo,
+            projector_uv=self.projector_uv, visibility=self.visibility,
+        )
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> GroundTruth:
+        path = Path(path)
+        if not path.is_file():
+            raise SlscanError(f"{path}: ground-truth file not found")
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                return cls(**{k: data[k] for k in ("point", "normal", "albedo", "projector_uv", "visibility")})
+        except KeyError as exc:
+            raise SlscanError(f"{path}: ground truth lacks array {exc.args[0]!r}") from None
+        except (OSError, ValueError) as exc:
+            raise SlscanError(f"{path}: not a readable ground-truth file ({exc})") from None
+
+
+def png_header(path: Path) -> tuple[int, int, int, int]:
+    """(width, height, channels, bit_depth) from a PNG's IHDR without decoding pixels."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(29)
+    except FileNotFoundError:
+        raise SlscanError(f"{path}: image not found") from None
+    if len(head) < 29 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        raise SlscanError(f"{path}: not a PNG file")
+    width, height, depth, color_type = struct.unpack(">IIBB", head[16:26])
+    channels = {0: 1, 2: 3, 4: 2, 6: 4, 3: 3}.get(color_type, 0)
+    return width, height, channels, depth
+
+
+def _check_image(path: Path, shape: tuple, depth: int, session: Session) -> None:
+    h, w = shape[:2]
+    channels = 1 if len(shape) == 2 else shape[2]
+    if (w, h) != session.camera_size:
+        raise SlscanError(
+            f"{path}: image is {w}x{h}, the session's camera is {session.camera_size[0]}x{session.camera_size[1]}"
+        )
+    if channels != session.channels and not (session.channels == 3 and channels == 4):
+        raise SlscanError(f"{path}: image has {channels} channel(s), the session says {session.channels}")
+    if depth != session.bit_depth:
+        raise SlscanError(f"{path}: image is {depth}-bit, the session says {session.bit_depth}-bit")
+
+
+def validate_session(session: Session) -> None:
+    """Check that every image exists and matches the metadata; raise naming the first bad file."""
+    pattern_ids = {p.id for p in session.patterns}
+    for view in session.views:
+        for rec in view.images:
+            if rec.kind == "pattern" and rec.pattern not in pattern_ids:
+                raise SlscanError(f"{session.root / view.name / rec.file}: unknown pattern {rec.pattern!r}")
+            if rec.kind == "lit" and session.calibration is not None and session.calibration.lights:
+                if not 0 <= rec.light < len(session.calibration.lights):
+                    raise SlscanError(f"{session.root / view.name / rec.file}: light {rec.light} is not in the rig")
+            path = session.image_path(view, rec)
+            w, h, channels, depth = png_header(path)
+            shape = (h, w) if channels == 1 else (h, w, channels)
+            _check_image(path, shape, depth, session)
+
+
+def load_session(path: str | os.PathLike, *, validate: bool = True) -> Session:
+    """Read ``session.json`` in folder ``path`` (and check its images unless ``validate=False``)."""
+    root = Path(path)
+    meta_path = root / SESSION_FILE
+    if root.is_file() and root.name == SESSION_FILE:
+        root, meta_path = root.parent, root
+    if not root.is_dir():
+        raise SlscanError(f"{root}: capture-session folder not found")
+    d = read_json(meta_path, "capture-session metadata (session.json)")
+    if d.get("format") != SESSION_FORMAT:
+        raise SlscanError(f"{meta_path}: not an slscan capture session (format {d.get('format')!r})")
+    if d.get("version") != SESSION_VERSION:
+        raise SlscanError(
+            f"{meta_path}: session format version {d.get('version')} is not supported (this slscan reads {SESSION_VERSION})"
+        )
+    try:
+        cam, proj = d["camera"], d["projector"]
+        calibration = source = None
+        if d.get("calibration"):
+            calibration = Rig.from_dict(d["calibration"])
+            source = d["calibration"].get("source")
+        views = []
+        for v in d["views"]:
+            images = tuple(
+                ImageRecord(r["file"], r["kind"], r.get("pattern"), r.get("light")) for r in v["images"]
+            )
+            for r in images:
+                if r.kind not in IMAGE_KINDS:
+                    raise SlscanError(f"{meta_path}: view {v['name']}: image {r.file} has unknown kind {r.kind!r}")
+            pose = v.get("rig_from_object")
+            views.append(
+                ViewRecord(
+                    v["name"], images,
+                    None if pose is None else _as_pose(pose, f"{meta_path}: view {v['name']} pose"),
+                    v.get("pose_source"), v.get("exposure", {}), v.get("ground_truth"),
+                )
+            )
+        session = Session(
+            root=root,
+            camera_size=(int(cam["width"]), int(cam["height"])),
+            projector_size=(int(proj["width"]), int(proj["height"])),
+            channels=int(cam.get("channels", 3)),
+            bit_depth=int(cam.get("bit_depth", 8)),
+            patterns=tuple(PatternImage.from_dict(p) for p in d["patterns"]),
+            views=tuple(views),
+            calibration=calibration,
+            calibration_source=source,
+            device=d.get("device", {}),
+        )
+    except KeyError as exc:
+        raise SlscanError(f"{meta_path}: missing field {exc.args[0]!r}") from None
+    if session.channels not in (1, 3) or session.bit_depth not in (8, 16):
+        raise SlscanError(f"{meta_path}: camera must have 1 or 3 channels and 8 or 16 bits")
+    if validate:
+        validate_session(session)
+    return session
+
+
+class SessionWriter:
+    """Write a session view by view into a temporary folder, renamed into place at the end.
+
+    Use as a context manager; if the block raises, nothing is left at ``out``::
+
+        with SessionWriter(out, camera_size=..., ...) as writer:
+            writer.add_view("view_000", [(record, image), ...], rig_from_object=pose)
+    """
+
+    def __init__(
+        self,
+        out: str | os.PathLike,
+        *,
+        camera_size: tuple[int, int],
+        projector_size: tuple[int, int],
+        channels: int,
+        bit_depth: int,
+        patterns: list[PatternImage],
+        calibration: Rig | None = None,
+        calibration_source: str | None = None,
+        device: dict | None = None,
+        overwrite: bool = False,
+    ) -> None:
+        self.out = Path(out)
+        self._meta = dict(
+            camera_size=tuple(camera_size), projector_size=tuple(projector_size), channels=channels,
+            bit_depth=bit_depth, patterns=tuple(patterns), calibration=calibration,
+            calibration_source=calibration_source, device=device or {},
+        )
+        self._overwrite = overwrite
+        self._views: list[ViewRecord] = []
+        self._ctx = None
+        self.tmp: Path | None = None
+
+    def __enter__(self) -> SessionWriter:
+        self._ctx = atomic_output_dir(self.out, overwrite=self._overwrite)
+        self.tmp = self._ctx.__enter__()
+        return self
+
+    def view_folder(self, name: str) -> Path:
+        folder = self.tmp / name
+        folder.mkdir(exist_ok=True)
+        return folder
+
+    def write_image(self, view_name: str, rec: ImageRecord, image: np.ndarray) -> None:
+        expected_dtype = np.uint8 if self._meta["bit_depth"] == 8 else np.uint16
+        if image.dtype != expected_dtype:
+            raise SlscanError(f"{rec.file}: expected {expected_dtype.__name__} pixels, got {image.dtype}")
+        write_png(self.view_folder(view_name) / rec.file, image)
+
+    def add_view(self, view: ViewRecord) -> None:
+        """Register a view whose images were written with :meth:`write_image`."""
+        self._views.append(view)
+
+    def session(self) -> Session:
+        return Session(root=self.out, views=tuple(self._views), **self._meta)
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        if exc_type is None:
+            write_json(self.tmp / SESSION_FILE, self.session().to_dict())
+        return bool(self._ctx.__exit__(exc_type, exc, tb))

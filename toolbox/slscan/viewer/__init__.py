@@ -1,0 +1,1 @@
+"""Streaming to the Rerun viewer: recording streams, per-stage loggers and blueprints."""

@@ -1,0 +1,1 @@
+"""The virtual rig: a ray-traced projector-camera-lights simulator that writes capture sessions."""
