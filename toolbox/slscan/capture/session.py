@@ -249,6 +249,29 @@ def validate_session(session: Session) -> None:
             _check_image(path, shape, depth, session)
 
 
+def _check_consistent(session: Session, meta_path: Path) -> None:
+    """The calibration and pattern sizes must agree with the camera and projector blocks."""
+    cal = session.calibration
+    if cal is not None:
+        if (cal.camera.width, cal.camera.height) != session.camera_size:
+            raise SlscanError(
+                f"{meta_path}: calibration is for a {cal.camera.width}x{cal.camera.height} camera, "
+                f"the images are {session.camera_size[0]}x{session.camera_size[1]}"
+            )
+        lens = cal.projector.lens
+        if (lens.width, lens.height) != session.projector_size:
+            raise SlscanError(
+                f"{meta_path}: calibration is for a {lens.width}x{lens.height} projector, "
+                f"the session's projector is {session.projector_size[0]}x{session.projector_size[1]}"
+            )
+    for p in session.patterns:
+        if (p.width, p.height) != session.projector_size:
+            raise SlscanError(
+                f"{meta_path}: pattern {p.id!r} is {p.width}x{p.height}, the projector is "
+                f"{session.projector_size[0]}x{session.projector_size[1]}"
+            )
+
+
 def load_session(path: str | os.PathLike, *, validate: bool = True) -> Session:
     """Read ``session.json`` in folder ``path`` (and check its images unless ``validate=False``)."""
     root = Path(path)
@@ -278,6 +301,10 @@ def load_session(path: str | os.PathLike, *, validate: bool = True) -> Session:
             for r in images:
                 if r.kind not in IMAGE_KINDS:
                     raise SlscanError(f"{meta_path}: view {v['name']}: image {r.file} has unknown kind {r.kind!r}")
+                if r.kind == "pattern" and not isinstance(r.pattern, str):
+                    raise SlscanError(f"{meta_path}: view {v['name']}: pattern image {r.file} names no pattern")
+                if r.kind == "lit" and not isinstance(r.light, int):
+                    raise SlscanError(f"{meta_path}: view {v['name']}: lit image {r.file} names no light index")
             pose = v.get("rig_from_object")
             views.append(
                 ViewRecord(
@@ -300,8 +327,11 @@ def load_session(path: str | os.PathLike, *, validate: bool = True) -> Session:
         )
     except KeyError as exc:
         raise SlscanError(f"{meta_path}: missing field {exc.args[0]!r}") from None
+    except (TypeError, ValueError) as exc:
+        raise SlscanError(f"{meta_path}: a field has the wrong type ({exc})") from None
     if session.channels not in (1, 3) or session.bit_depth not in (8, 16):
         raise SlscanError(f"{meta_path}: camera must have 1 or 3 channels and 8 or 16 bits")
+    _check_consistent(session, meta_path)
     if validate:
         validate_session(session)
     return session

@@ -1,0 +1,313 @@
+"""The ``slscan`` command: one entry point, one subcommand per stage."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import math
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+from slscan import __version__
+from slscan.errors import SlscanError
+
+EPILOG = """\
+quick start:
+  slscan demo --out demo-scan --save demo-scan.rrd   scan the built-in figurine on the virtual rig
+  rerun demo-scan.rrd                                 look at it in the Rerun viewer
+  slscan info demo-scan                               what a capture session holds
+
+Every command that logs takes --save FILE.rrd, --spawn (start a viewer) or
+--connect [URL]; without them nothing is logged. Docs: docs/ in the repository.
+"""
+
+
+def _console():
+    from rich.console import Console
+
+    return Console(stderr=True)
+
+
+class _ProgressBar:
+    """A rich progress bar on stderr; a no-op when ``quiet``."""
+
+    def __init__(self, total: int, description: str, quiet: bool = False) -> None:
+        self.quiet = quiet
+        if quiet:
+            return
+        from rich.progress import (
+            BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn,
+        )
+
+        self._progress = Progress(
+            TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+            TextColumn("{task.fields[label]}"), TimeElapsedColumn(), TimeRemainingColumn(),
+            console=_console(), transient=False,
+        )
+        self._task = self._progress.add_task(description, total=total, label="")
+
+    def __enter__(self) -> _ProgressBar:
+        if not self.quiet:
+            self._progress.__enter__()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if not self.quiet:
+            self._progress.__exit__(*exc)
+
+    def step(self, label: str = "") -> None:
+        if not self.quiet:
+            self._progress.update(self._task, advance=1, label=label)
+
+    def set(self, done: int, total: int) -> None:
+        if not self.quiet:
+            self._progress.update(self._task, completed=done, total=total)
+
+
+def _folder_size(path: Path) -> int:
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+
+
+def _human(n: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if n < 1024 or unit == "GiB":
+            return f"{n:.1f} {unit}" if unit != "B" else f"{int(n)} B"
+        n /= 1024
+    return str(n)
+
+
+# --- capture / demo -------------------------------------------------------------------
+
+
+def _add_capture_options(p: argparse.ArgumentParser, *, demo: bool) -> None:
+    from slscan.viewer.recording import add_recording_arguments
+
+    p.add_argument("--out", required=True, type=Path, help="capture-session folder to create")
+    p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    if not demo:
+        p.add_argument(
+            "--scene", default="object",
+            help='"object" (built-in figurine, default), "tile" (flat plane test) or a mesh file '
+                 "(PLY/OBJ/glTF/GLB; y-up; mm, or metres when under 10 units across)",
+        )
+        p.add_argument("--patterns", choices=("hybrid", "gray", "both"), default="hybrid",
+                       help="coded patterns after white and black (default: hybrid)")
+        p.add_argument("--levels", type=int, default=9, help="hybrid subdivision levels (default 9: 511 lines)")
+        p.add_argument("--gray-rows", action="store_true", help="also project row Gray codes")
+        p.add_argument("--no-lit", action="store_true", help="skip the 6 ring-light images")
+        p.add_argument("--bit-depth", type=int, choices=(8, 16), default=8, help="PNG bit depth (default 8)")
+        p.add_argument("--exposure", type=float, default=1.0, help="exposure factor (default 1; 4 saturates)")
+        p.add_argument("--gain", type=float, default=1.0, help="sensor gain (default 1)")
+        p.add_argument("--no-noise", action="store_true", help="noise-free images (still quantised)")
+        p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    p.add_argument("--views", type=int, default=1, help="turntable views over 360 degrees (default 1)")
+    p.add_argument("--scale", type=float, default=1.0,
+                   help="camera and projector resolution factor (default 1: 1440x960 camera, 1024x768 projector)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_recording_arguments(p)
+
+
+def _cmd_capture(args: argparse.Namespace, *, demo: bool = False) -> int:
+    from slscan.virtual.device import VirtualCaptureConfig, capture_session, images_per_view
+    from slscan.virtual.sensor import Sensor
+    from slscan.viewer.recording import recording_from_args
+
+    if args.scale <= 0 or args.scale > 2:
+        raise SlscanError(f"--scale must be in (0, 2], got {args.scale}")
+    levels = 9
+    if demo:
+        config = VirtualCaptureConfig(views=args.views, camera_scale=args.scale, projector_scale=args.scale)
+    else:
+        levels = args.levels
+        config = VirtualCaptureConfig(
+            scene=args.scene, views=args.views, patterns=args.patterns, levels=levels,
+            gray_rows=args.gray_rows, lit_images=not args.no_lit, camera_scale=args.scale,
+            projector_scale=args.scale, seed=args.seed,
+            sensor=Sensor(bit_depth=args.bit_depth, exposure=args.exposure, gain=args.gain, noise=not args.no_noise),
+        )
+    if args.scale < 1 and config.patterns != "gray":
+        # keep two projector pixels per line on a smaller projector
+        max_levels = int(math.log2(max(4, round(1024 * args.scale)))) - 1
+        if levels > max_levels:
+            logging.getLogger(__name__).warning("--scale %s: using %d hybrid levels", args.scale, max_levels)
+            config = dataclasses.replace(config, levels=max_levels)
+    total = config.views * images_per_view(config)
+    t0 = time.perf_counter()
+    with recording_from_args(args, recording_name=f"capture {args.out.name}") as rec:
+        with _ProgressBar(total, "capturing", args.quiet) as bar:
+            session = capture_session(config, args.out, overwrite=args.overwrite, rec=rec, progress=bar.step)
+    elapsed = time.perf_counter() - t0
+    n_images = sum(len(v.images) for v in session.views)
+    console = _console()
+    console.print(
+        f"[green]wrote[/] {args.out}: {len(session.views)} view(s), {n_images} images "
+        f"{session.camera_size[0]}x{session.camera_size[1]}, {_human(_folder_size(args.out))}, {elapsed:.1f} s"
+    )
+    if args.save:
+        console.print(f"[green]recording[/] {args.save} ({_human(Path(args.save).stat().st_size)}): "
+                      f"open it with  rerun {args.save}")
+    return 0
+
+
+# --- patterns ---------------------------------------------------------------------------
+
+
+def _cmd_patterns(args: argparse.Namespace) -> int:
+    from slscan.patterns import standard_set, write_pattern_set
+
+    images = standard_set(args.family, width=args.width, height=args.height, levels=args.levels, rows=args.rows)
+    write_pattern_set(args.out, images, overwrite=args.overwrite)
+    _console().print(f"[green]wrote[/] {len(images)} pattern images and patterns.json to {args.out}")
+    return 0
+
+
+# --- import / info ------------------------------------------------------------------------
+
+
+def _cmd_import(args: argparse.Namespace) -> int:
+    from slscan.capture.kamino410 import import_kamino410
+
+    with _ProgressBar(1, f"importing {args.format}", args.quiet) as bar:
+        session = import_kamino410(args.src, args.out, overwrite=args.overwrite, progress=bar.set)
+    _console().print(f"[green]wrote[/] {args.out}: {len(session.views)} view(s) from {args.src}")
+    return 0
+
+
+def _cmd_info(args: argparse.Namespace) -> int:
+    from rich.console import Console
+    from rich.table import Table
+
+    from slscan.capture.session import load_session
+
+    session = load_session(args.session)
+    console = Console()
+    console.print(f"[bold]{session.root}[/]  ({session.device.get('kind', 'unknown device')})")
+    console.print(
+        f"camera {session.camera_size[0]}x{session.camera_size[1]}, {session.channels} channel(s), "
+        f"{session.bit_depth}-bit; projector {session.projector_size[0]}x{session.projector_size[1]}; "
+        f"calibration: {session.calibration_source or 'none'}"
+    )
+    families: dict[str, int] = {}
+    for p in session.patterns:
+        families[p.family] = families.get(p.family, 0) + 1
+    console.print("patterns: " + ", ".join(f"{n} {f}" for f, n in families.items()))
+    table = Table("view", "pattern images", "lit images", "pose", "ground truth")
+    for v in session.views:
+        table.add_row(
+            v.name, str(len(v.pattern_images())), str(len(v.lit_images())),
+            v.pose_source or "-", "yes" if v.ground_truth else "-",
+        )
+    console.print(table)
+    return 0
+
+
+def _cmd_layouts(args: argparse.Namespace) -> int:
+    from slscan.viewer.layouts import save_layouts
+
+    paths = save_layouts(args.out)
+    _console().print("[green]wrote[/] " + ", ".join(str(p) for p in paths))
+    return 0
+
+
+# --- entry point ------------------------------------------------------------------------
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="slscan",
+        description="Structured-light 3D scanning: a projector and a camera (or the built-in "
+                    "virtual rig) to range maps and textured models, streamed to Rerun.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--version", action="version", version=f"slscan {__version__}")
+    parser.add_argument("-v", "--verbose", action="store_true", help="more log messages")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    p = sub.add_parser(
+        "demo", help="scan the built-in figurine on the virtual rig (start here)",
+        description="Capture the built-in figurine on the virtual rig at the paper's settings: "
+                    "white, black, 9 hybrid patterns and 6 ring-light images per view, with "
+                    "per-pixel ground truth. Writes a capture session folder.",
+        epilog="example:\n  slscan demo --out demo-scan --save demo-scan.rrd",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    _add_capture_options(p, demo=True)
+    p.set_defaults(func=lambda a: _cmd_capture(a, demo=True))
+
+    p = sub.add_parser(
+        "capture", help="capture a scene on the virtual rig (object, tile or your mesh)",
+        description="Render a capture session of a scene on the virtual rig: the chosen patterns, "
+                    "ring-light images and per-pixel ground truth for every view.",
+        epilog="examples:\n  slscan capture --scene tile --out tile-scan\n"
+               "  slscan capture --scene statue.glb --views 8 --patterns both --out statue-scan",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    _add_capture_options(p, demo=False)
+    p.set_defaults(func=_cmd_capture)
+
+    p = sub.add_parser(
+        "patterns", help="write pattern images for a real projector",
+        description="Write the pattern images (PNG, shown full-screen on the projector, in file "
+                    "order) and patterns.json describing each one.",
+    )
+    p.add_argument("--out", required=True, type=Path, help="folder to create")
+    p.add_argument("--family", choices=("hybrid", "gray", "both"), default="hybrid", help="default: hybrid")
+    p.add_argument("--width", type=int, default=1024, help="projector width, px (default 1024)")
+    p.add_argument("--height", type=int, default=768, help="projector height, px (default 768)")
+    p.add_argument("--levels", type=int, default=9, help="hybrid levels (default 9: 511 lines)")
+    p.add_argument("--rows", action="store_true", help="Gray code: also row patterns")
+    p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    p.set_defaults(func=_cmd_patterns)
+
+    p = sub.add_parser(
+        "import", help="turn another tool's captures into a capture session",
+        description="Import captures made by another tool. kamino410: procam-calibration's "
+                    "42 Gray-code images per pose (a folder of capture_N folders, or one).",
+    )
+    p.add_argument("src", type=Path, help="folder with the other tool's captures")
+    p.add_argument("--format", choices=("kamino410",), default="kamino410", help="default: kamino410")
+    p.add_argument("--out", required=True, type=Path, help="capture-session folder to create")
+    p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_import)
+
+    p = sub.add_parser("info", help="check a capture session and summarise it",
+                       description="Validate every image of a capture session against its metadata and summarise it.")
+    p.add_argument("session", type=Path, help="capture-session folder")
+    p.set_defaults(func=_cmd_info)
+
+    p = sub.add_parser("layouts", help="write the Rerun viewer layouts (.rbl)",
+                       description="Write the Rerun blueprints that arrange each stage's views.")
+    p.add_argument("--out", type=Path, default=Path("viewer_layouts"), help="default: viewer_layouts")
+    p.set_defaults(func=_cmd_layouts)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 1
+    from rich.logging import RichHandler
+
+    logging.basicConfig(
+        level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s",
+        handlers=[RichHandler(console=_console(), show_path=False, show_time=False)],
+    )
+    try:
+        return int(args.func(args) or 0)
+    except SlscanError as exc:
+        _console().print(f"[red]slscan: error:[/] {exc}", highlight=False, soft_wrap=True)
+        return 2
+    except KeyboardInterrupt:
+        _console().print("[red]slscan: interrupted[/]")
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,88 @@
+"""Rerun blueprints that arrange the views of each pipeline stage; saved to ``viewer_layouts/``.
+
+Open a recording with a layout: ``rerun scan.rrd viewer_layouts/capture.rbl``. Blueprints
+are saved for application id ``"slscan"``, the id :func:`slscan.viewer.recording.open_recording`
+uses by default.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+import rerun.blueprint as rrb
+
+from slscan.fsio import atomic_output_file
+from slscan.viewer.recording import VIEW_TIMELINE, readable_by_all
+
+APPLICATION_ID = "slscan"
+
+TRUTH_LAYERS = (
+    ("depth", "Depth (mm)"),
+    ("normal", "Normal"),
+    ("albedo", "Albedo"),
+    ("projector_column", "Projector column"),
+    ("visibility", "Visibility"),
+)
+
+
+def _image_view(origin: str, entity: str, name: str) -> rrb.Spatial2DView:
+    """A 2D view of one image entity under the pinhole at ``origin``."""
+    return rrb.Spatial2DView(origin=origin, contents=f"$origin/{entity}", name=name)
+
+
+def capture_blueprint() -> rrb.Blueprint:
+    """Capture stage: the rig in 3D beside the camera frame, the pattern and the truth layers.
+
+    Left: 3D view of ``world`` — frusta, lights, scene mesh, true surface points and the
+    current capture on the camera's image plane (truth images and the pattern are left out
+    of 3D so they do not cut through the scene). Right: the capture and the projected
+    pattern side by side; tabs with the truth layers; the frame log. Time panel on the
+    view timeline.
+    """
+    scene = rrb.Spatial3DView(
+        origin="world",
+        contents=[
+            "+ $origin/**",
+            "- $origin/camera/image/truth/**",
+            "- $origin/projector/image/pattern",
+        ],
+        name="Rig and scene",
+    )
+    frames = rrb.Horizontal(
+        _image_view("world/camera/image", "capture", "Capture"),
+        _image_view("world/projector/image", "pattern", "Pattern"),
+    )
+    truth = rrb.Tabs(
+        *(_image_view("world/camera/image", f"truth/{layer}", name) for layer, name in TRUTH_LAYERS),
+        name="Ground truth",
+    )
+    log = rrb.TextLogView(origin="log", name="Frames")
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            scene,
+            rrb.Vertical(frames, truth, log, row_shares=[3, 3, 1]),
+            column_shares=[1, 1],
+        ),
+        rrb.TimePanel(expanded=True, timeline=VIEW_TIMELINE),
+        rrb.SelectionPanel(expanded=False),
+        collapse_panels=False,
+    )
+
+
+LAYOUTS: dict[str, Callable[[], rrb.Blueprint]] = {"capture": capture_blueprint}
+"""Blueprint builders by stage name; :func:`save_layouts` writes ``<name>.rbl`` for each."""
+
+
+def save_layouts(out_dir: str | os.PathLike) -> list[Path]:
+    """Write every layout in :data:`LAYOUTS` as ``out_dir/<name>.rbl``; return the paths."""
+    out = Path(out_dir)
+    paths = []
+    for name, build in LAYOUTS.items():
+        path = out / f"{name}.rbl"
+        with atomic_output_file(path) as tmp:
+            build().save(APPLICATION_ID, tmp)
+            readable_by_all(tmp)
+        paths.append(path)
+    return paths

@@ -1,0 +1,195 @@
+"""Rerun recording streams for slscan: open the sinks a command asks for, close them cleanly.
+
+Library code never touches Rerun's global recording: every ``log_*`` function takes the
+stream returned by :func:`open_recording` (or ``None``, which turns logging off)::
+
+    with open_recording(save="scan.rrd", spawn=True, recording_name="capture") as rec:
+        log_rig(rec, rig)
+
+Timelines (see ``DESIGN.md``, "Rerun conventions"):
+
+- :data:`VIEW_TIMELINE` — the view (range map) index;
+- :data:`FRAME_TIMELINE` — the pattern / frame index within a view;
+- :data:`STAGE_TIMELINE` — the pipeline stage.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import logging
+import os
+import shutil
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import rerun as rr
+
+from slscan.errors import SlscanError
+from slscan.fsio import atomic_output_file
+
+VIEW_TIMELINE = "view"
+FRAME_TIMELINE = "frame"
+STAGE_TIMELINE = "stage"
+
+DEFAULT_PORT = 9876
+DEFAULT_CONNECT_URL = f"rerun+http://127.0.0.1:{DEFAULT_PORT}/proxy"
+
+logger = logging.getLogger(__name__)
+
+
+def _grpc_sink(url: str) -> rr.GrpcSink:
+    try:
+        return rr.GrpcSink(url)
+    except RuntimeError as exc:
+        raise SlscanError(
+            f"--connect {url!r}: not a Rerun viewer URL ({_first_line(exc)}); "
+            f"expected e.g. {DEFAULT_CONNECT_URL}"
+        ) from None
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+def _rerun_executable() -> str | None:
+    """Path of the ``rerun`` viewer, also when the venv's ``bin`` is not on ``PATH``."""
+    if shutil.which("rerun"):
+        return None  # let rerun search PATH itself
+    beside = Path(sys.executable).with_name("rerun.exe" if os.name == "nt" else "rerun")
+    return str(beside) if beside.is_file() else None
+
+
+def _spawn_viewer(rec: rr.RecordingStream, port: int) -> str:
+    """Start a viewer on ``port`` (or reuse one already there); return its gRPC URL."""
+    try:
+        rr.spawn(port=port, connect=False, executable_path=_rerun_executable(), recording=rec)
+    except RuntimeError as exc:
+        raise SlscanError(f"--spawn: could not start the Rerun viewer ({_first_line(exc)})") from None
+    return f"rerun+http://127.0.0.1:{port}/proxy"
+
+
+def readable_by_all(path: str | os.PathLike) -> None:
+    """Give a finished temporary file the mode a plain ``open`` would (``0o666`` less umask).
+
+    :func:`slscan.fsio.atomic_output_file` makes its files with ``mkstemp``, mode ``0o600``.
+    """
+    mask = os.umask(0)
+    os.umask(mask)
+    os.chmod(path, 0o666 & ~mask)
+
+
+def _close(rec: rr.RecordingStream) -> None:
+    """Flush every sink and close them; files are complete on disk when this returns."""
+    try:
+        rec.flush()
+    except RuntimeError as exc:  # e.g. the viewer went away; the file sink is still flushed below
+        logger.warning("rerun: %s", _first_line(exc))
+    finally:
+        rec.disconnect()
+
+
+@contextlib.contextmanager
+def open_recording(
+    *,
+    save: str | os.PathLike | None = None,
+    spawn: bool = False,
+    connect: str | None = None,
+    application_id: str = "slscan",
+    recording_name: str | None = None,
+    blueprint: rr.blueprint.BlueprintLike | None = None,
+) -> Iterator[rr.RecordingStream | None]:
+    """Yield a recording stream sending to every sink asked for, or ``None`` if none is.
+
+    save : path of an ``.rrd`` file. It is written beside the target as
+        ``.NAME.partial-*.rrd`` and renamed into place only when the block succeeds; if the
+        block raises, the partial file is removed and an existing ``save`` is left as it was.
+    spawn : start a Rerun viewer (or reuse the one on port 9876) and stream to it.
+    connect : stream to a running viewer or server at this URL, e.g.
+        ``rerun+http://127.0.0.1:9876/proxy``; ``""`` means that default URL.
+    application_id : groups recordings in the viewer; blueprints (``viewer_layouts/``) are
+        saved for ``"slscan"``.
+    recording_name : shown in the viewer's recording list.
+    blueprint : default layout sent with the recording (e.g.
+        :func:`slscan.viewer.layouts.capture_blueprint`).
+
+    Several sinks at once work (``save`` with ``spawn`` and/or ``connect``). The stream is
+    never made the global or thread default. Raises :class:`SlscanError` for a bad URL, a
+    viewer that cannot be started or a path that cannot be written.
+    """
+    if save is None and not spawn and connect is None:
+        yield None
+        return
+
+    urls: list[str] = []
+    if connect is not None:
+        urls.append(connect.strip() or DEFAULT_CONNECT_URL)
+    sinks: list = [_grpc_sink(url) for url in urls]  # validate URLs before any side effect
+
+    if save is not None:
+        target = Path(save)
+        if target.is_dir():
+            raise SlscanError(f"{target}: is a folder; expected a recording file name such as scan.rrd")
+
+    with contextlib.ExitStack() as stack:
+        tmp = stack.enter_context(atomic_output_file(save)) if save is not None else None
+        rec = rr.RecordingStream(application_id, make_default=False, make_thread_default=False)
+        if spawn:
+            url = _spawn_viewer(rec, DEFAULT_PORT)
+            if url not in urls:  # --spawn with the default --connect: one sink, not two
+                urls.append(url)
+                sinks.append(_grpc_sink(url))
+        if tmp is not None:
+            sinks.append(rr.FileSink(tmp))
+        try:
+            rec.set_sinks(*sinks, default_blueprint=blueprint)
+        except (RuntimeError, ValueError) as exc:
+            rec.disconnect()
+            raise SlscanError(f"rerun: cannot open the recording sinks ({_first_line(exc)})") from None
+        if recording_name:
+            rec.send_recording_name(recording_name)
+        try:
+            yield rec
+        except BaseException:
+            _close(rec)
+            raise
+        _close(rec)
+        if tmp is not None:
+            if not os.path.getsize(tmp):
+                raise SlscanError(f"{save}: Rerun wrote nothing to the recording (is the folder writable?)")
+            readable_by_all(tmp)
+
+
+def add_recording_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add ``--save FILE.rrd``, ``--spawn`` and ``--connect [URL]`` to ``parser``."""
+    group = parser.add_argument_group("Rerun viewer", "stream what this command does to Rerun")
+    group.add_argument(
+        "--save", metavar="FILE.rrd", default=None,
+        help="write a Rerun recording; open it later with `rerun FILE.rrd viewer_layouts/<stage>.rbl`",
+    )
+    group.add_argument(
+        "--spawn", action="store_true",
+        help=f"start a Rerun viewer (or reuse the one on port {DEFAULT_PORT}) and stream to it live",
+    )
+    group.add_argument(
+        "--connect", metavar="URL", nargs="?", const=DEFAULT_CONNECT_URL, default=None,
+        help=f"stream to a running Rerun viewer or server (default URL: {DEFAULT_CONNECT_URL})",
+    )
+
+
+def recording_from_args(
+    args: argparse.Namespace,
+    *,
+    recording_name: str | None = None,
+    blueprint: rr.blueprint.BlueprintLike | None = None,
+) -> contextlib.AbstractContextManager[rr.RecordingStream | None]:
+    """:func:`open_recording` for the options added by :func:`add_recording_arguments`."""
+    return open_recording(
+        save=getattr(args, "save", None),
+        spawn=bool(getattr(args, "spawn", False)),
+        connect=getattr(args, "connect", None),
+        recording_name=recording_name,
+        blueprint=blueprint,
+    )

@@ -1,0 +1,342 @@
+"""Scenes for the virtual rig: the built-in figurine, the flat tile, and user meshes.
+
+A scene is a triangle mesh in its own object frame (mm, y down like the rig, front
+towards -z, i.e. towards the camera when placed in front of it) with shading normals,
+an albedo source and a specular lobe.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from slscan.errors import SlscanError
+from slscan.rig import rotation_about_axis
+
+log = logging.getLogger(__name__)
+
+MESH_SUFFIXES = (".ply", ".obj", ".gltf", ".glb", ".off", ".stl")
+
+
+class AlbedoSource(Protocol):
+    """Linear RGB reflectance at surface points."""
+
+    def at(self, points: np.ndarray, triangle_ids: np.ndarray, bary: np.ndarray) -> np.ndarray:
+        """Albedo (k, 3) in [0, 1] at object-frame ``points`` (k, 3) on ``triangle_ids`` (k,)
+        with barycentric ``bary`` (k, 2) (weights of the triangle's 2nd and 3rd vertex)."""
+
+    def vertex_colors(self, vertices: np.ndarray) -> np.ndarray:
+        """Albedo (n, 3) at the mesh vertices, for display and export."""
+
+
+@dataclass(frozen=True)
+class UniformAlbedo:
+    color: tuple[float, float, float]
+
+    def at(self, points, triangle_ids, bary):
+        return np.broadcast_to(np.asarray(self.color, np.float32), (len(points), 3)).copy()
+
+    def vertex_colors(self, vertices):
+        return np.broadcast_to(np.asarray(self.color, np.float32), (len(vertices), 3)).copy()
+
+
+@dataclass(frozen=True)
+class VertexColorAlbedo:
+    colors: np.ndarray  # (n, 3) float32 in [0, 1]
+    triangles: np.ndarray  # (m, 3)
+
+    def at(self, points, triangle_ids, bary):
+        c = self.colors[self.triangles[triangle_ids]]  # (k, 3 corners, 3)
+        w = np.stack([1 - bary[:, 0] - bary[:, 1], bary[:, 0], bary[:, 1]], axis=1)
+        return np.einsum("kc,kcj->kj", w, c).astype(np.float32)
+
+    def vertex_colors(self, vertices):
+        return self.colors
+
+
+@dataclass(frozen=True)
+class TextureAlbedo:
+    uvs: np.ndarray  # (m, 3, 2) per-corner texture coordinates, (0, 0) bottom-left
+    texture: np.ndarray  # (th, tw, 3) float32 linear in [0, 1]
+    per_vertex: np.ndarray  # (n, 3) fallback colours for display
+
+    def at(self, points, triangle_ids, bary):
+        w = np.stack([1 - bary[:, 0] - bary[:, 1], bary[:, 0], bary[:, 1]], axis=1)
+        uv = np.einsum("kc,kcj->kj", w, self.uvs[triangle_ids])
+        th, tw = self.texture.shape[:2]
+        x = np.clip(uv[:, 0] * tw - 0.5, 0, tw - 1)
+        y = np.clip((1 - uv[:, 1]) * th - 0.5, 0, th - 1)
+        x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+        x1, y1 = np.minimum(x0 + 1, tw - 1), np.minimum(y0 + 1, th - 1)
+        fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+        t = self.texture
+        top = t[y0, x0] * (1 - fx) + t[y0, x1] * fx
+        bottom = t[y1, x0] * (1 - fx) + t[y1, x1] * fx
+        return (top * (1 - fy) + bottom * fy).astype(np.float32)
+
+    def vertex_colors(self, vertices):
+        return self.per_vertex
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A mesh to scan.
+
+    vertices : (n, 3) float64 mm, object frame
+    triangles : (m, 3) int32
+    normals : (n, 3) float64 unit shading normals, or None for flat (face) shading
+    albedo : where the surface colour comes from
+    specular : Blinn-Phong specular reflectance (white), 0 for matte
+    shininess : Blinn-Phong exponent
+    """
+
+    name: str
+    vertices: np.ndarray
+    triangles: np.ndarray
+    normals: np.ndarray | None
+    albedo: AlbedoSource
+    specular: float = 0.0
+    shininess: float = 40.0
+
+    def __post_init__(self) -> None:
+        if len(self.triangles) == 0:
+            raise SlscanError(f"scene {self.name!r}: the mesh has no faces")
+        if len(self.vertices) < 3:
+            raise SlscanError(f"scene {self.name!r}: the mesh has fewer than 3 vertices")
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.vertices.min(axis=0), self.vertices.max(axis=0)
+
+
+# --- mesh helpers -------------------------------------------------------------------
+
+
+def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Area-weighted vertex normals (n, 3)."""
+    v = vertices[triangles]
+    face = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    normals = np.zeros_like(vertices)
+    for c in range(3):
+        np.add.at(normals, triangles[:, c], face)
+    norm = np.linalg.norm(normals, axis=1, keepdims=True)
+    return normals / np.where(norm > 0, norm, 1)
+
+
+def _uv_sphere(n_lat: int, n_lon: int) -> tuple[np.ndarray, np.ndarray]:
+    """Unit sphere (vertices, triangles) with poles on the y axis."""
+    lat = np.linspace(0, np.pi, n_lat + 1)[1:-1]
+    lon = np.linspace(0, 2 * np.pi, n_lon, endpoint=False)
+    la, lo = np.meshgrid(lat, lon, indexing="ij")
+    ring = np.stack([np.sin(la) * np.cos(lo), -np.cos(la), np.sin(la) * np.sin(lo)], axis=-1).reshape(-1, 3)
+    verts = np.concatenate([[[0, -1, 0]], ring, [[0, 1, 0]]])
+    tris = []
+    idx = lambda i, j: 1 + i * n_lon + (j % n_lon)  # noqa: E731
+    for j in range(n_lon):
+        tris.append((0, idx(0, j + 1), idx(0, j)))
+        tris.append((len(verts) - 1, idx(n_lat - 2, j), idx(n_lat - 2, j + 1)))
+    i, j = np.meshgrid(np.arange(n_lat - 2), np.arange(n_lon), indexing="ij")
+    a, b, c, d = idx(i, j), idx(i, j + 1), idx(i + 1, j), idx(i + 1, j + 1)
+    quads = np.concatenate(
+        [np.stack([a, b, c], -1).reshape(-1, 3), np.stack([b, d, c], -1).reshape(-1, 3)]
+    )
+    return verts.astype(float), np.concatenate([np.array(tris), quads]).astype(np.int32)
+
+
+def _torus(major: float, minor: float, n_major: int, n_minor: int) -> tuple[np.ndarray, np.ndarray]:
+    """Torus around the z axis (vertices, triangles)."""
+    a = np.linspace(0, 2 * np.pi, n_major, endpoint=False)
+    b = np.linspace(0, 2 * np.pi, n_minor, endpoint=False)
+    A, B = np.meshgrid(a, b, indexing="ij")
+    r = major + minor * np.cos(B)
+    verts = np.stack([r * np.cos(A), r * np.sin(A), minor * np.sin(B)], -1).reshape(-1, 3)
+    i, j = np.meshgrid(np.arange(n_major), np.arange(n_minor), indexing="ij")
+    idx = lambda i, j: (i % n_major) * n_minor + (j % n_minor)  # noqa: E731
+    a0, a1, b0, b1 = idx(i, j), idx(i + 1, j), idx(i, j + 1), idx(i + 1, j + 1)
+    tris = np.concatenate([np.stack([a0, a1, b0], -1).reshape(-1, 3), np.stack([a1, b1, b0], -1).reshape(-1, 3)])
+    return verts, tris.astype(np.int32)
+
+
+def _cylinder(radius: float, y0: float, y1: float, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Closed cylinder along y from ``y0`` to ``y1`` (vertices, triangles)."""
+    a = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    ring = np.stack([radius * np.cos(a), np.zeros(n), radius * np.sin(a)], -1)
+    top, bottom = ring + [0, y0, 0], ring + [0, y1, 0]
+    verts = np.concatenate([top, bottom, [[0, y0, 0], [0, y1, 0]]])
+    i = np.arange(n)
+    j = (i + 1) % n
+    side = np.concatenate([np.stack([i, n + i, j], -1), np.stack([j, n + i, n + j], -1)])
+    caps = np.concatenate([np.stack([np.full(n, 2 * n), i, j], -1), np.stack([np.full(n, 2 * n + 1), n + j, n + i], -1)])
+    return verts, np.concatenate([side, caps]).astype(np.int32)
+
+
+def _relief(points: np.ndarray) -> np.ndarray:
+    """Surface relief (k,) mm in [-1, 1]: carved ripples of 9-25 mm wavelength."""
+    x, y, z = points.T
+    return (
+        0.45 * np.sin(2 * np.pi * x / 17.0) * np.sin(2 * np.pi * y / 23.0)
+        + 0.35 * np.sin(2 * np.pi * (x + z) / 11.0)
+        + 0.2 * np.cos(2 * np.pi * (y - 0.5 * z) / 9.0)
+    )
+
+
+def _paint(points: np.ndarray, part: np.ndarray) -> np.ndarray:
+    """The figurine's painted albedo (k, 3): stone, saturated red and blue paint, dark ink."""
+    x, y, z = points.T
+    mottling = 1 + 0.08 * np.sin(x / 13.0) * np.cos(z / 17.0) + 0.05 * np.sin(y / 7.0 + x / 29.0)
+    color = np.array([0.62, 0.55, 0.45])[None, :] * mottling[:, None]
+    red = (part == 0) & (np.abs(y - 35) < 16)  # a saturated red sash around the body
+    color[red] = [0.75, 0.04, 0.03]
+    blue_spots = (part == 0) & (np.sin(x / 9.0) * np.sin(y / 11.0 + 1.0) * np.cos(z / 10.0) > 0.45)
+    color[blue_spots] = [0.04, 0.10, 0.72]
+    cap = (part == 1) & (y < -205)  # a blue cap on the head
+    color[cap] = [0.05, 0.12, 0.75]
+    ink = (part == 0) & (np.abs(np.sin(x / 6.0 + y / 40.0)) < 0.06) & (y > 60)  # dark ink lines
+    color[ink] = [0.07, 0.06, 0.05]
+    color[part == 2] = [0.80, 0.62, 0.22]  # gilded ring
+    color[part == 3] = [0.86, 0.85, 0.82]  # white arm
+    base_stripes = (part == 4) & (np.sin(np.arctan2(z, x) * 12) > 0.3)
+    color[part == 4] = [0.30, 0.32, 0.36]
+    color[base_stripes] = [0.70, 0.06, 0.05]
+    return np.clip(color, 0, 1).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class _PartAlbedo:
+    part_of_triangle: np.ndarray
+    part_of_vertex: np.ndarray
+
+    def at(self, points, triangle_ids, bary):
+        return _paint(points, self.part_of_triangle[triangle_ids])
+
+    def vertex_colors(self, vertices):
+        return _paint(vertices, self.part_of_vertex)
+
+
+def builtin_object(*, detail: float = 1.0) -> Scene:
+    """The built-in figurine, about 300 mm tall, centred on the object origin.
+
+    A bumpy body with ~1 mm carved relief, a head with a cap, a gilded ring on its left
+    (the camera sees the body through it), an arm reaching towards the camera and the
+    projector (it casts projector shadows on the body), and a striped pedestal. The paint
+    includes saturated red and blue, which fool colour-coded patterns (paper §3.1).
+    ``detail`` scales the tessellation (1.0: ~2 mm triangles on the body).
+    """
+    parts = []
+
+    def add(verts, tris, part, relief=0.0):
+        normals = _vertex_normals(verts, tris)
+        if relief:
+            verts = verts + relief * _relief(verts)[:, None] * normals
+        parts.append((verts, tris, part))
+
+    n = max(16, int(round(300 * detail)))
+    v, t = _uv_sphere(n // 2, n)
+    body_r = np.array([100.0, 120.0, 85.0])
+    wobble = 1 + 0.07 * np.sin(3 * np.arctan2(v[:, 2], v[:, 0])) * np.cos(2 * v[:, 1])
+    add(v * body_r * wobble[:, None] + [0, 20, 0], t, 0, relief=1.0)
+    v, t = _uv_sphere(max(12, n // 4), max(16, n // 2))
+    add(v * 58.0 + [0, -150, -5], t, 1, relief=1.0)
+    v, t = _torus(46.0, 12.0, max(24, n // 3), max(12, n // 10))
+    v = v @ rotation_about_axis([0, 1, 0], math.radians(60)).T + [-108, -10, -20]
+    add(v, t, 2)
+    v, t = _cylinder(17.0, 0.0, 1.0, max(16, n // 8))
+    # arm: a capped tube from the body towards the camera; it shadows the body from the projector
+    start, end = np.array([40.0, 10.0, -50.0]), np.array([25.0, 30.0, -175.0])
+    axis = (end - start) / np.linalg.norm(end - start)
+    v = v.copy()
+    v[:, 1] *= np.linalg.norm(end - start)
+    rot_axis = np.cross([0, 1, 0], axis)
+    angle = math.acos(np.clip(axis[1], -1, 1))
+    v = v @ rotation_about_axis(rot_axis, angle).T + start
+    add(v, t, 3)
+    v, t = _cylinder(95.0, 135.0, 175.0, max(32, n // 2))
+    add(v, t, 4)
+
+    offsets = np.cumsum([0] + [len(p[0]) for p in parts[:-1]])
+    vertices = np.concatenate([p[0] for p in parts])
+    triangles = np.concatenate([p[1] + o for p, o in zip(parts, offsets)]).astype(np.int32)
+    part_t = np.concatenate([np.full(len(p[1]), p[2]) for p in parts])
+    part_v = np.concatenate([np.full(len(p[0]), p[2]) for p in parts])
+    # shading normals per part (smooth within a part, hard between parts)
+    normals = np.concatenate([_vertex_normals(p[0], p[1]) for p in parts])
+    return Scene("figurine", vertices, triangles, normals, _PartAlbedo(part_t, part_v), specular=0.12, shininess=30.0)
+
+
+def flat_tile(*, width: float = 400.0, height: float = 300.0, thickness: float = 12.0,
+              tilt_deg: tuple[float, float] = (15.0, 8.0), albedo: float = 0.8) -> Scene:
+    """A flat ceramic tile facing the camera, tilted by ``tilt_deg`` (about y, about x)."""
+    hx, hy, hz = width / 2, height / 2, thickness / 2
+    corners = np.array([[x, y, z] for z in (-hz, hz) for y in (-hy, hy) for x in (-hx, hx)])
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    tris = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))], dtype=np.int32)
+    # make faces wind outwards
+    centroid = corners.mean(axis=0)
+    v = corners[tris]
+    face_n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    flip = np.einsum("ij,ij->i", face_n, v.mean(axis=1) - centroid) < 0
+    tris[flip] = tris[flip][:, ::-1]
+    r = rotation_about_axis([0, 1, 0], math.radians(tilt_deg[0])) @ rotation_about_axis([1, 0, 0], math.radians(tilt_deg[1]))
+    return Scene("tile", corners @ r.T, tris, None, UniformAlbedo((albedo, albedo, albedo * 0.97)), specular=0.03, shininess=60.0)
+
+
+def load_mesh_scene(path: str | os.PathLike, *, units: str = "auto", specular: float = 0.05) -> Scene:
+    """A user mesh (PLY/OBJ/glTF/GLB/OFF/STL) with its texture or vertex colours.
+
+    The mesh is assumed y-up (glTF, Stanford scans) and is turned to the rig's y-down,
+    front-to-camera frame and centred. ``units``: {"auto", "mm", "m"}; "auto" takes a mesh
+    smaller than 10 units across to be in metres.
+    """
+    import open3d as o3d
+
+    path = Path(path)
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        raise SlscanError(f"{path}: unknown mesh format {path.suffix!r}; expected one of {', '.join(MESH_SUFFIXES)}")
+    if not path.is_file():
+        raise SlscanError(f"{path}: mesh file not found")
+    mesh = o3d.io.read_triangle_mesh(str(path), enable_post_processing=True)
+    vertices = np.asarray(mesh.vertices, dtype=float)
+    triangles = np.asarray(mesh.triangles, dtype=np.int32)
+    if len(triangles) == 0 or len(vertices) < 3:
+        raise SlscanError(f"{path}: the mesh has no faces (a point cloud cannot be scanned)")
+    if units not in ("auto", "mm", "m"):
+        raise SlscanError(f"unknown units {units!r}: expected auto, mm or m")
+    diag = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
+    if units == "m" or (units == "auto" and diag < 10.0):
+        if units == "auto":
+            log.warning("%s is %.3g units across: taking it to be in metres", path, diag)
+        vertices = vertices * 1000.0
+    vertices = (vertices - (vertices.max(0) + vertices.min(0)) / 2) * [1, -1, -1]
+    normals = _vertex_normals(vertices, triangles)
+    if mesh.has_vertex_colors():
+        colors = np.asarray(mesh.vertex_colors, dtype=np.float32)
+    else:
+        colors = np.full((len(vertices), 3), 0.7, np.float32)
+    albedo: AlbedoSource
+    if mesh.has_triangle_uvs() and len(mesh.textures) > 0 and np.asarray(mesh.textures[0]).size:
+        tex = np.asarray(mesh.textures[0])
+        tex = tex[..., :3].astype(np.float32) / (65535.0 if tex.dtype == np.uint16 else 255.0)
+        tex = np.where(tex <= 0.04045, tex / 12.92, ((tex + 0.055) / 1.055) ** 2.4)  # sRGB -> linear
+        uvs = np.asarray(mesh.triangle_uvs, dtype=np.float64).reshape(-1, 3, 2)
+        uvs[..., 1] = 1 - uvs[..., 1]  # open3d stores v downwards
+        albedo = TextureAlbedo(uvs, tex.astype(np.float32), colors)
+    elif mesh.has_vertex_colors():
+        albedo = VertexColorAlbedo(colors, triangles)
+    else:
+        albedo = UniformAlbedo((0.7, 0.7, 0.7))
+    return Scene(path.stem, vertices, triangles, normals, albedo, specular=specular)
+
+
+def scene_by_name(name: str, **kwargs) -> Scene:
+    """``"object"`` (built-in figurine), ``"tile"``, or a mesh file path."""
+    if name == "object":
+        return builtin_object(**kwargs)
+    if name == "tile":
+        return flat_tile(**kwargs)
+    return load_mesh_scene(name, **kwargs)
