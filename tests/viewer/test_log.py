@@ -63,6 +63,7 @@ def test_capture_stage_round_trip(tmp_path, rig):
     vertices = np.array([[-50, -50, 1300], [50, -50, 1300], [0, 50, 1300]], float)
     triangles = np.array([[0, 1, 2]])
     rng = np.random.default_rng(0)
+    lens = rig.projector.lens
     with open_recording(save=out, recording_name="test") as rec:
         assert rec is not None
         log_rig(rec, rig)
@@ -70,17 +71,20 @@ def test_capture_stage_round_trip(tmp_path, rig):
             log_scene_mesh(rec, vertices, triangles, np.ones((3, 3)) * 0.5, view_index=view)
             log_ground_truth(rec, gt, view_index=view, projector_width=rig.projector.lens.width)
             for frame in range(3):
-                pattern = rng.integers(0, 256, (rig.projector.lens.height, rig.projector.lens.width, 3), np.uint8)
+                pattern = rng.integers(0, 256, (lens.height, lens.width, 3), np.uint8)
                 log_pattern(rec, pattern, view_index=view, frame_index=frame)
                 image = rng.integers(0, 65536, (h, w, 3), np.uint16)
                 log_capture(rec, image, view_index=view, frame_index=frame, label=f"p{frame}")
-            log_capture(rec, image[..., 0], view_index=view, frame_index=3, label="raw", compress=False)
+            log_capture(
+                rec, image[..., 0], view_index=view, frame_index=3, label="raw", compress=False
+            )
     assert out.is_file()
     assert not list(tmp_path.glob(".*partial*"))
 
     paths = entity_paths(out)
     expected = {
-        "/world", "/world/camera", "/world/camera/image", "/world/projector", "/world/projector/image",
+        "/world", "/world/camera", "/world/camera/image",
+        "/world/projector", "/world/projector/image",
         "/world/lights", "/world/scene/mesh", "/world/camera/image/capture",
         "/world/projector/image/pattern", "/log/capture",
         "/world/scans/view_000/truth_points", "/world/scans/view_001/truth_points",
@@ -92,10 +96,11 @@ def test_capture_stage_round_trip(tmp_path, rig):
 
     # the capture is on both timelines; 2 views x 4 frames
     store = RrdReader(out).store()
-    chunks = [c for c in store.stream().to_chunks() if c.entity_path == "/world/camera/image/capture"]
+    all_chunks = store.stream().to_chunks()
+    chunks = [c for c in all_chunks if c.entity_path == "/world/camera/image/capture"]
     assert sum(c.num_rows for c in chunks) == 8
     assert all({VIEW_TIMELINE, FRAME_TIMELINE} <= set(c.timeline_names) for c in chunks)
-    statics = {c.entity_path for c in store.stream().to_chunks() if c.is_static}
+    statics = {c.entity_path for c in all_chunks if c.is_static}
     assert {"/world", "/world/camera/image", "/world/projector", "/world/lights"} <= statics
 
 

@@ -168,7 +168,7 @@ class PinholeModel:
             raise SlscanError(f"{what}: {exc}") from None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Projector:
     """The projector as an inverse pinhole camera placed in the rig frame.
 
@@ -181,6 +181,13 @@ class Projector:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "rig_from_projector", _as_pose(self.rig_from_projector, "projector pose"))
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Projector):
+            return NotImplemented
+        return self.lens == other.lens and np.array_equal(self.rig_from_projector, other.rig_from_projector)
+
+    __hash__ = None  # mutable array inside
 
     @property
     def center(self) -> np.ndarray:

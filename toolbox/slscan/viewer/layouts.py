@@ -55,7 +55,10 @@ def capture_blueprint() -> rrb.Blueprint:
         _image_view("world/projector/image", "pattern", "Pattern"),
     )
     truth = rrb.Tabs(
-        *(_image_view("world/camera/image", f"truth/{layer}", name) for layer, name in TRUTH_LAYERS),
+        *(
+            _image_view("world/camera/image", f"truth/{layer}", name)
+            for layer, name in TRUTH_LAYERS
+        ),
         name="Ground truth",
     )
     log = rrb.TextLogView(origin="log", name="Frames")

@@ -111,7 +111,8 @@ def _colors_u8(colors: np.ndarray) -> np.ndarray:
 def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals (n, 3) float32 for shading."""
     v = vertices.astype(np.float64, copy=False)
-    face = np.cross(v[triangles[:, 1]] - v[triangles[:, 0]], v[triangles[:, 2]] - v[triangles[:, 0]])
+    a, b, c = v[triangles[:, 0]], v[triangles[:, 1]], v[triangles[:, 2]]
+    face = np.cross(b - a, c - a)
     normals = np.zeros_like(v)
     for k in range(3):
         np.add.at(normals, triangles[:, k], face)
@@ -119,7 +120,9 @@ def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return (normals / np.where(length > 0, length, 1.0)).astype(np.float32)
 
 
-def _pinhole(lens: PinholeModel, image_plane_distance: float, color: tuple[int, int, int]) -> rr.Pinhole:
+def _pinhole(
+    lens: PinholeModel, image_plane_distance: float, color: tuple[int, int, int]
+) -> rr.Pinhole:
     return rr.Pinhole(
         image_from_camera=lens.K,
         resolution=[lens.width, lens.height],
@@ -141,14 +144,16 @@ def log_rig(rec: rr.RecordingStream | None, rig: Rig) -> None:
     if rec is None:
         return
     rec.log("world", rr.ViewCoordinates.RDF, static=True)
-    rec.log("world/camera", rr.Transform3D(translation=[0.0, 0.0, 0.0], mat3x3=np.eye(3)), static=True)
+    identity = rr.Transform3D(translation=[0.0, 0.0, 0.0], mat3x3=np.eye(3))
+    rec.log("world/camera", identity, static=True)
     rec.log(
         "world/camera/image",
         _pinhole(rig.camera, CAMERA_IMAGE_PLANE_MM, CAMERA_COLOR),
         static=True,
     )
     pose = rig.projector.rig_from_projector
-    rec.log("world/projector", rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]), static=True)
+    rig_from_projector = rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3])
+    rec.log("world/projector", rig_from_projector, static=True)
     rec.log(
         "world/projector/image",
         _pinhole(rig.projector.lens, rig.working_distance, PROJECTOR_COLOR),
@@ -194,7 +199,8 @@ def log_scene_mesh(
         raise SlscanError(f"scene mesh: expected (m, 3) triangles, got shape {triangles.shape}")
     if vertex_colors is not None and np.shape(vertex_colors) != vertices.shape:
         raise SlscanError(
-            f"scene mesh: vertex colours have shape {np.shape(vertex_colors)}, vertices {vertices.shape}"
+            f"scene mesh: vertex colours have shape {np.shape(vertex_colors)}, "
+            f"vertices {vertices.shape}"
         )
     tri = triangles.astype(np.uint32)
     _set_view(rec, view_index)
@@ -234,7 +240,8 @@ def log_capture(
     else:
         archetype = rr.Image(image)
     rec.log(CAPTURE_PATH, archetype)
-    rec.log(CAPTURE_LOG_PATH, rr.TextLog(f"view {view_index} · frame {frame_index} · {label}", level="INFO"))
+    text = f"view {view_index} · frame {frame_index} · {label}"
+    rec.log(CAPTURE_LOG_PATH, rr.TextLog(text, level="INFO"))
 
 
 def log_pattern(
@@ -298,10 +305,20 @@ def log_ground_truth(
             )
     _set_view(rec, view_index)
 
-    depth = np.nan_to_num(gt.point[..., 2].astype(np.float32), nan=0.0)
-    rec.log(f"{TRUTH_PATH}/depth", rr.DepthImage(depth, meter=1000.0, colormap="Viridis"))
+    z = gt.point[..., 2].astype(np.float32)
+    finite = z[np.isfinite(z)]
+    depth_range = [float(finite.min()), float(finite.max())] if finite.size else None
+    if depth_range is not None and depth_range[1] <= depth_range[0]:
+        depth_range[1] = depth_range[0] + 1.0
+    rec.log(
+        f"{TRUTH_PATH}/depth",
+        rr.DepthImage(
+            np.nan_to_num(z, nan=0.0), meter=1000.0, colormap="Viridis", depth_range=depth_range
+        ),
+    )
 
-    normal = np.round((np.nan_to_num(gt.normal, nan=-1.0) + 1.0) * 127.5).clip(0, 255).astype(np.uint8)
+    normal = (np.nan_to_num(gt.normal, nan=-1.0) + 1.0) * 127.5
+    normal = np.round(normal).clip(0, 255).astype(np.uint8)
     rec.log(f"{TRUTH_PATH}/normal", _png(normal))
 
     albedo = _srgb(gt.albedo)

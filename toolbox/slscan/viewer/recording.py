@@ -67,7 +67,8 @@ def _spawn_viewer(rec: rr.RecordingStream, port: int) -> str:
     try:
         rr.spawn(port=port, connect=False, executable_path=_rerun_executable(), recording=rec)
     except RuntimeError as exc:
-        raise SlscanError(f"--spawn: could not start the Rerun viewer ({_first_line(exc)})") from None
+        reason = _first_line(exc)
+        raise SlscanError(f"--spawn: could not start the Rerun viewer ({reason})") from None
     return f"rerun+http://127.0.0.1:{port}/proxy"
 
 
@@ -131,7 +132,7 @@ def open_recording(
     if save is not None:
         target = Path(save)
         if target.is_dir():
-            raise SlscanError(f"{target}: is a folder; expected a recording file name such as scan.rrd")
+            raise SlscanError(f"{target}: is a folder; expected a recording file such as scan.rrd")
 
     with contextlib.ExitStack() as stack:
         tmp = stack.enter_context(atomic_output_file(save)) if save is not None else None
@@ -147,7 +148,8 @@ def open_recording(
             rec.set_sinks(*sinks, default_blueprint=blueprint)
         except (RuntimeError, ValueError) as exc:
             rec.disconnect()
-            raise SlscanError(f"rerun: cannot open the recording sinks ({_first_line(exc)})") from None
+            reason = _first_line(exc)
+            raise SlscanError(f"rerun: cannot open the recording sinks ({reason})") from None
         if recording_name:
             rec.send_recording_name(recording_name)
         try:
@@ -158,7 +160,7 @@ def open_recording(
         _close(rec)
         if tmp is not None:
             if not os.path.getsize(tmp):
-                raise SlscanError(f"{save}: Rerun wrote nothing to the recording (is the folder writable?)")
+                raise SlscanError(f"{save}: Rerun wrote nothing (is the folder writable?)")
             readable_by_all(tmp)
 
 
@@ -167,11 +169,11 @@ def add_recording_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("Rerun viewer", "stream what this command does to Rerun")
     group.add_argument(
         "--save", metavar="FILE.rrd", default=None,
-        help="write a Rerun recording; open it later with `rerun FILE.rrd viewer_layouts/<stage>.rbl`",
+        help="write a Rerun recording; view it with `rerun FILE.rrd viewer_layouts/capture.rbl`",
     )
     group.add_argument(
         "--spawn", action="store_true",
-        help=f"start a Rerun viewer (or reuse the one on port {DEFAULT_PORT}) and stream to it live",
+        help=f"start a Rerun viewer (or reuse the one on port {DEFAULT_PORT}) and stream to it",
     )
     group.add_argument(
         "--connect", metavar="URL", nargs="?", const=DEFAULT_CONNECT_URL, default=None,
