@@ -136,7 +136,9 @@ def _cmd_capture(args: argparse.Namespace, *, demo: bool = False) -> int:
             config = dataclasses.replace(config, levels=max_levels)
     total = config.views * images_per_view(config)
     t0 = time.perf_counter()
-    with recording_from_args(args, recording_name=f"capture {args.out.name}") as rec:
+    from slscan.viewer.layouts import capture_blueprint
+
+    with recording_from_args(args, recording_name=f"capture {args.out.name}", blueprint=capture_blueprint()) as rec:
         with _ProgressBar(total, "capturing", args.quiet) as bar:
             session = capture_session(config, args.out, overwrite=args.overwrite, rec=rec, progress=bar.step)
     elapsed = time.perf_counter() - t0

@@ -21,6 +21,17 @@ import numpy as np
 from slscan.errors import SlscanError
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _make_public(path: Path, mode: int) -> None:
+    """mkstemp/mkdtemp create private entries; give them the usual permissions."""
+    os.chmod(path, mode & ~_umask())
+
+
 @contextlib.contextmanager
 def atomic_output_dir(path: str | os.PathLike, *, overwrite: bool = False) -> Iterator[Path]:
     """Yield a temporary folder beside ``path``; rename it to ``path`` when the block succeeds.
@@ -44,6 +55,7 @@ def atomic_output_dir(path: str | os.PathLike, *, overwrite: bool = False) -> It
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    _make_public(tmp, 0o777)
     old = None
     if target.exists():
         old = target.with_name(f".{target.name}.old-{os.getpid()}")
@@ -69,6 +81,7 @@ def atomic_output_file(path: str | os.PathLike) -> Iterator[Path]:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+    _make_public(tmp, 0o666)
     os.replace(tmp, target)
 
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import rerun.blueprint as rrb
 
 from slscan.fsio import atomic_output_file
-from slscan.viewer.recording import VIEW_TIMELINE, readable_by_all
+from slscan.viewer.recording import VIEW_TIMELINE
 
 APPLICATION_ID = "slscan"
 
@@ -86,6 +86,5 @@ def save_layouts(out_dir: str | os.PathLike) -> list[Path]:
         path = out / f"{name}.rbl"
         with atomic_output_file(path) as tmp:
             build().save(APPLICATION_ID, tmp)
-            readable_by_all(tmp)
         paths.append(path)
     return paths

@@ -72,16 +72,6 @@ def _spawn_viewer(rec: rr.RecordingStream, port: int) -> str:
     return f"rerun+http://127.0.0.1:{port}/proxy"
 
 
-def readable_by_all(path: str | os.PathLike) -> None:
-    """Give a finished temporary file the mode a plain ``open`` would (``0o666`` less umask).
-
-    :func:`slscan.fsio.atomic_output_file` makes its files with ``mkstemp``, mode ``0o600``.
-    """
-    mask = os.umask(0)
-    os.umask(mask)
-    os.chmod(path, 0o666 & ~mask)
-
-
 def _close(rec: rr.RecordingStream) -> None:
     """Flush every sink and close them; files are complete on disk when this returns."""
     try:
@@ -161,7 +151,6 @@ def open_recording(
         if tmp is not None:
             if not os.path.getsize(tmp):
                 raise SlscanError(f"{save}: Rerun wrote nothing (is the folder writable?)")
-            readable_by_all(tmp)
 
 
 def add_recording_arguments(parser: argparse.ArgumentParser) -> None:

@@ -199,7 +199,7 @@ def capture_session(
                     progress(f"{name} {record.file}")
             truth = ground_truth(geom)
             truth.save(writer.view_folder(name) / "ground_truth.npz")
-            rlog.log_ground_truth(rec, truth, view_index=v)
+            rlog.log_ground_truth(rec, truth, view_index=v, projector_width=rig.projector.lens.width)
             writer.add_view(
                 ViewRecord(
                     name, tuple(r for r, _ in images), pose, "ground-truth",

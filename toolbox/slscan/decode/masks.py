@@ -1,0 +1,199 @@
+"""Pixel masks for decoding: which pixels the projector lights, and which captures clipped.
+
+The shadow mask (the paper's "purge pixels in shadow") keeps the pixels whose white frame
+stands clearly above the black frame; :func:`saturation` marks clipped pixels, and
+:func:`saturation_report` says, per captured image, how many of the lit pixels and of the
+measured line pixels clipped. Saturated green lines lose their sub-pixel profile and leave
+ribs in the range map (paper Fig. 9), so decoders warn with :func:`warn_saturation`.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from slscan.errors import SlscanError
+
+log = logging.getLogger(__name__)
+
+DEFAULT_MIN_CONTRAST = 0.02
+"""Default shadow threshold: white − black, fraction of full scale (about 5 DN at 8 bit)."""
+
+NOISE_SIGMAS = 6.0
+"""The shadow threshold is also at least this many standard deviations of ``white − black``."""
+
+SATURATION_WARNING = 0.01
+"""Share of saturated line pixels above which decoders warn."""
+
+
+def full_scale(image: np.ndarray, name: str = "image", *, bit_depth: int | None = None) -> float:
+    """The largest pixel value of ``image``: ``2**bit_depth - 1`` or from its dtype.
+
+    Floating-point images are taken to be in [0, 1].
+    """
+    if bit_depth is not None:
+        if bit_depth not in (8, 16):
+            raise SlscanError(f"{name}: bit depth must be 8 or 16, got {bit_depth}")
+        return float(2**bit_depth - 1)
+    if image.dtype == np.uint8:
+        return 255.0
+    if image.dtype == np.uint16:
+        return 65535.0
+    if np.issubdtype(image.dtype, np.floating):
+        return 1.0
+    raise SlscanError(f"{name}: pixels are {image.dtype}; expected uint8, uint16 or float in [0, 1]")
+
+
+def _per_pixel_max(image: np.ndarray) -> np.ndarray:
+    image = np.asarray(image)
+    if image.ndim == 3:
+        return image.max(axis=2)
+    if image.ndim == 2:
+        return image
+    raise SlscanError(f"expected an (h, w) or (h, w, channels) image, got shape {image.shape}")
+
+
+def noise_sigma(black: np.ndarray) -> float:
+    """Standard deviation (DN) of one frame's noise, from the black frame's pixel-to-pixel jitter.
+
+    black : (h, w) or (h, w, c) the projector-black capture
+
+    Uses the median absolute deviation of horizontal neighbour differences (scene texture
+    under ambient light is smooth next to sensor noise), so one dark frame suffices.
+    """
+    b = np.asarray(black, dtype=np.float32)
+    if b.ndim == 3:
+        b = b.max(axis=2)
+    step = max(1, b.shape[0] // 256)
+    d = np.diff(b[::step], axis=1).ravel()
+    if d.size == 0:
+        return 0.0
+    mad = float(np.median(np.abs(d - np.median(d))))
+    return 1.4826 * mad / np.sqrt(2.0)
+
+
+def shadow_mask(
+    white: np.ndarray,
+    black: np.ndarray,
+    *,
+    min_contrast: float = DEFAULT_MIN_CONTRAST,
+    bit_depth: int | None = None,
+    noise_sigmas: float = NOISE_SIGMAS,
+) -> np.ndarray:
+    """Pixels lit by the projector, (h, w) bool.
+
+    white, black : (h, w) grey or (h, w, 3) RGB captures under projector white and black,
+        uint8, uint16 or float in [0, 1]; the same shape and dtype
+    min_contrast : the smallest ``white − black`` kept, as a fraction of full scale; taken
+        per pixel over the channels' maximum, so strongly coloured surfaces (red paint
+        reflects little green and blue) are kept on the strength of one channel
+    bit_depth : {8, 16} when the values do not use their dtype's full range
+    noise_sigmas : the threshold is also at least this many standard deviations of
+        ``white − black`` (noise estimated from the black frame, :func:`noise_sigma`)
+
+    Pixels in projector shadow, background and surfaces facing away see the same light in
+    both frames and fall below the threshold.
+    """
+    white, black = np.asarray(white), np.asarray(black)
+    if white.shape != black.shape:
+        raise SlscanError(f"shadow mask: white image is {white.shape}, black image is {black.shape}")
+    if white.dtype != black.dtype:
+        raise SlscanError(f"shadow mask: white image is {white.dtype}, black image is {black.dtype}")
+    if not 0 <= min_contrast < 1:
+        raise SlscanError(f"shadow mask: min_contrast must be a fraction of full scale in [0, 1), got {min_contrast}")
+    scale = full_scale(white, "white image", bit_depth=bit_depth)
+    diff = white.astype(np.float32) - black.astype(np.float32)
+    contrast = _per_pixel_max(diff)
+    threshold = max(min_contrast * scale, noise_sigmas * np.sqrt(2.0) * noise_sigma(black))
+    return contrast > threshold
+
+
+def saturation(image: np.ndarray, *, bit_depth: int | None = None) -> np.ndarray:
+    """Pixels (h, w) bool where any channel of ``image`` reached full scale.
+
+    image : (h, w) or (h, w, c), uint8, uint16 or float in [0, 1]
+    bit_depth : {8, 16}; full scale is ``2**bit_depth - 1`` (default: from the dtype)
+    """
+    image = np.asarray(image)
+    scale = full_scale(image, "image", bit_depth=bit_depth)
+    return _per_pixel_max(image) >= scale
+
+
+@dataclass(frozen=True)
+class SaturationReport:
+    """How much of one captured image clipped.
+
+    name : the image (pattern id or file name)
+    masked_share : saturated share of the lit (masked) pixels, in [0, 1]
+    line_share : saturated share of the pixels on measured green lines, in [0, 1]
+        (NaN when the image has no line pixels)
+    masked_pixels, line_pixels : how many pixels each share is taken over
+    """
+
+    name: str
+    masked_share: float
+    line_share: float
+    masked_pixels: int
+    line_pixels: int
+
+
+def saturation_report(
+    images: Mapping[str, np.ndarray],
+    mask: np.ndarray,
+    line_pixels: Mapping[str, np.ndarray] | np.ndarray | None = None,
+    *,
+    bit_depth: int | None = None,
+) -> tuple[SaturationReport, ...]:
+    """Per-image saturation of one view, in the order of ``images``.
+
+    images : name -> (h, w) or (h, w, c) capture
+    mask : (h, w) bool lit pixels (:func:`shadow_mask`)
+    line_pixels : (h, w) bool pixels on the measured lines, either one map for all images
+        or per image name (images missing from the mapping use the union of the others)
+    bit_depth : {8, 16}, full scale of the captures (default: from the dtype)
+    """
+    mask = np.asarray(mask, bool)
+    if isinstance(line_pixels, Mapping):
+        maps = {k: np.asarray(v, bool) for k, v in line_pixels.items()}
+        union = np.logical_or.reduce(list(maps.values())) if maps else np.zeros_like(mask)
+    else:
+        maps = {}
+        union = np.zeros_like(mask) if line_pixels is None else np.asarray(line_pixels, bool)
+    reports = []
+    for name, image in images.items():
+        if np.shape(image)[:2] != mask.shape:
+            raise SlscanError(f"{name}: image is {np.shape(image)[:2]}, the mask is {mask.shape}")
+        sat = saturation(image, bit_depth=bit_depth)
+        lines = maps.get(name, union)
+        n_mask, n_line = int(mask.sum()), int(lines.sum())
+        reports.append(
+            SaturationReport(
+                name=name,
+                masked_share=float((sat & mask).sum()) / n_mask if n_mask else 0.0,
+                line_share=float((sat & lines).sum()) / n_line if n_line else float("nan"),
+                masked_pixels=n_mask,
+                line_pixels=n_line,
+            )
+        )
+    return tuple(reports)
+
+
+def warn_saturation(
+    reports: Iterable[SaturationReport], *, where: str = "", threshold: float = SATURATION_WARNING
+) -> list[SaturationReport]:
+    """Log a warning naming the images whose saturated line share exceeds ``threshold``.
+
+    Returns the offending reports (empty when none).
+    """
+    bad = [r for r in reports if np.isfinite(r.line_share) and r.line_share > threshold]
+    if bad:
+        listing = ", ".join(f"{r.name} {100 * r.line_share:.1f} %" for r in bad)
+        log.warning(
+            "%ssaturated green-line pixels in %d image(s): %s; clipped lines lose their sub-pixel "
+            "profile and leave ribs (paper Fig. 9): lower the exposure or the projector brightness",
+            f"{where}: " if where else "", len(bad), listing,
+        )
+    return bad
