@@ -1,6 +1,6 @@
 """Geometric models of a structured-light rig: camera, projector, ring lights.
 
-Conventions (see ``docs/conventions.md``):
+Conventions (see ``docs/capture-session.md``, section Conventions):
 
 - Lengths in millimetres. The **rig frame** is the camera frame: origin at the camera's
   centre of projection, x right, y down, z forward (OpenCV).

@@ -220,7 +220,7 @@ class _PartAlbedo:
 
 
 def builtin_object(*, detail: float = 1.0) -> Scene:
-    """The built-in figurine, about 300 mm tall, centred on the object origin.
+    """The built-in figurine, about 380 mm tall, centred on the object origin.
 
     A bumpy body with ~1 mm carved relief, a head with a cap, a gilded ring on its left
     (the camera sees the body through it), an arm reaching towards the camera and the
