@@ -20,7 +20,12 @@ import numpy as np
 
 from slscan.fsio import write_png
 from slscan.viewer.recording import open_recording
-from slscan.virtual.device import VirtualCaptureConfig, capture_session, capture_view, turntable_pose
+from slscan.virtual.device import (
+    VirtualCaptureConfig,
+    capture_session,
+    capture_view,
+    turntable_pose,
+)
 from slscan.virtual.render import trace_view
 from slscan.virtual.scenes import builtin_object
 

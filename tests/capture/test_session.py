@@ -11,7 +11,12 @@ import pytest
 from slscan.capture.session import LIT, SHADOW, load_session
 from slscan.errors import SlscanError
 from slscan.fsio import write_png
-from slscan.virtual.device import VirtualCaptureConfig, capture_session, capture_view, turntable_pose
+from slscan.virtual.device import (
+    VirtualCaptureConfig,
+    capture_session,
+    capture_view,
+    turntable_pose,
+)
 from slscan.virtual.scenes import builtin_object
 
 SMALL = VirtualCaptureConfig(camera_scale=0.2, projector_scale=0.25, levels=6, views=2)

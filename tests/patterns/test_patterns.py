@@ -6,8 +6,16 @@ import numpy as np
 import pytest
 
 from slscan.errors import SlscanError
-from slscan.patterns import PatternImage, graycode, hybrid, read_pattern_set, render, standard_set, write_pattern_set
 from slscan.fsio import read_png
+from slscan.patterns import (
+    PatternImage,
+    graycode,
+    hybrid,
+    read_pattern_set,
+    render,
+    standard_set,
+    write_pattern_set,
+)
 
 RED, GREEN, BLUE = [255, 0, 0], [0, 255, 0], [0, 0, 255]
 

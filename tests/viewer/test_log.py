@@ -115,20 +115,18 @@ def test_no_sink_yields_none():
 
 def test_exception_leaves_no_file(tmp_path, rig):
     out = tmp_path / "fail.rrd"
-    with pytest.raises(RuntimeError, match="boom"):
-        with open_recording(save=out) as rec:
-            log_rig(rec, rig)
-            raise RuntimeError("boom")
+    with pytest.raises(RuntimeError, match="boom"), open_recording(save=out) as rec:
+        log_rig(rec, rig)
+        raise RuntimeError("boom")
     assert list(tmp_path.iterdir()) == []
 
 
 def test_exception_keeps_previous_file(tmp_path, rig):
     out = tmp_path / "scan.rrd"
     out.write_bytes(b"previous")
-    with pytest.raises(RuntimeError):
-        with open_recording(save=out) as rec:
-            log_rig(rec, rig)
-            raise RuntimeError("boom")
+    with pytest.raises(RuntimeError), open_recording(save=out) as rec:
+        log_rig(rec, rig)
+        raise RuntimeError("boom")
     assert out.read_bytes() == b"previous"
     assert [p.name for p in tmp_path.iterdir()] == ["scan.rrd"]
 
@@ -137,9 +135,8 @@ def test_bad_url_and_path(tmp_path):
     with pytest.raises(SlscanError, match="not a Rerun viewer URL"):
         with open_recording(connect="http://localhost:9876"):
             pass
-    with pytest.raises(SlscanError, match="is a folder"):
-        with open_recording(save=tmp_path):
-            pass
+    with pytest.raises(SlscanError, match="is a folder"), open_recording(save=tmp_path):
+        pass
     blocker = tmp_path / "file"
     blocker.write_text("")
     with pytest.raises(SlscanError, match="cannot write here"):

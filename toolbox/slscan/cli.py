@@ -39,7 +39,12 @@ class _ProgressBar:
         if quiet:
             return
         from rich.progress import (
-            BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn,
+            BarColumn,
+            MofNCompleteColumn,
+            Progress,
+            TextColumn,
+            TimeElapsedColumn,
+            TimeRemainingColumn,
         )
 
         self._progress = Progress(
@@ -111,9 +116,9 @@ def _add_capture_options(p: argparse.ArgumentParser, *, demo: bool) -> None:
 
 
 def _cmd_capture(args: argparse.Namespace, *, demo: bool = False) -> int:
+    from slscan.viewer.recording import recording_from_args
     from slscan.virtual.device import VirtualCaptureConfig, capture_session, images_per_view
     from slscan.virtual.sensor import Sensor
-    from slscan.viewer.recording import recording_from_args
 
     if args.scale <= 0 or args.scale > 2:
         raise SlscanError(f"--scale must be in (0, 2], got {args.scale}")

@@ -14,7 +14,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from slscan.capture.session import LIT, SHADOW, GroundTruth, ImageRecord, Session, SessionWriter, ViewRecord
+from slscan.capture.session import (
+    LIT,
+    SHADOW,
+    GroundTruth,
+    ImageRecord,
+    Session,
+    SessionWriter,
+    ViewRecord,
+)
 from slscan.errors import SlscanError
 from slscan.patterns import PatternImage, file_name, render, standard_set
 from slscan.rig import Rig, default_rig, rotation_about_axis, transform_points

@@ -137,7 +137,7 @@ def _uv_sphere(n_lat: int, n_lon: int) -> tuple[np.ndarray, np.ndarray]:
     ring = np.stack([np.sin(la) * np.cos(lo), -np.cos(la), np.sin(la) * np.sin(lo)], axis=-1).reshape(-1, 3)
     verts = np.concatenate([[[0, -1, 0]], ring, [[0, 1, 0]]])
     tris = []
-    idx = lambda i, j: 1 + i * n_lon + (j % n_lon)  # noqa: E731
+    idx = lambda i, j: 1 + i * n_lon + (j % n_lon)
     for j in range(n_lon):
         tris.append((0, idx(0, j + 1), idx(0, j)))
         tris.append((len(verts) - 1, idx(n_lat - 2, j), idx(n_lat - 2, j + 1)))
@@ -157,7 +157,7 @@ def _torus(major: float, minor: float, n_major: int, n_minor: int) -> tuple[np.n
     r = major + minor * np.cos(B)
     verts = np.stack([r * np.cos(A), r * np.sin(A), minor * np.sin(B)], -1).reshape(-1, 3)
     i, j = np.meshgrid(np.arange(n_major), np.arange(n_minor), indexing="ij")
-    idx = lambda i, j: (i % n_major) * n_minor + (j % n_minor)  # noqa: E731
+    idx = lambda i, j: (i % n_major) * n_minor + (j % n_minor)
     a0, a1, b0, b1 = idx(i, j), idx(i + 1, j), idx(i, j + 1), idx(i + 1, j + 1)
     tris = np.concatenate([np.stack([a0, a1, b0], -1).reshape(-1, 3), np.stack([a1, b1, b0], -1).reshape(-1, 3)])
     return verts, tris.astype(np.int32)

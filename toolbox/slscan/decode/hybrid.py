@@ -1,0 +1,744 @@
+"""Decode the paper's hybrid pattern: index the green lines by the red/blue bands, find their medial axes.
+
+Pipeline for one view (:func:`decode_hybrid_images` on arrays, :func:`decode_hybrid` on a
+capture session):
+
+1. **Shadow mask** from the white and black frames (:func:`slscan.decode.masks.shadow_mask`).
+2. **Colour crosstalk** (:func:`estimate_crosstalk`): the camera's response to each
+   projector primary, a (3, 3) matrix ``M`` (camera channels × primaries, unit diagonal),
+   measured from the session itself. Pixels deep inside a red (blue) band of a coarse
+   image see only the red (blue) primary, so their black-subtracted colour is a column of
+   ``M`` times the albedo: the ratios of its channels give that column whatever the
+   surface colour. The green column comes from pixels that are red in one coarse image
+   and blue in another: ``(white − black) − red − blue`` is what the green primary alone
+   gives there.
+3. **Unmix and normalise** (:func:`primaries`): with ``I − B = M (a ∘ p)`` (albedo ``a``,
+   projected primaries ``p`` in [0, 1]), ``M⁻¹ (I − B) / M⁻¹ (W − B) = p`` per pixel and
+   primary, so the surface colour cancels (the figurine's saturated red and blue paint
+   otherwise reads as bands). Unmixing comes before the division, which makes the
+   cancellation exact for any albedo.
+4. **Signals**: every projector pixel of the pattern is exactly one primary, so
+   ``p_r + p_g + p_b = 1`` and each of the green line ``g`` and the "redness" ``e`` has
+   two estimates (``p_g`` or ``1 − p_r − p_b``; ``p_r`` or ``1 − p_b``); they are
+   combined with weights from each channel's white-frame signal, so a line on red paint
+   (little green light comes back) is measured through the red and blue channels.
+5. **Progressive indexing**: a green line found in image ``k`` is indexed from the band
+   bits (red 0, blue 1) of images ``1 .. k−1`` read at its sub-pixel position: the
+   region ``r`` is their binary number, most significant first, and the line is
+   ``params["lines"][r]`` of image ``k``.
+6. **Medial axis**: local maxima of ``g`` along each camera row that stand above the
+   neighbouring bands, refined to sub-pixel by one of :data:`ESTIMATORS`.
+7. **Rejection**: ambiguous bits (``e`` near 0.5), low or flat peaks, a peak without red
+   on its left and blue on its right, and samples whose projector column disagrees with
+   every linear prediction from their neighbours along the row (wrong index).
+
+Sub-pixel estimators (``estimator=``), on the samples ``f(c + i)`` of the line signal
+around its integer maximum ``c``:
+
+``"centroid"``
+    centre of mass of ``max(f, 0)`` over ``c − 2 .. c + 2``.
+``"gaussian"``
+    the vertex of the parabola through ``ln f(c − 1), ln f(c), ln f(c + 1)``: exact for a
+    Gaussian profile (Fisher & Naidu 1996).
+``"parabola"``
+    the vertex of the parabola through ``f(c − 1), f(c), f(c + 1)``.
+``"blais-rioux"``
+    the zero crossing, linearly interpolated, of the 4th-order FIR derivative
+    ``d(i) = f(i + 1) + f(i + 2) − f(i − 1) − f(i − 2)`` (Blais & Rioux 1986).
+
+References
+----------
+C. Rocchini, P. Cignoni, C. Montani, P. Pingi, R. Scopigno. "A low cost 3D scanner based
+on structured light". Computer Graphics Forum 20(3) (Eurographics 2001), 299-308.
+
+F. Blais, M. Rioux. "Real-time numerical peak detector". Signal Processing 11(2) (1986),
+145-155.
+
+R. B. Fisher, D. K. Naidu. "A comparison of algorithms for subpixel peak detection". In
+J. Sanz (ed.), Image Technology, Springer (1996), 385-404.
+
+D. K. Naidu, R. B. Fisher. "A comparative analysis of algorithms for determining the
+peak position of a stripe to sub-pixel accuracy". Proc. British Machine Vision
+Conference (1991), 217-225.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import minimum_filter1d
+
+from slscan.capture.session import Session, ViewRecord
+from slscan.decode.masks import (
+    DEFAULT_MIN_CONTRAST,
+    SaturationReport,
+    full_scale,
+    saturation,
+    saturation_report,
+    shadow_mask,
+    warn_saturation,
+)
+from slscan.decode.samples import StripeSamples
+from slscan.errors import SlscanError
+from slscan.patterns import PatternImage
+
+log = logging.getLogger(__name__)
+
+ESTIMATORS = ("centroid", "gaussian", "parabola", "blais-rioux")
+DEFAULT_ESTIMATOR = "gaussian"
+"""Chosen from ``benchmarks/stripe_axes.py`` (virtual rig, full size): see the README table."""
+
+DEFAULT_MIN_PEAK = 0.2
+"""Smallest line signal kept: green relative to the white frame at the line's maximum."""
+
+DEFAULT_MIN_PROMINENCE = 0.15
+"""How far the maximum must stand above the lower of the two neighbouring band minima."""
+
+DEFAULT_AMBIGUITY = 0.15
+"""Band bits with ``|e − 0.5|`` below this (red ≈ blue) are unreadable."""
+
+DEFAULT_MIN_POLARITY = 0.1
+"""A line must be redder one pixel to its left than one pixel to its right by this much."""
+
+DEFAULT_MIN_EDGE_RATIO = 0.3
+"""Lines whose white-frame neighbourhood falls below this fraction of the line's own white
+level are cut by a silhouette or shadow edge, and dropped."""
+
+EDGE_RADIUS = 2  # px each side checked for a white-frame edge
+PROMINENCE_RADIUS = 3  # px each side searched for the neighbouring band minimum
+PLATEAU_WIDTH = 7  # px, band pixels used for crosstalk must be this deep inside a band
+CROSSTALK_LEVELS = 3  # coarse images whose wide bands serve the crosstalk estimate
+MIN_CROSSTALK_PIXELS = 50
+ORDER_NEIGHBOURS = 2  # neighbours each side used to predict a sample's projector column
+MAX_NEIGHBOUR_GAP = 16.0  # camera px; farther samples along a row are not compared
+_EPS = 1e-6
+
+
+@dataclass(frozen=True)
+class HybridResult:
+    """What :func:`decode_hybrid` finds in one view.
+
+    samples : the green lines' sub-pixel centres; ``projector_column`` is the line's
+        projector column (its centre, pixel centres at integers), ``stripe`` its index
+        ``0 .. 2**levels − 2``; sorted by row, then x
+    mask : (h, w) bool pixels lit by the projector
+    codes : (h, w) int32 region code after all levels (the band bits, most significant
+        first), −1 outside the mask and where a bit is unreadable; for display
+    crosstalk : (3, 3) float64 camera channel (rows) response to projector primaries
+        (columns), unit diagonal, as estimated (or given)
+    saturation : per-image saturation, white, black, then the pattern images in level order
+    """
+
+    samples: StripeSamples
+    mask: np.ndarray
+    codes: np.ndarray
+    crosstalk: np.ndarray
+    saturation: tuple[SaturationReport, ...]
+
+
+# --- sub-pixel medial axis ----------------------------------------------------------------
+
+
+def _window(signal: np.ndarray, rows: np.ndarray, cols: np.ndarray, half: int) -> np.ndarray:
+    """Values (k, 2 half + 1) of ``signal[rows, cols + i]``, i = −half .. half (edges clamped)."""
+    offsets = np.arange(-half, half + 1)
+    idx = np.clip(cols[:, None] + offsets[None, :], 0, signal.shape[1] - 1)
+    return signal[rows[:, None], idx]
+
+
+def subpixel_peaks(
+    signal: np.ndarray, rows: np.ndarray, cols: np.ndarray, *, estimator: str = DEFAULT_ESTIMATOR
+) -> tuple[np.ndarray, np.ndarray]:
+    """Refine integer maxima of a line signal to sub-pixel positions along x.
+
+    signal : (h, w) float line signal (a 1-D profile works as ``signal[None]``)
+    rows, cols : (k,) int position of each local maximum
+    estimator : {"centroid", "gaussian", "parabola", "blais-rioux"} (module docstring)
+
+    Returns ``x`` (k,) float64 camera px (pixel centres at integers) and ``ok`` (k,) bool,
+    False where the estimate failed (flat or non-concave profile, a maximum too close to
+    the image border, or an offset beyond one pixel).
+    """
+    if estimator not in ESTIMATORS:
+        raise SlscanError(f"unknown line estimator {estimator!r}: expected one of {', '.join(ESTIMATORS)}")
+    signal = np.asarray(signal)
+    if signal.ndim == 1:
+        signal = signal[None]
+    rows = np.asarray(rows, dtype=np.intp)
+    cols = np.asarray(cols, dtype=np.intp)
+    half = 3 if estimator == "blais-rioux" else 2
+    ok = (cols >= half) & (cols < signal.shape[1] - half)
+    f = _window(signal, rows, cols, half).astype(np.float64)
+    mid = half
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if estimator == "centroid":
+            w = np.maximum(f, 0.0)
+            total = w.sum(axis=1)
+            offset = (w * np.arange(-half, half + 1)).sum(axis=1) / total
+            ok &= total > _EPS
+        elif estimator in ("gaussian", "parabola"):
+            t = f[:, mid - 1 : mid + 2]
+            if estimator == "gaussian":
+                t = np.log(np.maximum(t, _EPS))
+            denom = t[:, 0] - 2 * t[:, 1] + t[:, 2]
+            offset = 0.5 * (t[:, 0] - t[:, 2]) / denom
+            ok &= denom < -_EPS
+        else:  # blais-rioux
+            # d(i) for i = c − 1, c, c + 1: rising flank positive, falling flank negative
+            d_m1 = f[:, mid] + f[:, mid + 1] - f[:, mid - 2] - f[:, mid - 3]
+            d_0 = f[:, mid + 1] + f[:, mid + 2] - f[:, mid - 1] - f[:, mid - 2]
+            d_p1 = f[:, mid + 2] + f[:, mid + 3] - f[:, mid] - f[:, mid - 1]
+            right = d_0 > 0  # crossing between c and c + 1
+            a = np.where(right, d_0, d_m1)
+            b = np.where(right, d_p1, d_0)
+            base = np.where(right, 0.0, -1.0)
+            offset = base + a / (a - b)
+            ok &= (a > 0) & (b <= 0) & (a - b > _EPS)
+    ok &= np.isfinite(offset) & (np.abs(offset) <= 1.0)
+    x = cols + np.where(ok, offset, 0.0)
+    return x, ok
+
+
+def find_line_peaks(
+    signal: np.ndarray,
+    *,
+    min_peak: float = DEFAULT_MIN_PEAK,
+    min_prominence: float = DEFAULT_MIN_PROMINENCE,
+    radius: int = PROMINENCE_RADIUS,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Integer local maxima along x of a line signal that stand above the bands beside them.
+
+    signal : (h, w) float line signal, 0 where nothing is lit
+    min_peak : smallest signal at the maximum
+    min_prominence : the maximum minus the higher of the minima over the ``radius`` pixels
+        on its left and on its right must reach this
+
+    Returns ``rows, cols`` (k,) intp, row-major order.
+    """
+    g = np.asarray(signal, dtype=np.float32)
+    h, w = g.shape
+    if w < 2 * radius + 3:
+        return np.empty(0, np.intp), np.empty(0, np.intp)
+    centre = g[:, 1:-1]
+    peak = (centre >= g[:, :-2]) & (centre > g[:, 2:]) & (centre >= min_peak)
+    # min over [x − radius, x − 1] and [x + 1, x + radius]: a centred running minimum, shifted
+    run = minimum_filter1d(g, size=radius, axis=1, mode="nearest")
+    shift = (radius + 1) // 2 if radius % 2 else radius // 2
+    left = np.full_like(g, np.inf)
+    right = np.full_like(g, np.inf)
+    if radius % 2:
+        left[:, shift:] = run[:, :-shift]
+        right[:, :-shift] = run[:, shift:]
+    else:  # even sizes centre one to the right in scipy's convention
+        left[:, shift:] = run[:, : w - shift]
+        right[:, : w - shift + 1] = run[:, shift - 1 :]
+    prominence = centre - np.maximum(left[:, 1:-1], right[:, 1:-1])
+    peak &= prominence >= min_prominence
+    rows, cols = np.nonzero(peak)
+    return rows, cols + 1
+
+
+# --- colour ---------------------------------------------------------------------------------
+
+
+def _plateau(band: np.ndarray) -> np.ndarray:
+    """Pixels (h, w) bool of ``band`` with ``PLATEAU_WIDTH // 2`` band pixels on each side along x."""
+    eroded = minimum_filter1d(band.astype(np.uint8), PLATEAU_WIDTH, axis=1, mode="constant")
+    return eroded.astype(bool)
+
+
+def estimate_crosstalk(
+    white: np.ndarray,
+    black: np.ndarray,
+    coarse: Sequence[np.ndarray],
+    *,
+    mask: np.ndarray | None = None,
+    bit_depth: int | None = None,
+) -> np.ndarray:
+    """The projector → camera colour crosstalk (3, 3), measured from a view's own captures.
+
+    white, black : (h, w, 3) captures under projector white and black
+    coarse : (h, w, 3) captures of coarse hybrid images (wide red and blue bands), e.g. the
+        first three levels
+    mask : (h, w) bool lit pixels (default: :func:`~slscan.decode.masks.shadow_mask`)
+
+    Returns ``M`` (3, 3) float64, camera channel (rows) response to projector primary
+    (columns), each column scaled to a unit diagonal (the scale cancels in the
+    normalisation by the white frame).
+
+    Red and blue columns: the mean black-subtracted colour of pixels at least
+    ``PLATEAU_WIDTH // 2`` px inside a red (blue) band, classified by their normalised
+    colour; albedo scales all channels of one primary alike, so it drops out of the
+    channel ratios. Green column: at pixels that are inside a red band in one coarse image
+    and inside a blue band in another, ``(white − black) − red − blue`` is the green
+    primary's response alone. Saturated pixels are left out. A column without enough
+    pixels (fewer than ``MIN_CROSSTALK_PIXELS``) is assumed free of crosstalk, with a
+    warning: the green one when a view has a single level.
+    """
+    white_f = np.asarray(white, np.float32)
+    black_f = np.asarray(black, np.float32)
+    lit = white_f - black_f
+    if mask is None:
+        mask = shadow_mask(white, black, bit_depth=bit_depth)
+    usable = mask & ~saturation(white, bit_depth=bit_depth) & (lit.max(axis=2) > 0)
+    floor = 1e-3 * full_scale(np.asarray(white), "white image", bit_depth=bit_depth)
+    with np.errstate(divide="ignore"):
+        inv = np.where(lit > floor, 1.0 / lit, 0.0).astype(np.float32)
+    red_resp = np.zeros(lit.shape, np.float32)
+    blue_resp = np.zeros(lit.shape, np.float32)
+    has_red = np.zeros(mask.shape, bool)
+    has_blue = np.zeros(mask.shape, bool)
+    red_sum = np.zeros(3)
+    blue_sum = np.zeros(3)
+    n_red = n_blue = 0
+    for image in coarse:
+        d = np.asarray(image, np.float32) - black_f
+        norm = d * inv
+        ok = usable & ~saturation(image, bit_depth=bit_depth)
+        diff = norm[..., 0] - norm[..., 2]
+        red_here = _plateau((diff > 0.4) & ok)
+        blue_here = _plateau((diff < -0.4) & ok)
+        for here, resp, has in ((red_here, red_resp, has_red), (blue_here, blue_resp, has_blue)):
+            new = here & ~has
+            resp[new] = d[new]
+            has |= here
+        red_sum += d[red_here].sum(axis=0, dtype=np.float64)
+        blue_sum += d[blue_here].sum(axis=0, dtype=np.float64)
+        n_red += int(red_here.sum())
+        n_blue += int(blue_here.sum())
+    both = has_red & has_blue
+    green_sum = (lit[both] - red_resp[both] - blue_resp[both]).sum(axis=0, dtype=np.float64)
+    m = np.eye(3)
+    for k, (total, count, what) in enumerate(
+        ((red_sum, n_red, "red"), (green_sum, int(both.sum()), "green"), (blue_sum, n_blue, "blue"))
+    ):
+        if count < MIN_CROSSTALK_PIXELS or total[k] <= 0:
+            log.warning(
+                "crosstalk: only %d pixels show the %s primary alone; assuming it reaches only the "
+                "%s camera channel", count, what, what,
+            )
+            continue
+        column = np.clip(total / total[k], 0.0, 0.95)
+        column[k] = 1.0
+        m[:, k] = column
+    return m
+
+
+@dataclass(frozen=True)
+class _Unmixer:
+    """Turns black-subtracted captures into the line signal and the band "redness"."""
+
+    unmix: np.ndarray  # (3, 3) float32, M⁻¹ transposed for row vectors
+    white: np.ndarray  # (h, w, 3) float32, M⁻¹ (W − B): the white frame per primary
+    weight: np.ndarray  # (h, w, 3) float32, max(white, 0)²: inverse noise variance of p_c, relative
+
+    @classmethod
+    def build(cls, lit: np.ndarray, crosstalk: np.ndarray, mask: np.ndarray) -> _Unmixer:
+        try:
+            unmix = np.linalg.inv(crosstalk).T.astype(np.float32)
+        except np.linalg.LinAlgError:
+            raise SlscanError(f"crosstalk matrix is singular:\n{crosstalk}") from None
+        white = lit @ unmix
+        white[~mask] = 0.0
+        weight = np.square(np.maximum(white, 0.0))
+        return cls(unmix, white, weight)
+
+    def signals(self, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Line signal ``g`` and redness ``e``, (h, w) float32, from ``d = I − B`` (h, w, 3).
+
+        ``w_c p_c = W_c U_c`` with ``U = M⁻¹ d``, ``W = M⁻¹ (white − black)``, ``w_c = W_c²``.
+        """
+        u = d @ self.unmix
+        wu = u * self.white  # w_c p_c
+        wr, wg, wb = self.weight[..., 0], self.weight[..., 1], self.weight[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            w_rb = wr * wb / (wr + wb)
+            # 1 − p_r − p_b with weight w_rb
+            rb = 1.0 - wu[..., 0] / wr - wu[..., 2] / wb
+            g = (wu[..., 1] + w_rb * np.where(w_rb > 0, rb, 0.0)) / (wg + w_rb)
+            e = (wu[..., 0] + wb - wu[..., 2]) / (wr + wb)
+        g = np.where(np.isfinite(g), g, 0.0).astype(np.float32)
+        e = np.where(np.isfinite(e), e, 0.5).astype(np.float32)
+        return g, e
+
+
+def primaries(
+    image: np.ndarray, white: np.ndarray, black: np.ndarray, crosstalk: np.ndarray
+) -> np.ndarray:
+    """The projected primaries (h, w, 3) float32 seen at each pixel, in [0, 1] up to noise.
+
+    image, white, black : (h, w, 3) captures under a pattern, projector white and black
+    crosstalk : (3, 3) camera channel × projector primary response (:func:`estimate_crosstalk`)
+
+    ``M⁻¹ (I − B) / M⁻¹ (W − B)`` per pixel and primary: the surface colour cancels. NaN
+    where the white frame gives no light in a primary.
+    """
+    unmix = np.linalg.inv(crosstalk).T.astype(np.float32)
+    b = np.asarray(black, np.float32)
+    u = (np.asarray(image, np.float32) - b) @ unmix
+    w = (np.asarray(white, np.float32) - b) @ unmix
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(w > 0, u / w, np.nan).astype(np.float32)
+
+
+# --- indexing ------------------------------------------------------------------------------
+
+
+def _interp_row(values: np.ndarray, rows: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Linear interpolation of ``values`` (h, w) along x at (rows, x), clamped to the image."""
+    w = values.shape[1]
+    x = np.clip(x, 0.0, w - 1.0)
+    x0 = np.minimum(np.floor(x).astype(np.intp), w - 2) if w > 1 else np.zeros(len(x), np.intp)
+    t = (x - x0).astype(np.float32)
+    v0 = values[rows, x0]
+    v1 = values[rows, np.minimum(x0 + 1, w - 1)]
+    return v0 + t * (v1 - v0)
+
+
+def _region_lines(desc: PatternImage) -> tuple[np.ndarray, np.ndarray]:
+    """Line index and projector column (n_regions,) of each region of ``desc``, left to right."""
+    level = int(desc.params["level"])
+    try:
+        regions = sorted((int(a), int(b)) for a, b in desc.params["regions"])
+        lines = [(int(i), int(c)) for i, c in desc.params["lines"]]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise SlscanError(f"pattern {desc.id!r}: malformed hybrid description ({exc})") from None
+    if len(regions) != 2 ** (level - 1) or len(lines) != len(regions):
+        raise SlscanError(
+            f"pattern {desc.id!r}: level {level} needs {2 ** (level - 1)} regions and lines, "
+            f"the description has {len(regions)} regions and {len(lines)} lines"
+        )
+    index = np.full(len(regions), -1, np.int64)
+    column = np.full(len(regions), -1, np.int64)
+    starts = np.array([a for a, _ in regions])
+    for i, c in lines:
+        r = int(np.searchsorted(starts, c, side="right")) - 1
+        if r < 0 or not regions[r][0] <= c < regions[r][1] or index[r] >= 0:
+            raise SlscanError(f"pattern {desc.id!r}: line {i} at column {c} is not alone in a region")
+        index[r], column[r] = i, c
+    return index, column
+
+
+def order_consistent(
+    row: np.ndarray, x: np.ndarray, column: np.ndarray, *, tolerance: float, max_gap: float = MAX_NEIGHBOUR_GAP
+) -> np.ndarray:
+    """Which samples agree with their neighbours along the row, (k,) bool.
+
+    row, x, column : (k,) samples sorted by row, then x; ``column`` in projector px
+    tolerance : projector px a sample may miss the prediction by
+    max_gap : camera px beyond which samples of a row are not compared
+
+    Along a row the projector column is a smooth, increasing function of x. Each sample is
+    predicted linearly from pairs of its neighbours (two before, one before and one after,
+    two after); it is kept when one prediction lands within ``tolerance``, so a wrongly
+    indexed neighbour cannot condemn a good sample. A sample with a single neighbour is
+    kept when the two increase together at a plausible slope; one with none is dropped.
+    """
+    k = len(row)
+    if k == 0:
+        return np.zeros(0, bool)
+    row = np.asarray(row)
+    x = np.asarray(x, np.float64)
+    column = np.asarray(column, np.float64)
+    idx = np.arange(k)
+
+    def neighbour(offset: int) -> tuple[np.ndarray, np.ndarray]:
+        j = np.clip(idx + offset, 0, k - 1)
+        ok = (idx + offset >= 0) & (idx + offset < k) & (row[j] == row) & (np.abs(x[j] - x) <= max_gap)
+        return j, ok
+
+    near = {o: neighbour(o) for o in (-2, -1, 1, 2)}
+    near[-2] = (near[-2][0], near[-2][1] & near[-1][1])
+    near[2] = (near[2][0], near[2][1] & near[1][1])
+    keep = np.zeros(k, bool)
+    checked = np.zeros(k, bool)
+    for a, b in ((-2, -1), (-1, 1), (1, 2)):
+        (ja, oka), (jb, okb) = near[a], near[b]
+        dx = x[jb] - x[ja]
+        ok = oka & okb & (dx > 0.5) & (column[jb] > column[ja])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            pred = column[ja] + (column[jb] - column[ja]) * (x - x[ja]) / dx
+        checked |= ok
+        keep |= ok & (np.abs(pred - column) <= tolerance)
+    # samples with a single comparable neighbour: monotonic, plausible slope
+    lone = ~checked
+    for o in (-1, 1):
+        j, ok = near[o]
+        dcol = (column[j] - column) * np.sign(x[j] - x)
+        slope = dcol / np.maximum(np.abs(x[j] - x), 1e-9)
+        keep |= lone & ok & (dcol > 0) & (slope < 8.0)
+    return keep
+
+
+# --- decoding ------------------------------------------------------------------------------
+
+
+def _check_inputs(
+    white: np.ndarray,
+    black: np.ndarray,
+    images: Sequence[np.ndarray],
+    descs: Sequence[PatternImage],
+    names: Sequence[str] | None,
+    where: str,
+) -> tuple[list[np.ndarray], list[PatternImage], list[str]]:
+    """Validate shapes, dtypes and levels; return images, descriptions and names in level order."""
+    if len(images) != len(descs):
+        raise SlscanError(f"{where}{len(images)} hybrid images for {len(descs)} pattern descriptions")
+    names = list(names) if names is not None else [d.id for d in descs]
+    if len(names) != len(descs):
+        raise SlscanError(f"{where}{len(names)} names for {len(descs)} pattern descriptions")
+    if not descs:
+        raise SlscanError(f"{where}no hybrid pattern images to decode")
+    white, black = np.asarray(white), np.asarray(black)
+    if white.ndim != 3 or white.shape[2] != 3:
+        raise SlscanError(
+            f"{where}white image is {white.shape}: the hybrid pattern is colour-coded and needs "
+            "(h, w, 3) RGB captures"
+        )
+    for name, image in (("black image", black), *zip(names, images)):
+        image = np.asarray(image)
+        if image.shape != white.shape:
+            raise SlscanError(f"{where}{name}: image is {image.shape}, expected {white.shape} like the white image")
+        if image.dtype != white.dtype:
+            raise SlscanError(f"{where}{name}: pixels are {image.dtype}, expected {white.dtype} like the white image")
+    for d, name in zip(descs, names):
+        if d.family != "hybrid":
+            raise SlscanError(f"{where}{name}: pattern {d.id!r} is {d.family!r}, not a hybrid pattern")
+        if "level" not in d.params or "lines" not in d.params or "regions" not in d.params:
+            raise SlscanError(f"{where}pattern {d.id!r}: hybrid description lacks level, lines or regions")
+    order = sorted(range(len(descs)), key=lambda i: int(descs[i].params["level"]))
+    levels = [int(descs[i].params["level"]) for i in order]
+    total = int(descs[order[0]].params.get("levels", len(descs)))
+    if levels != list(range(1, total + 1)):
+        seen = set(levels)
+        missing = [k for k in range(1, total + 1) if k not in seen]
+        extra = sorted({k for k in levels if levels.count(k) > 1 or not 1 <= k <= total})
+        raise SlscanError(
+            f"{where}hybrid images must cover levels 1..{total} once each"
+            + (f"; missing level(s) {missing}" if missing else "")
+            + (f"; duplicate or unexpected level(s) {extra}" if extra else "")
+            + f" (got {', '.join(names[i] for i in order)})"
+        )
+    width = descs[order[0]].width
+    for i in order:
+        if descs[i].width != width:
+            raise SlscanError(f"{where}pattern {descs[i].id!r} is {descs[i].width} px wide, expected {width}")
+    return [np.asarray(images[i]) for i in order], [descs[i] for i in order], [names[i] for i in order]
+
+
+def decode_hybrid_images(
+    white: np.ndarray,
+    black: np.ndarray,
+    images: Sequence[np.ndarray],
+    descs: Sequence[PatternImage],
+    *,
+    estimator: str = DEFAULT_ESTIMATOR,
+    min_contrast: float = DEFAULT_MIN_CONTRAST,
+    min_peak: float = DEFAULT_MIN_PEAK,
+    min_prominence: float = DEFAULT_MIN_PROMINENCE,
+    ambiguity: float = DEFAULT_AMBIGUITY,
+    min_polarity: float = DEFAULT_MIN_POLARITY,
+    min_edge_ratio: float = DEFAULT_MIN_EDGE_RATIO,
+    crosstalk: np.ndarray | None = None,
+    bit_depth: int | None = None,
+    names: Sequence[str] | None = None,
+    flat_names: tuple[str, str] = ("white", "black"),
+    where: str = "",
+) -> HybridResult:
+    """Decode one view of the hybrid pattern from arrays.
+
+    white, black : (h, w, 3) captures under projector white and black, uint8, uint16 or
+        float in [0, 1]
+    images : (h, w, 3) captures of the hybrid images, one per level (any order)
+    descs : their pattern descriptions (:func:`slscan.patterns.hybrid.generate`), same order
+    estimator : {"centroid", "gaussian", "parabola", "blais-rioux"}, the sub-pixel line
+        centre (module docstring)
+    min_contrast : shadow-mask threshold, fraction of full scale (:func:`~slscan.decode.masks.shadow_mask`)
+    min_peak, min_prominence : line detection thresholds on the normalised line signal
+        (fraction of the white frame), :func:`find_line_peaks`
+    ambiguity : band bits whose redness is within this of 0.5 are unreadable
+    min_polarity : a line's redness one pixel left minus one pixel right must reach this
+    min_edge_ratio : lines are dropped where the white frame within ``EDGE_RADIUS`` px
+        falls below this fraction of its value at the line (silhouette and shadow edges)
+    crosstalk : (3, 3) camera × projector-primary response; None estimates it from the
+        captures (:func:`estimate_crosstalk`)
+    bit_depth : {8, 16} when the values do not use their dtype's full range
+    names : names of ``images`` for messages and the saturation report (default: pattern ids)
+    flat_names : names of the white and black captures in the saturation report
+    where : prefix for messages, e.g. the view folder
+
+    Returns
+    -------
+    HybridResult
+
+    Raises
+    ------
+    SlscanError
+        Images of different sizes or dtypes, grey captures, or levels missing or repeated.
+    """
+    if estimator not in ESTIMATORS:
+        raise SlscanError(f"unknown line estimator {estimator!r}: expected one of {', '.join(ESTIMATORS)}")
+    prefix = f"{where}: " if where else ""
+    images, descs, names = _check_inputs(white, black, images, descs, names, prefix)
+    white, black = np.asarray(white), np.asarray(black)
+    h, w = white.shape[:2]
+    mask = shadow_mask(white, black, min_contrast=min_contrast, bit_depth=bit_depth)
+    if crosstalk is None:
+        crosstalk = estimate_crosstalk(
+            white, black, images[:CROSSTALK_LEVELS], mask=mask, bit_depth=bit_depth
+        )
+    crosstalk = np.asarray(crosstalk, np.float64)
+    if crosstalk.shape != (3, 3):
+        raise SlscanError(f"{prefix}crosstalk must be a (3, 3) matrix, got shape {crosstalk.shape}")
+
+    black_f = black.astype(np.float32)
+    unmixer = _Unmixer.build(white.astype(np.float32) - black_f, crosstalk, mask)
+    sat_white = saturation(white, bit_depth=bit_depth)
+    white_level = np.where(mask, (white.astype(np.float32) - black_f).max(axis=2), 0.0).astype(np.float32)
+    all_columns = np.concatenate([_region_lines(d)[1] for d in descs])
+    spacing = float(np.min(np.diff(np.sort(all_columns)))) if len(all_columns) > 1 else float(descs[0].width)
+
+    redness: list[np.ndarray] = []
+    parts: list[tuple[np.ndarray, ...]] = []
+    line_maps: dict[str, np.ndarray] = {}
+    rejected = dict.fromkeys(("sub-pixel fit", "ambiguous bit", "edge", "polarity"), 0)
+    n_peaks = 0
+    for k, (image, desc, name) in enumerate(zip(images, descs, names), start=1):
+        g, e = unmixer.signals(image.astype(np.float32) - black_f)
+        g[~mask] = 0.0
+        e[~mask] = 0.5
+        rows, cols = find_line_peaks(g, min_peak=min_peak, min_prominence=min_prominence)
+        n_peaks += len(rows)
+        x, ok = subpixel_peaks(g, rows, cols, estimator=estimator)
+        rejected["sub-pixel fit"] += int((~ok).sum())
+
+        def keep_only(cond: np.ndarray, reason: str) -> None:
+            rejected[reason] += int((ok & ~cond).sum())
+            ok[...] = ok & cond
+
+        region = np.zeros(len(rows), np.int64)
+        for j, e_j in enumerate(redness):
+            v = _interp_row(e_j, rows, x)
+            keep_only(np.abs(v - 0.5) >= ambiguity, "ambiguous bit")
+            region |= (v < 0.5).astype(np.int64) << (k - 2 - j)
+        # the white frame must not fall off around the line: a silhouette or shadow edge
+        # truncates the line's profile and drags its centre
+        lowest = _window(white_level, rows, cols, EDGE_RADIUS).min(axis=1)
+        keep_only(lowest >= min_edge_ratio * white_level[rows, cols], "edge")
+        # red on the left, blue on the right
+        polarity = _interp_row(e, rows, x - 1.0) - _interp_row(e, rows, x + 1.0)
+        keep_only(polarity >= min_polarity, "polarity")
+        line_index, line_column = _region_lines(desc)
+        rows, cols, x, region = rows[ok], cols[ok], x[ok], region[ok]
+        sat_image = saturation(image, bit_depth=bit_depth) | sat_white
+        around = _window(sat_image, rows, cols, 1).any(axis=1)
+        parts.append(
+            (
+                rows.astype(np.int32), x, line_column[region].astype(np.float64),
+                line_index[region].astype(np.int32), g[rows, cols].astype(np.float32), around,
+            )
+        )
+        lines = np.zeros((h, w), bool)
+        for o in (-1, 0, 1):
+            lines[rows, np.clip(cols + o, 0, w - 1)] = True
+        line_maps[name] = lines
+        redness.append(e)
+
+    row, x, column, stripe, contrast, saturated = (np.concatenate(f) for f in zip(*parts))
+    order = np.lexsort((x, row))
+    samples = StripeSamples(row[order], x[order], column[order], stripe[order], contrast[order], saturated[order])
+    consistent = order_consistent(samples.row, samples.x, samples.projector_column, tolerance=spacing)
+    rejected["order"] = int((~consistent).sum())
+    log.debug(
+        "%shybrid decode: %d line maxima, %d samples kept; rejected: %s", prefix, n_peaks,
+        int(consistent.sum()), ", ".join(f"{v} {k}" for k, v in rejected.items()),
+    )
+    samples = samples.subset(consistent)
+
+    codes = np.zeros((h, w), np.int64)
+    readable = mask.copy()
+    levels = len(redness)
+    for j, e_j in enumerate(redness):
+        codes |= (e_j < 0.5).astype(np.int64) << (levels - 1 - j)
+        readable &= np.abs(e_j - 0.5) >= ambiguity
+    codes = np.where(readable, codes, -1).astype(np.int32)
+
+    report = saturation_report(
+        {flat_names[0]: white, flat_names[1]: black, **dict(zip(names, images))}, mask, line_maps, bit_depth=bit_depth
+    )
+    warn_saturation(report, where=where)
+    return HybridResult(samples=samples, mask=mask, codes=codes, crosstalk=crosstalk, saturation=report)
+
+
+def hybrid_pattern_ids(session: Session) -> tuple[str, str, list[PatternImage]]:
+    """The white and black frames' ids and the hybrid descriptions (level order) of ``session``."""
+    white = black = None
+    for p in session.patterns:
+        if p.family == "flat":
+            value = list(p.params.get("value", []))
+            if value == [255, 255, 255] and white is None:
+                white = p.id
+            elif value == [0, 0, 0] and black is None:
+                black = p.id
+    if white is None or black is None:
+        missing = "white" if white is None else "black"
+        raise SlscanError(f"{session.root}: the pattern set has no all-{missing} frame; hybrid decoding needs one")
+    descs = sorted((p for p in session.patterns if p.family == "hybrid"), key=lambda p: p.params.get("level", 0))
+    if not descs:
+        raise SlscanError(f"{session.root}: the pattern set has no hybrid patterns")
+    return white, black, descs
+
+
+def decode_hybrid(
+    session: Session,
+    view: ViewRecord | str,
+    *,
+    estimator: str = DEFAULT_ESTIMATOR,
+    min_contrast: float = DEFAULT_MIN_CONTRAST,
+    **options,
+) -> HybridResult:
+    """Read and decode the hybrid-pattern images of ``view`` in ``session``.
+
+    estimator : {"centroid", "gaussian", "parabola", "blais-rioux"}
+    min_contrast : shadow-mask threshold, fraction of full scale
+    options : further keywords of :func:`decode_hybrid_images`
+
+    Raises
+    ------
+    SlscanError
+        Grey captures; the view lacks the white, black or a hybrid image or has two images
+        of one pattern; an image does not match the session (naming the file).
+    """
+    if isinstance(view, str):
+        view = session.view(view)
+    where = str(session.root / view.name)
+    if session.channels != 3:
+        raise SlscanError(
+            f"{where}: the session's captures have {session.channels} channel(s); the hybrid "
+            "pattern is colour-coded and needs RGB captures"
+        )
+    white_id, black_id, descs = hybrid_pattern_ids(session)
+
+    def record(pid: str):
+        recs = [r for r in view.images if r.kind == "pattern" and r.pattern == pid]
+        if not recs:
+            raise SlscanError(f"{where}: no image of pattern {pid!r}; hybrid decoding needs one per pattern")
+        if len(recs) > 1:
+            raise SlscanError(
+                f"{where}: {len(recs)} images of pattern {pid!r} ({', '.join(r.file for r in recs)}); expected one"
+            )
+        return recs[0]
+
+    recs = [record(d.id) for d in descs]
+    white = session.read_image(view, record(white_id))
+    black = session.read_image(view, record(black_id))
+    images = [session.read_image(view, r) for r in recs]
+    return decode_hybrid_images(
+        white[..., :3], black[..., :3], [im[..., :3] for im in images], descs,
+        estimator=estimator, min_contrast=min_contrast, bit_depth=session.bit_depth,
+        names=[r.file for r in recs], flat_names=(record(white_id).file, record(black_id).file),
+        where=where, **options,
+    )

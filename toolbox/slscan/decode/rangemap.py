@@ -1,0 +1,453 @@
+"""Range maps: mesh one view's triangulated stripe samples into a range surface, and PLY I/O.
+
+The samples of a view lie on a regular grid, camera rows by projector stripes, so the
+mesh is the grid's quads split in two, with the triangles that bridge depth
+discontinuities or are seen at grazing angles left out (Rocchini et al. 2001, §4). The
+PLY files open directly in MeshLab, with per-vertex normal, colour and quality.
+
+References
+----------
+.. [1] Rocchini, Cignoni, Montani, Pingi, Scopigno, "A low cost 3D scanner based on
+   structured light", Computer Graphics Forum 20(3), Eurographics 2001.
+.. [2] Turk, Levoy, "Zippered polygon meshes from range images", SIGGRAPH 1994 (range
+   grid triangulation with edge-length and grazing-angle tests).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from slscan.decode.samples import StripeSamples
+from slscan.errors import SlscanError
+from slscan.fsio import atomic_output_file
+from slscan.rig import PinholeModel
+
+log = logging.getLogger(__name__)
+
+PLY_VERTEX_DTYPE = np.dtype(
+    [
+        ("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+        ("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4"),
+        ("red", "u1"), ("green", "u1"), ("blue", "u1"),
+        ("quality", "<f4"),
+        ("row", "<i4"), ("stripe", "<i4"),
+    ]
+)
+"""Vertex record of the range-map PLY files this module writes."""
+
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "<i2", "int16": "<i2", "ushort": "<u2", "uint16": "<u2",
+    "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4",
+    "float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8",
+}
+
+
+@dataclass(frozen=True)
+class RangeMap:
+    """One view's range surface, in the rig (camera) frame.
+
+    vertices : (n, 3) float64, mm
+    faces : (m, 3) int32 vertex indices, counter-clockwise seen from the camera
+    normals : (n, 3) float32 unit vertex normals, pointing towards the camera
+    colors : (n, 3) uint8 RGB from the white image
+    quality : (n,) float32 in [0, 1]: cos(viewing angle) x the sample's contrast; 0 for
+        saturated samples (and for vertices no face uses, when they are kept)
+    row : (n,) int32 camera row of each vertex's sample
+    stripe : (n,) int32 stripe index of each vertex's sample
+    view : the view's name
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    normals: np.ndarray
+    colors: np.ndarray
+    quality: np.ndarray
+    row: np.ndarray
+    stripe: np.ndarray
+    view: str = ""
+
+    @property
+    def n_vertices(self) -> int:
+        return len(self.vertices)
+
+    @property
+    def n_faces(self) -> int:
+        return len(self.faces)
+
+
+# --- meshing ----------------------------------------------------------------------------------
+
+
+def _white_rgb(white_image: np.ndarray, rows: np.ndarray, xs: np.ndarray) -> np.ndarray:
+    """Bilinear (along x; rows are whole pixels) RGB uint8 of ``white_image`` at samples."""
+    img = np.asarray(white_image)
+    if img.dtype == np.uint8:
+        scale = 1.0
+    elif img.dtype == np.uint16:
+        scale = 255.0 / 65535.0
+    elif np.issubdtype(img.dtype, np.floating):
+        scale = 255.0
+    else:
+        raise SlscanError(f"white image: pixels are {img.dtype}; expected uint8, uint16 or float")
+    if img.ndim == 2:
+        img = img[..., None]
+    h, w = img.shape[:2]
+    x0 = np.clip(np.floor(xs).astype(np.int64), 0, w - 1)
+    x1 = np.minimum(x0 + 1, w - 1)
+    f = np.clip(xs - x0, 0.0, 1.0)[:, None]
+    r = np.clip(rows, 0, h - 1)
+    value = img[r, x0].astype(np.float64) * (1 - f) + img[r, x1].astype(np.float64) * f
+    value = np.clip(np.rint(value * scale), 0, 255).astype(np.uint8)
+    if value.shape[1] == 1:
+        value = np.repeat(value, 3, axis=1)
+    return value[:, :3]
+
+
+def _grid_lookup(keys: np.ndarray, usable: np.ndarray):
+    """A function mapping grid keys to the index of the usable sample there (-1: none)."""
+    order = np.flatnonzero(usable)
+    order = order[np.argsort(keys[order], kind="stable")]
+    sorted_keys = keys[order]
+
+    def find(query: np.ndarray) -> np.ndarray:
+        if len(order) == 0:
+            return np.full(len(query), -1, np.int64)
+        pos = np.minimum(np.searchsorted(sorted_keys, query), len(order) - 1)
+        return np.where(sorted_keys[pos] == query, order[pos], -1)
+
+    return find
+
+
+def _median_ratio(points: np.ndarray, depth: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    """Median of edge length over depth for the neighbour pairs (a, b)."""
+    if len(a) == 0:
+        return math.nan
+    length = np.linalg.norm(points[a] - points[b], axis=1)
+    return float(np.median(length / (0.5 * (depth[a] + depth[b]))))
+
+
+def build_range_map(
+    samples: StripeSamples,
+    points: np.ndarray,
+    *,
+    white_image: np.ndarray,
+    camera: PinholeModel,
+    view: str = "",
+    max_edge_factor: float = 4.0,
+    max_view_angle_deg: float = 80.0,
+    keep_unreferenced: bool = False,
+) -> RangeMap:
+    """Mesh triangulated samples on their (camera row x stripe) grid into a range map.
+
+    For consecutive camera rows ``r, r + 1`` and consecutive stripes ``s, s + 1`` present
+    in both rows, the quad is split along its shorter diagonal into two triangles. A
+    triangle is dropped when
+
+    - an edge is longer than ``max_edge_factor`` times the expected spacing there: the
+      median edge length over depth of the view's row-direction (and, separately,
+      stripe-direction) neighbours, times the edge's depth (diagonals: the hypotenuse of
+      the two), so the test adapts to the sampling and to distance; or
+    - its normal is more than ``max_view_angle_deg`` from the viewing ray (grazing).
+
+    Samples whose point is NaN, and samples that share their (row, stripe) with another
+    (a row crossing one light plane twice), take part in no face.
+
+    Parameters
+    ----------
+    samples : StripeSamples, k samples
+    points : (k, 3) float64, mm, rig frame: the samples triangulated (NaN allowed)
+    white_image : (h, w) or (h, w, 3) uint8/uint16 capture under full white, for colour
+    camera : the camera that saw the samples (at the rig origin); its size must match
+        the white image
+    view : name stored with the map
+    max_edge_factor : float
+        Edges longer than this many times the expected spacing cut the mesh.
+    max_view_angle_deg : float, degrees
+        Faces seen more obliquely than this are dropped.
+    keep_unreferenced : bool
+        Keep vertices that no face uses (with the viewing direction as normal and
+        quality 0); by default they are removed, so the map is a surface (the samples
+        themselves stay available from ``samples``).
+
+    Returns
+    -------
+    RangeMap
+    """
+    k = len(samples)
+    points = np.asarray(points, dtype=np.float64)
+    if points.shape != (k, 3):
+        raise SlscanError(f"range map: expected ({k}, 3) points for {k} samples, got shape {points.shape}")
+    white = np.asarray(white_image)
+    if white.shape[:2] != (camera.height, camera.width):
+        raise SlscanError(
+            f"range map: white image is {white.shape[1]}x{white.shape[0]}, the camera is "
+            f"{camera.width}x{camera.height}"
+        )
+    if max_edge_factor <= 0:
+        raise SlscanError(f"max_edge_factor must be positive, got {max_edge_factor}")
+    rows = np.asarray(samples.row, np.int64)
+    stripes = np.asarray(samples.stripe, np.int64)
+    finite = np.all(np.isfinite(points), axis=1)
+
+    faces = np.zeros((0, 3), np.int64)
+    if finite.any():
+        s_min = int(stripes[finite].min())
+        span = int(stripes[finite].max()) - s_min + 2
+        keys = (rows - int(rows[finite].min()) + 1) * span + (stripes - s_min)
+        keys[~finite] = -1
+        _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+        unique = finite & (counts[inverse.reshape(-1)] == 1)
+        find = _grid_lookup(keys, unique)
+        a = np.flatnonzero(unique)
+        b, c = find(keys[a] + 1), find(keys[a] + span)  # (r, s + 1), (r + 1, s)
+        depth = np.linalg.norm(points, axis=1)
+        m_stripe = _median_ratio(points, depth, a[b >= 0], b[b >= 0])
+        m_row = _median_ratio(points, depth, a[c >= 0], c[c >= 0])
+        d = find(keys[a] + span + 1)  # (r + 1, s + 1)
+        quad = (b >= 0) & (c >= 0) & (d >= 0)
+        a, b, c, d = a[quad], b[quad], c[quad], d[quad]
+        split_ad = np.linalg.norm(points[a] - points[d], axis=1) <= np.linalg.norm(points[b] - points[c], axis=1)
+        tri = np.concatenate([
+            np.where(split_ad[:, None], np.stack([a, c, d], 1), np.stack([a, c, b], 1)),
+            np.where(split_ad[:, None], np.stack([a, d, b], 1), np.stack([b, c, d], 1)),
+        ])
+        faces = _filter_faces(
+            tri, points, depth, rows, stripes, m_row, m_stripe, max_edge_factor, max_view_angle_deg
+        )
+
+    vertex_normals = _vertex_normals(points, faces, finite)
+    referenced = np.zeros(k, bool)
+    referenced[faces.reshape(-1)] = True
+    keep = finite & (referenced | keep_unreferenced)
+    view_dir = np.zeros_like(points)
+    view_dir[finite] = points[finite] / np.linalg.norm(points[finite], axis=1, keepdims=True)
+    cos_view = np.clip(-np.einsum("ij,ij->i", vertex_normals, view_dir), 0.0, 1.0)
+    quality = cos_view * np.clip(np.asarray(samples.contrast, np.float64), 0.0, 1.0)
+    quality[np.asarray(samples.saturated, bool) | ~referenced] = 0.0
+
+    new_index = np.full(k, -1, np.int64)
+    new_index[keep] = np.arange(int(keep.sum()))
+    kept_faces = new_index[faces].astype(np.int32)
+    colors = _white_rgb(white, rows[keep], np.asarray(samples.x, np.float64)[keep])
+    log.debug(
+        "range map %s: %d samples -> %d vertices, %d faces", view or "?", k, int(keep.sum()), len(kept_faces)
+    )
+    return RangeMap(
+        vertices=points[keep],
+        faces=kept_faces,
+        normals=vertex_normals[keep].astype(np.float32),
+        colors=colors,
+        quality=quality[keep].astype(np.float32),
+        row=rows[keep].astype(np.int32),
+        stripe=stripes[keep].astype(np.int32),
+        view=view,
+    )
+
+
+def _filter_faces(
+    tri: np.ndarray,
+    points: np.ndarray,
+    depth: np.ndarray,
+    rows: np.ndarray,
+    stripes: np.ndarray,
+    m_row: float,
+    m_stripe: float,
+    factor: float,
+    max_view_angle_deg: float,
+) -> np.ndarray:
+    """Drop long-edged and grazing triangles; wind the rest counter-clockwise from the camera."""
+    if len(tri) == 0:
+        return tri.reshape(0, 3)
+    keep = np.ones(len(tri), bool)
+    m_row = m_row if np.isfinite(m_row) else m_stripe
+    m_stripe = m_stripe if np.isfinite(m_stripe) else m_row
+    for i, j in ((0, 1), (1, 2), (2, 0)):
+        p, q = tri[:, i], tri[:, j]
+        length = np.linalg.norm(points[p] - points[q], axis=1)
+        d_row = rows[p] != rows[q]
+        d_stripe = stripes[p] != stripes[q]
+        expected = np.where(
+            d_row & d_stripe, math.hypot(m_row, m_stripe), np.where(d_row, m_row, m_stripe)
+        ) * 0.5 * (depth[p] + depth[q])
+        keep &= length <= factor * expected
+    v0, v1, v2 = points[tri[:, 0]], points[tri[:, 1]], points[tri[:, 2]]
+    normal = np.cross(v1 - v0, v2 - v0)
+    centroid = (v0 + v1 + v2) / 3.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cos_view = -np.einsum("ij,ij->i", normal, centroid) / (
+            np.linalg.norm(normal, axis=1) * np.linalg.norm(centroid, axis=1)
+        )
+    keep &= np.abs(cos_view) >= math.cos(math.radians(max_view_angle_deg))
+    tri = tri[keep]
+    flip = cos_view[keep] < 0  # normal points away from the camera: swap two corners
+    tri[flip] = tri[flip][:, [0, 2, 1]]
+    return tri
+
+
+def _vertex_normals(points: np.ndarray, faces: np.ndarray, finite: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals (k, 3), towards the camera; viewing direction
+    for vertices in no face."""
+    k = len(points)
+    acc = np.zeros((k, 3))
+    if len(faces):
+        v0, v1, v2 = (points[faces[:, i]] for i in range(3))
+        face_n = np.cross(v1 - v0, v2 - v0)  # length = twice the area
+        for i in range(3):
+            np.add.at(acc, faces[:, i], face_n)
+    toward = np.zeros((k, 3))
+    toward[finite] = -points[finite] / np.linalg.norm(points[finite], axis=1, keepdims=True)
+    norm = np.linalg.norm(acc, axis=1)
+    has = norm > 0
+    acc[has] /= norm[has, None]
+    acc[~has] = toward[~has]
+    flip = np.einsum("ij,ij->i", acc, toward) < 0
+    acc[flip] *= -1
+    return acc
+
+
+# --- PLY ----------------------------------------------------------------------------------------
+
+
+def write_ply(range_map: RangeMap, path: str | os.PathLike) -> Path:
+    """Write ``range_map`` as a binary little-endian PLY that MeshLab opens, atomically.
+
+    Vertex properties: ``x y z`` (float, mm), ``nx ny nz`` (float), ``red green blue``
+    (uchar), ``quality`` (float; MeshLab's vertex quality), ``row stripe`` (int);
+    faces: ``vertex_indices`` (uchar count, int indices). The view name is stored as a
+    ``comment view NAME`` header line.
+    """
+    path = Path(path)
+    rm = range_map
+    n, m = len(rm.vertices), len(rm.faces)
+    verts = np.empty(n, PLY_VERTEX_DTYPE)
+    for i, axis in enumerate("xyz"):
+        verts[axis] = rm.vertices[:, i]
+        verts["n" + axis] = rm.normals[:, i]
+    for i, channel in enumerate(("red", "green", "blue")):
+        verts[channel] = rm.colors[:, i]
+    verts["quality"], verts["row"], verts["stripe"] = rm.quality, rm.row, rm.stripe
+    faces = np.empty(m, np.dtype([("n", "u1"), ("i", "<i4", (3,))]))
+    faces["n"] = 3
+    faces["i"] = rm.faces
+    view = " ".join(str(rm.view).split())
+    header = ["ply", "format binary_little_endian 1.0", "comment slscan range map (mm, rig frame)"]
+    if view:
+        header.append(f"comment view {view}")
+    header.append(f"element vertex {n}")
+    header += [f"property {_ply_name(verts.dtype[f])} {f}" for f in verts.dtype.names]
+    header += [f"element face {m}", "property list uchar int vertex_indices", "end_header"]
+    with atomic_output_file(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(("\n".join(header) + "\n").encode("ascii"))
+            f.write(verts.tobytes())
+            f.write(faces.tobytes())
+    return path
+
+
+def _ply_name(dtype: np.dtype) -> str:
+    return {"f4": "float", "u1": "uchar", "i4": "int", "f8": "double"}[dtype.str[1:]]
+
+
+def read_ply(path: str | os.PathLike) -> RangeMap:
+    """Read a binary little-endian triangle-mesh PLY (as :func:`write_ply` writes).
+
+    Missing normals, colours, quality, row or stripe properties read as zeros (white for
+    colours; -1 for row and stripe).
+
+    Raises
+    ------
+    SlscanError
+        Not a PLY, not binary little-endian, an unknown property type, non-triangle
+        faces, or a truncated file (naming the file).
+    """
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise SlscanError(f"{path}: PLY file not found") from None
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise SlscanError(f"{path}: not a PLY file")
+    body_start = data.index(b"\n", end) + 1
+    lines = data[:end].decode("ascii", "replace").splitlines()
+    view = ""
+    elements: list[tuple[str, int, list]] = []
+    fmt = None
+    for line in lines[1:]:
+        parts = line.split()
+        if not parts:
+            continue
+        if parts[0] == "format":
+            fmt = parts[1] if len(parts) > 1 else None
+        elif parts[0] == "comment" and len(parts) > 2 and parts[1] == "view":
+            view = line.split(None, 2)[2].strip()
+        elif parts[0] == "element":
+            elements.append((parts[1], int(parts[2]), []))
+        elif parts[0] == "property":
+            if not elements:
+                raise SlscanError(f"{path}: property before any element")
+            elements[-1][2].append(parts[1:])
+    if fmt != "binary_little_endian":
+        raise SlscanError(f"{path}: PLY format {fmt!r}; expected binary_little_endian")
+    offset = body_start
+    vertex = faces = None
+    for name, count, props in elements:
+        if props and props[0][0] == "list":
+            if len(props) != 1 or len(props[0]) != 4:
+                raise SlscanError(f"{path}: element {name!r}: expected a single list property")
+            _, count_t, index_t, _ = props[0]
+            dt = np.dtype([("n", _ply_dtype(path, count_t)), ("i", _ply_dtype(path, index_t), (3,))])
+            arr = _frombuffer(path, data, dt, count, offset)
+            if count and np.any(arr["n"] != 3):
+                raise SlscanError(f"{path}: element {name!r} has non-triangle faces; expected triangles only")
+        else:
+            if any(p[0] == "list" for p in props):
+                raise SlscanError(f"{path}: element {name!r} mixes list and scalar properties")
+            dt = np.dtype([(p[1], _ply_dtype(path, p[0])) for p in props])
+            arr = _frombuffer(path, data, dt, count, offset)
+        offset += dt.itemsize * count
+        if name == "vertex":
+            vertex = arr
+        elif name == "face":
+            faces = arr["i"].astype(np.int32) if count else np.zeros((0, 3), np.int32)
+    if vertex is None:
+        raise SlscanError(f"{path}: no vertex element")
+    n = len(vertex)
+    names = vertex.dtype.names
+
+    def column(field: str, default: float, dtype) -> np.ndarray:
+        return vertex[field].astype(dtype) if field in names else np.full(n, default, dtype)
+
+    for field in "xyz":
+        if field not in names:
+            raise SlscanError(f"{path}: vertices lack property {field!r}")
+    return RangeMap(
+        vertices=np.stack([column(a, 0, np.float64) for a in "xyz"], axis=1),
+        faces=faces if faces is not None else np.zeros((0, 3), np.int32),
+        normals=np.stack([column(a, 0, np.float32) for a in ("nx", "ny", "nz")], axis=1),
+        colors=np.stack([column(a, 255, np.uint8) for a in ("red", "green", "blue")], axis=1),
+        quality=column("quality", 0, np.float32),
+        row=column("row", -1, np.int32),
+        stripe=column("stripe", -1, np.int32),
+        view=view,
+    )
+
+
+def _ply_dtype(path: Path, name: str) -> str:
+    try:
+        return _PLY_TYPES[name]
+    except KeyError:
+        raise SlscanError(f"{path}: unknown PLY property type {name!r}") from None
+
+
+def _frombuffer(path: Path, data: bytes, dtype: np.dtype, count: int, offset: int) -> np.ndarray:
+    if offset + dtype.itemsize * count > len(data):
+        raise SlscanError(f"{path}: file is truncated (expected {count} records of {dtype.itemsize} bytes)")
+    return np.frombuffer(data, dtype=dtype, count=count, offset=offset).copy()
