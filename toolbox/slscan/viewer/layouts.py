@@ -74,7 +74,43 @@ def capture_blueprint() -> rrb.Blueprint:
     )
 
 
-LAYOUTS: dict[str, Callable[[], rrb.Blueprint]] = {"capture": capture_blueprint}
+def decode_blueprint() -> rrb.Blueprint:
+    """Decode stage: what was measured on the image beside the range map it gives.
+
+    Left: the white capture with the stripe axes and the saturation overlay drawn over it
+    (zoom in to see the sub-pixel line strips); below it tabs with the decoded code map
+    and the validity mask. Right: 3D view of the range maps (and the true surface points
+    on the virtual rig), and the per-view metrics.
+    """
+    overlay = rrb.Spatial2DView(
+        origin="world/camera/image",
+        contents=["+ $origin/capture", "+ $origin/decode/stripes", "+ $origin/decode/saturation"],
+        name="Stripe axes over the capture",
+    )
+    maps = rrb.Tabs(
+        _image_view("world/camera/image", "decode/codes", "Codes"),
+        _image_view("world/camera/image", "decode/mask", "Mask"),
+        name="Decoded maps",
+    )
+    scans = rrb.Spatial3DView(
+        origin="world",
+        contents=["+ $origin/scans/**", "+ $origin/camera", "+ $origin/projector"],
+        name="Range maps",
+    )
+    metrics = rrb.TimeSeriesView(origin="plot/decode", name="Per-view metrics")
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(overlay, maps, row_shares=[3, 2]),
+            rrb.Vertical(scans, metrics, row_shares=[3, 1]),
+            column_shares=[1, 1],
+        ),
+        rrb.TimePanel(expanded=True, timeline=VIEW_TIMELINE),
+        rrb.SelectionPanel(expanded=False),
+        collapse_panels=False,
+    )
+
+
+LAYOUTS: dict[str, Callable[[], rrb.Blueprint]] = {"capture": capture_blueprint, "decode": decode_blueprint}
 """Blueprint builders by stage name; :func:`save_layouts` writes ``<name>.rbl`` for each."""
 
 

@@ -32,6 +32,7 @@ import numpy as np
 import rerun as rr
 
 from slscan.errors import SlscanError
+from slscan.meshes import vertex_normals
 from slscan.viewer.recording import FRAME_TIMELINE, VIEW_TIMELINE
 
 if TYPE_CHECKING:  # imported lazily: capture modules import these loggers
@@ -106,18 +107,6 @@ def _colors_u8(colors: np.ndarray) -> np.ndarray:
     if colors.dtype == np.uint8:
         return colors
     return np.round(np.clip(colors, 0.0, 1.0) * 255).astype(np.uint8)
-
-
-def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals (n, 3) float32 for shading."""
-    v = vertices.astype(np.float64, copy=False)
-    a, b, c = v[triangles[:, 0]], v[triangles[:, 1]], v[triangles[:, 2]]
-    face = np.cross(b - a, c - a)
-    normals = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(normals, triangles[:, k], face)
-    length = np.linalg.norm(normals, axis=1, keepdims=True)
-    return (normals / np.where(length > 0, length, 1.0)).astype(np.float32)
 
 
 def _pinhole(
@@ -209,7 +198,7 @@ def log_scene_mesh(
         rr.Mesh3D(
             vertex_positions=vertices.astype(np.float32),
             triangle_indices=tri,
-            vertex_normals=_vertex_normals(vertices, tri) if len(tri) else None,
+            vertex_normals=vertex_normals(vertices, tri) if len(tri) else None,
             vertex_colors=None if vertex_colors is None else _colors_u8(vertex_colors),
         ),
     )

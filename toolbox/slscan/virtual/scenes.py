@@ -17,6 +17,7 @@ from typing import Protocol
 import numpy as np
 
 from slscan.errors import SlscanError
+from slscan.meshes import vertex_normals
 from slscan.rig import rotation_about_axis
 
 log = logging.getLogger(__name__)
@@ -116,17 +117,6 @@ class Scene:
 
 
 # --- mesh helpers -------------------------------------------------------------------
-
-
-def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Area-weighted vertex normals (n, 3)."""
-    v = vertices[triangles]
-    face = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
-    normals = np.zeros_like(vertices)
-    for c in range(3):
-        np.add.at(normals, triangles[:, c], face)
-    norm = np.linalg.norm(normals, axis=1, keepdims=True)
-    return normals / np.where(norm > 0, norm, 1)
 
 
 def _uv_sphere(n_lat: int, n_lon: int) -> tuple[np.ndarray, np.ndarray]:
@@ -231,7 +221,7 @@ def builtin_object(*, detail: float = 1.0) -> Scene:
     parts = []
 
     def add(verts, tris, part, relief=0.0):
-        normals = _vertex_normals(verts, tris)
+        normals = vertex_normals(verts, tris)
         if relief:
             verts = verts + relief * _relief(verts)[:, None] * normals
         parts.append((verts, tris, part))
@@ -265,7 +255,7 @@ def builtin_object(*, detail: float = 1.0) -> Scene:
     part_t = np.concatenate([np.full(len(p[1]), p[2]) for p in parts])
     part_v = np.concatenate([np.full(len(p[0]), p[2]) for p in parts])
     # shading normals per part (smooth within a part, hard between parts)
-    normals = np.concatenate([_vertex_normals(p[0], p[1]) for p in parts])
+    normals = np.concatenate([vertex_normals(p[0], p[1]) for p in parts])
     return Scene("figurine", vertices, triangles, normals, _PartAlbedo(part_t, part_v), specular=0.12, shininess=30.0)
 
 
@@ -313,7 +303,7 @@ def load_mesh_scene(path: str | os.PathLike, *, units: str = "auto", specular: f
             log.warning("%s is %.3g units across: taking it to be in metres", path, diag)
         vertices = vertices * 1000.0
     vertices = (vertices - (vertices.max(0) + vertices.min(0)) / 2) * [1, -1, -1]
-    normals = _vertex_normals(vertices, triangles)
+    normals = vertex_normals(vertices, triangles)
     if mesh.has_vertex_colors():
         colors = np.asarray(mesh.vertex_colors, dtype=np.float32)
     else:

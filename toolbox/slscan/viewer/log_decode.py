@@ -1,0 +1,113 @@
+"""Loggers for the decode stage: masks, code maps, stripe axes, saturation, range maps, metrics.
+
+Entity tree, continuing :mod:`slscan.viewer.log`::
+
+    world/camera/image/decode/mask         lit-and-decodable pixels    [view]
+    world/camera/image/decode/codes        decoded region / column map, colour-mapped  [view]
+    world/camera/image/decode/saturation   saturated pixels (red overlay)  [view]
+    world/camera/image/decode/stripes      stripe medial axes / edges as 2D line strips  [view]
+    world/scans/view_NNN/range_map         Mesh3D of the range map (rig frame, mm)  [view]
+    plot/decode/<metric>                   per-view scalars  [view]
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import cv2
+import numpy as np
+import rerun as rr
+
+from slscan.viewer.log import _colors_u8, _png, _set_view, scan_path
+
+if TYPE_CHECKING:
+    from slscan.decode.samples import StripeSamples
+
+DECODE_PATH = "world/camera/image/decode"
+STRIPE_COLOR = (40, 255, 120)
+SATURATION_COLOR = (255, 30, 30, 160)
+
+
+def colormap(values: np.ndarray, vmax: float) -> np.ndarray:
+    """Turbo colours (h, w, 3) uint8 of ``values`` (h, w) over [0, vmax]; negative or NaN black."""
+    valid = np.isfinite(values) & (values >= 0)
+    scaled = np.zeros(values.shape, np.uint8)
+    scaled[valid] = np.clip(values[valid] / max(vmax, 1e-9) * 255, 0, 255).astype(np.uint8)
+    rgb = cv2.applyColorMap(scaled, cv2.COLORMAP_TURBO)[..., ::-1]
+    rgb[~valid] = 0
+    return np.ascontiguousarray(rgb)
+
+
+def stripe_strips(samples: StripeSamples, *, max_gap_rows: int = 1) -> list[np.ndarray]:
+    """Polylines (list of (k, 2) float32 [x, row]) joining each stripe's samples row by row."""
+    if len(samples) == 0:
+        return []
+    order = np.lexsort((samples.row, samples.stripe))
+    stripe, row, x = samples.stripe[order], samples.row[order], samples.x[order]
+    breaks = np.flatnonzero((np.diff(stripe) != 0) | (np.diff(row) > max_gap_rows)) + 1
+    points = np.stack([x, row], axis=1).astype(np.float32)
+    return [p for p in np.split(points, breaks) if len(p) >= 2]
+
+
+def log_decode_maps(
+    rec: rr.RecordingStream | None,
+    *,
+    view_index: int,
+    mask: np.ndarray,
+    codes: np.ndarray,
+    code_max: float,
+    saturated: np.ndarray | None = None,
+) -> None:
+    """The validity mask, the decoded code map, and a red overlay of saturated pixels."""
+    if rec is None:
+        return
+    _set_view(rec, view_index)
+    rec.log(f"{DECODE_PATH}/mask", _png((mask.astype(np.uint8) * 255)))
+    rec.log(f"{DECODE_PATH}/codes", _png(colormap(codes.astype(np.float64), code_max)))
+    if saturated is not None:
+        overlay = np.zeros(saturated.shape + (4,), np.uint8)
+        overlay[saturated] = SATURATION_COLOR
+        rec.log(f"{DECODE_PATH}/saturation", rr.Image(overlay, color_model="RGBA", draw_order=10.0))
+
+
+def log_stripes(rec: rr.RecordingStream | None, samples: StripeSamples, *, view_index: int) -> None:
+    """Stripe axes as 2D line strips over the camera image."""
+    if rec is None:
+        return
+    _set_view(rec, view_index)
+    strips = stripe_strips(samples)
+    rec.log(f"{DECODE_PATH}/stripes", rr.LineStrips2D(strips, colors=STRIPE_COLOR, radii=0.3, draw_order=20.0))
+
+
+def log_range_map(
+    rec: rr.RecordingStream | None,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    normals: np.ndarray | None,
+    colors: np.ndarray | None,
+    *,
+    view_index: int,
+) -> None:
+    """A view's range map as a mesh in the rig frame (mm)."""
+    if rec is None:
+        return
+    _set_view(rec, view_index)
+    rec.log(
+        f"{scan_path(view_index)}/range_map",
+        rr.Mesh3D(
+            vertex_positions=vertices.astype(np.float32),
+            triangle_indices=faces.astype(np.uint32),
+            vertex_normals=None if normals is None else normals.astype(np.float32),
+            vertex_colors=None if colors is None else _colors_u8(colors),
+        ),
+    )
+
+
+def log_metrics(rec: rr.RecordingStream | None, metrics: dict[str, float], *, view_index: int) -> None:
+    """Per-view scalars under ``plot/decode/``."""
+    if rec is None:
+        return
+    _set_view(rec, view_index)
+    for name, value in metrics.items():
+        if value is not None and np.isfinite(value):
+            rec.log(f"plot/decode/{name}", rr.Scalars(float(value)))
