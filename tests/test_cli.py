@@ -7,8 +7,11 @@ import sys
 
 import pytest
 
+import numpy as np
+
 from slscan.capture.session import load_session
 from slscan.cli import main
+from slscan.decode.rangemap import read_ply
 
 
 def test_help_lists_the_commands(capsys):
@@ -20,15 +23,21 @@ def test_help_lists_the_commands(capsys):
         assert command in out
 
 
-def test_demo_at_reduced_size_writes_a_session_and_a_recording(tmp_path, capsys):
+def test_demo_at_reduced_size_reaches_a_range_map(tmp_path, capsys):
     out, rrd = tmp_path / "demo", tmp_path / "demo.rrd"
     assert main(["demo", "--out", str(out), "--scale", "0.25", "--quiet", "--save", str(rrd)]) == 0
-    session = load_session(out)
+    session = load_session(out / "capture")
     view = session.views[0]
     assert len(view.pattern_images()) == 2 + 7 and len(view.lit_images()) == 6
     assert rrd.stat().st_size > 10_000
-    assert main(["info", str(out)]) == 0
+    range_map = read_ply(out / "range_maps" / "view_000.ply")
+    assert len(range_map.faces) > 1000
+    assert main(["info", str(out / "capture")]) == 0
     assert "view_000" in capsys.readouterr().out
+    # decoding again from the command line gives the same range map
+    assert main(["decode", str(out / "capture"), "--out", str(tmp_path / "again"), "--quiet"]) == 0
+    again = read_ply(tmp_path / "again" / "view_000.ply")
+    np.testing.assert_array_equal(again.faces, range_map.faces)
 
 
 def test_capture_and_patterns_commands(tmp_path):
@@ -47,6 +56,7 @@ def test_capture_and_patterns_commands(tmp_path):
         (["demo", "--out", "{tmp}/file.txt/x", "--scale", "0.2"], "cannot write"),
         (["demo", "--out", "{tmp}/full", "--scale", "0.2"], "not empty"),
         (["info", "{tmp}/nothing"], "not found"),
+        (["decode", "{tmp}/nothing", "--out", "{tmp}/x"], "not found"),
     ],
 )
 def test_bad_input_gives_one_line_and_a_non_zero_exit(tmp_path, args, message):
@@ -57,7 +67,7 @@ def test_bad_input_gives_one_line_and_a_non_zero_exit(tmp_path, args, message):
         "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
         "property float z\nend_header\n0 0 0\n1 0 0\n0 1 0\n"
     )
-    argv = [a.replace("{tmp}", str(tmp_path)) for a in args] + ["--quiet"] * (args[0] != "info")
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in args] + ["--quiet"] * (args[0] not in ("info", "decode"))
     proc = subprocess.run([sys.executable, "-m", "slscan.cli", *argv], capture_output=True, text=True)
     assert proc.returncode == 2, proc.stderr
     err = proc.stderr.strip()

@@ -52,9 +52,13 @@ def _synthetic(dtype, channels: int, rows: bool = True):
     for d in descs:
         bits, bit = d.params["bits"], d.params["bit"]
         if d.axis == "columns":
-            s = np.broadcast_to(_box_bits(np.arange(w, dtype=float), A_U, B_U, bits, bit)[None, :], (h, w))
+            s = np.broadcast_to(
+                _box_bits(np.arange(w, dtype=float), A_U, B_U, bits, bit)[None, :], (h, w)
+            )
         else:
-            s = np.broadcast_to(_box_bits(np.arange(h, dtype=float), A_V, B_V, bits, bit)[:, None], (h, w))
+            s = np.broadcast_to(
+                _box_bits(np.arange(h, dtype=float), A_V, B_V, bits, bit)[:, None], (h, w)
+            )
         images[d.id] = to_image(1 - s if d.params["inverse"] else s)
     return images, descs, to_image(np.ones((h, w))), to_image(np.zeros((h, w)))
 
@@ -64,7 +68,6 @@ def _synthetic(dtype, channels: int, rows: bool = True):
 def test_synthetic_known_answer(dtype, channels):
     images, descs, white, black = _synthetic(dtype, channels)
     res = decode_gray_images(images, descs, white, black)
-    h, w = CAM
     x = np.arange(CAM[0], dtype=float)
     u = A_U * x + B_U
     v = A_V * np.arange(CAM[1], dtype=float) + B_V
@@ -81,15 +84,15 @@ def test_synthetic_known_answer(dtype, channels):
     # every column boundary inside the image, in every row, at its exact position
     e = res.edges
     boundaries = np.arange(int(np.ceil(u[0] - 0.5)), int(np.floor(u[-1] - 0.5)) + 1)
-    interior = boundaries[(boundaries + 0.5 - B_U) / A_U >= 1]
-    interior = interior[(interior + 0.5 - B_U) / A_U <= CAM[0] - 2]
+    interior = boundaries  # every boundary lies between two pixels of the image
     assert len(e) == CAM[1] * len(interior)
     assert np.array_equal(np.unique(e.stripe), interior)
     np.testing.assert_array_equal(e.projector_column, e.stripe + 0.5)
     truth_x = (e.projector_column - B_U) / A_U
     assert np.max(np.abs(e.x - truth_x)) < 0.01
     assert not e.saturated.any()
-    assert np.all((e.contrast > 0.5) & (e.contrast <= 1))
+    # edge swing |d(x0)| + |d(x0 + 1)| over white(x0) + white(x0 + 1): 0.55 / 1.2 for these ramps
+    np.testing.assert_allclose(e.contrast, 0.55 / 1.2, atol=0.01)
 
 
 def test_columns_only_gives_no_row():
@@ -110,8 +113,10 @@ def test_dark_and_saturated_pixels():
     assert not res.mask[:, :10].any()
     assert np.all(res.column[:, :10] == -1)
     assert res.saturated[:, 50:52].all() and not res.saturated[:, :50].any()
-    near = np.abs(res.edges.x - 50.5) < 2
-    assert res.edges.saturated[near].all() and not res.edges.saturated[~near].any()
+    xa = np.floor(res.edges.x)
+    touches = (xa + 1 >= 50) & (xa <= 51)  # an interpolation pixel is clipped
+    assert touches.any()
+    assert res.edges.saturated[touches].all() and not res.edges.saturated[~touches].any()
 
 
 def test_missing_inverse_is_an_error():
@@ -120,7 +125,9 @@ def test_missing_inverse_is_an_error():
     with pytest.raises(SlscanError, match="columns bit 3 has no inverse.*gray-col-03"):
         decode_gray_images(images, without, white, black)
     with pytest.raises(SlscanError, match="gray-col-03-inv"):
-        decode_gray_images({k: v for k, v in images.items() if k != "gray-col-03-inv"}, descs, white, black)
+        decode_gray_images(
+            {k: v for k, v in images.items() if k != "gray-col-03-inv"}, descs, white, black
+        )
 
 
 def test_mismatched_images_are_errors():
@@ -149,8 +156,12 @@ def test_gray_pairs_order():
 @pytest.fixture(scope="module")
 def tile(tmp_path_factory: pytest.TempPathFactory):
     config = VirtualCaptureConfig(
-        scene="tile", patterns="gray", camera_scale=0.25, projector_scale=0.25,
-        lit_images=False, sensor=Sensor(noise=False),
+        scene="tile",
+        patterns="gray",
+        camera_scale=0.25,
+        projector_scale=0.25,
+        lit_images=False,
+        sensor=Sensor(noise=False),
     )
     session = capture_session(config, tmp_path_factory.mktemp("tile") / "session")
     view = session.views[0]
@@ -162,8 +173,12 @@ def _interior(visibility: np.ndarray) -> np.ndarray:
     lit = visibility == LIT
     out = lit.copy()
     out[1:-1, 1:-1] = np.all(
-        [lit[1 + dy : lit.shape[0] - 1 + dy, 1 + dx : lit.shape[1] - 1 + dx]
-         for dy in (-1, 0, 1) for dx in (-1, 0, 1)], axis=0,
+        [
+            lit[1 + dy : lit.shape[0] - 1 + dy, 1 + dx : lit.shape[1] - 1 + dx]
+            for dy in (-1, 0, 1)
+            for dx in (-1, 0, 1)
+        ],
+        axis=0,
     )
     out[[0, -1], :] = out[:, [0, -1]] = False
     return out
@@ -179,14 +194,16 @@ def test_tile_columns_match_truth(tile):
     to_edge = np.abs(u - np.floor(u) - 0.5) / du_dx
     check = interior & res.mask & (to_edge > 0.5)
     correct = res.column[check] == np.floor(u[check] + 0.5)
-    assert check.sum() > 5000
+    assert check.sum() > 1500  # ~1.2 camera px per column: few pixels are far from an edge
     assert correct.mean() > 0.99
     everywhere = interior & res.mask
     assert (res.column[everywhere] == np.floor(u[everywhere] + 0.5)).mean() > 0.95
     assert res.row is None  # the virtual rig projected no row codes
 
 
-def _truth_crossings(u: np.ndarray, rows: np.ndarray, xs: np.ndarray, level: np.ndarray) -> np.ndarray:
+def _truth_crossings(
+    u: np.ndarray, rows: np.ndarray, xs: np.ndarray, level: np.ndarray
+) -> np.ndarray:
     """Camera x where the row's truth projector column, linearly interpolated, equals ``level``."""
     x0 = np.floor(xs).astype(int)
     out = np.full(len(xs), np.nan)

@@ -18,7 +18,8 @@ EPILOG = """\
 quick start:
   slscan demo --out demo-scan --save demo-scan.rrd   scan the built-in figurine on the virtual rig
   rerun demo-scan.rrd                                 look at it in the Rerun viewer
-  slscan info demo-scan                               what a capture session holds
+  slscan info demo-scan/capture                       what a capture session holds
+  slscan decode demo-scan/capture --out maps          capture session -> range maps (PLY)
 
 Every command that logs takes --save FILE.rrd, --spawn (start a viewer) or
 --connect [URL]; without them nothing is logged. Docs: docs/ in the repository.
@@ -116,6 +117,8 @@ def _add_capture_options(p: argparse.ArgumentParser, *, demo: bool) -> None:
 
 
 def _cmd_capture(args: argparse.Namespace, *, demo: bool = False) -> int:
+    from slscan.decode.pipeline import DecodeConfig
+    from slscan.viewer.layouts import capture_blueprint, pipeline_blueprint
     from slscan.viewer.recording import recording_from_args
     from slscan.virtual.device import VirtualCaptureConfig, capture_session, images_per_view
     from slscan.virtual.sensor import Sensor
@@ -140,22 +143,69 @@ def _cmd_capture(args: argparse.Namespace, *, demo: bool = False) -> int:
             logging.getLogger(__name__).warning("--scale %s: using %d hybrid levels", args.scale, max_levels)
             config = dataclasses.replace(config, levels=max_levels)
     total = config.views * images_per_view(config)
-    t0 = time.perf_counter()
-    from slscan.viewer.layouts import capture_blueprint
-
-    with recording_from_args(args, recording_name=f"capture {args.out.name}", blueprint=capture_blueprint()) as rec:
-        with _ProgressBar(total, "capturing", args.quiet) as bar:
-            session = capture_session(config, args.out, overwrite=args.overwrite, rec=rec, progress=bar.step)
-    elapsed = time.perf_counter() - t0
-    n_images = sum(len(v.images) for v in session.views)
+    capture_dir = args.out / "capture" if demo else args.out
+    if demo:
+        _check_demo_folder(args.out, args.overwrite)
     console = _console()
-    console.print(
-        f"[green]wrote[/] {args.out}: {len(session.views)} view(s), {n_images} images "
-        f"{session.camera_size[0]}x{session.camera_size[1]}, {_human(_folder_size(args.out))}, {elapsed:.1f} s"
-    )
+    blueprint = pipeline_blueprint() if demo else capture_blueprint()
+    t0 = time.perf_counter()
+    with recording_from_args(args, recording_name=f"{args.command} {args.out.name}", blueprint=blueprint) as rec:
+        with _ProgressBar(total, "capturing", args.quiet) as bar:
+            session = capture_session(config, capture_dir, overwrite=args.overwrite, rec=rec, progress=bar.step)
+        elapsed = time.perf_counter() - t0
+        n_images = sum(len(v.images) for v in session.views)
+        console.print(
+            f"[green]wrote[/] {capture_dir}: {len(session.views)} view(s), {n_images} images "
+            f"{session.camera_size[0]}x{session.camera_size[1]}, {_human(_folder_size(capture_dir))}, {elapsed:.1f} s"
+        )
+        if demo:
+            _decode(session, args.out / "range_maps", DecodeConfig(), args.overwrite, rec, args.quiet)
     if args.save:
         console.print(f"[green]recording[/] {args.save} ({_human(Path(args.save).stat().st_size)}): "
                       f"open it with  rerun {args.save}")
+    return 0
+
+
+def _check_demo_folder(out: Path, overwrite: bool) -> None:
+    if out.exists() and not out.is_dir():
+        raise SlscanError(f"{out}: exists and is not a folder")
+    if out.is_dir() and not overwrite and any(out.iterdir()):
+        raise SlscanError(f"{out}: folder exists and is not empty (pass --overwrite to replace it)")
+
+
+# --- decode -------------------------------------------------------------------------------
+
+
+def _decode(session, out: Path, config, overwrite: bool, rec, quiet: bool) -> None:
+    from slscan.decode.pipeline import decode_session
+
+    t0 = time.perf_counter()
+    with _ProgressBar(len(session.views), "decoding", quiet) as bar:
+        results = decode_session(session, out, config, overwrite=overwrite, rec=rec, progress=bar.step)
+    elapsed = time.perf_counter() - t0
+    vertices = sum(len(r.range_map.vertices) for r in results)
+    faces = sum(len(r.range_map.faces) for r in results)
+    _console().print(
+        f"[green]wrote[/] {out}: {len(results)} range map(s) ({results[0].method} decoding), "
+        f"{vertices:,} vertices, {faces:,} faces, {elapsed:.1f} s"
+    )
+
+
+def _cmd_decode(args: argparse.Namespace) -> int:
+    from slscan.capture.session import load_session
+    from slscan.decode.pipeline import DecodeConfig
+    from slscan.viewer.layouts import decode_blueprint
+    from slscan.viewer.recording import recording_from_args
+
+    config = DecodeConfig(method=args.method, estimator=args.estimator)
+    session = load_session(args.session)
+    with recording_from_args(args, recording_name=f"decode {args.session.name}", blueprint=decode_blueprint()) as rec:
+        if rec is not None:
+            from slscan.viewer.log import log_rig
+
+            if session.calibration is not None:
+                log_rig(rec, session.calibration)
+        _decode(session, args.out, config, args.overwrite, rec, args.quiet)
     return 0
 
 
@@ -236,9 +286,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "demo", help="scan the built-in figurine on the virtual rig (start here)",
-        description="Capture the built-in figurine on the virtual rig at the paper's settings: "
-                    "white, black, 9 hybrid patterns and 6 ring-light images per view, with "
-                    "per-pixel ground truth. Writes a capture session folder.",
+        description="Scan the built-in figurine on the virtual rig at the paper's settings: "
+                    "capture white, black, 9 hybrid patterns and 6 ring-light images per view "
+                    "(with per-pixel ground truth) into OUT/capture, then decode them into one "
+                    "range map per view in OUT/range_maps.",
         epilog="example:\n  slscan demo --out demo-scan --save demo-scan.rrd",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -255,6 +306,30 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_capture_options(p, demo=False)
     p.set_defaults(func=_cmd_capture)
+
+    from slscan.decode.hybrid import DEFAULT_ESTIMATOR, ESTIMATORS
+    from slscan.viewer.recording import add_recording_arguments
+
+    p = sub.add_parser(
+        "decode", help="decode a capture session into range maps (PLY)",
+        description="Decode every view of a capture session: shadow masks, band codes and "
+                    "sub-pixel green-line axes (hybrid) or stripe edges (Gray code), ray-plane "
+                    "triangulation with the session's calibration, and meshing into one range "
+                    "map per view (binary PLY with normals, colour and quality, for MeshLab). "
+                    "Also writes range_maps.json with per-view metrics.",
+        epilog="example:\n  slscan decode demo-scan/capture --out demo-scan/range_maps --save decode.rrd",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("session", type=Path, help="capture-session folder")
+    p.add_argument("--out", required=True, type=Path, help="folder for the range maps")
+    p.add_argument("--method", choices=("auto", "hybrid", "gray"), default="auto",
+                   help="which patterns to decode (default auto: hybrid when captured)")
+    p.add_argument("--estimator", choices=ESTIMATORS, default=DEFAULT_ESTIMATOR,
+                   help=f"green-line sub-pixel estimator (default {DEFAULT_ESTIMATOR})")
+    p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_recording_arguments(p)
+    p.set_defaults(func=_cmd_decode)
 
     p = sub.add_parser(
         "patterns", help="write pattern images for a real projector",

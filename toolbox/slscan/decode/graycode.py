@@ -37,10 +37,10 @@ from slscan.patterns.graycode import gray, inverse_gray
 
 log = logging.getLogger(__name__)
 
-MAX_EDGE_GAP = 2
-"""Largest gap (px) along a row between two valid pixels whose columns differ by one
-for the edge between them to be measured; the pixels in between (usually the ones right
-on the edge, where the flipping bit is too weak to read) only locate the zero crossing."""
+MAX_EDGE_GAP = 3
+"""Largest gap (px) along a row between two valid pixels whose columns differ by one or
+two for the edges between them to be measured; the pixels in between (usually the ones
+right on an edge, where the flipping bit is too weak to read) only locate the crossing."""
 
 
 @dataclass(frozen=True)
@@ -91,20 +91,34 @@ def gray_pairs(descs: Sequence[PatternImage], axis: str) -> list[tuple[str, str]
         if d.family != "gray" or d.axis != axis:
             continue
         try:
-            bit, bits, inverse = int(d.params["bit"]), int(d.params["bits"]), bool(d.params["inverse"])
+            bit, bits, inverse = (
+                int(d.params["bit"]),
+                int(d.params["bits"]),
+                bool(d.params["inverse"]),
+            )
         except KeyError as exc:
-            raise SlscanError(f"pattern {d.id!r}: Gray-code description lacks {exc.args[0]!r}") from None
+            raise SlscanError(
+                f"pattern {d.id!r}: Gray-code description lacks {exc.args[0]!r}"
+            ) from None
         if d.params.get("code", "reflected-binary") != "reflected-binary":
-            raise SlscanError(f"pattern {d.id!r}: unsupported code {d.params['code']!r}, expected reflected-binary")
+            raise SlscanError(
+                f"pattern {d.id!r}: unsupported code {d.params['code']!r}, "
+                "expected reflected-binary"
+            )
         key = (bit, inverse)
         if key in found:
-            raise SlscanError(f"patterns {found[key]!r} and {d.id!r} both claim {axis} bit {bit} (inverse={inverse})")
+            raise SlscanError(
+                f"patterns {found[key]!r} and {d.id!r} both claim {axis} bit {bit} "
+                f"(inverse={inverse})"
+            )
         found[key] = d.id
         bits_seen.add(bits)
     if not found:
         return []
     if len(bits_seen) != 1:
-        raise SlscanError(f"Gray-code {axis} patterns disagree on the number of bits: {sorted(bits_seen)}")
+        raise SlscanError(
+            f"Gray-code {axis} patterns disagree on the number of bits: {sorted(bits_seen)}"
+        )
     bits = bits_seen.pop()
     pairs = []
     for bit in range(bits):
@@ -127,7 +141,9 @@ def _full_scale(image: np.ndarray, name: str) -> float:
         return 65535.0
     if np.issubdtype(image.dtype, np.floating):
         return 1.0
-    raise SlscanError(f"{name}: pixels are {image.dtype}; expected uint8, uint16 or float in [0, 1]")
+    raise SlscanError(
+        f"{name}: pixels are {image.dtype}; expected uint8, uint16 or float in [0, 1]"
+    )
 
 
 class _Reader:
@@ -146,7 +162,10 @@ class _Reader:
                 f"{_shape_text(self.shape)} like the white image"
             )
         if image.dtype != self.dtype:
-            raise SlscanError(f"{self.where}{name}: pixels are {image.dtype}, expected {self.dtype} like the white image")
+            raise SlscanError(
+                f"{self.where}{name}: pixels are {image.dtype}, expected {self.dtype} "
+                "like the white image"
+            )
         clipped = image >= self.scale
         self.saturated |= clipped.any(axis=2) if image.ndim == 3 else clipped
         grey = image.mean(axis=2, dtype=np.float32) if image.ndim == 3 else image.astype(np.float32)
@@ -184,7 +203,7 @@ def estimate_noise(pattern_sums: np.ndarray, flat_sum: np.ndarray, where: np.nda
 def _decode_axis(
     diffs: np.ndarray, size: int, lit: np.ndarray, threshold: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Values (h, w) int32 (-1 where unread) and per-pixel validity from bit differences (bits, h, w)."""
+    """Values (h, w) int32 (-1 where unread) and validity from bit differences (bits, h, w)."""
     bits = len(diffs)
     code = np.zeros(diffs.shape[1:], np.int64)
     valid = lit.copy()
@@ -199,48 +218,64 @@ def _decode_axis(
 def _edges(
     column: np.ndarray,
     valid: np.ndarray,
+    lit: np.ndarray,
     diffs: np.ndarray,
     white: np.ndarray,
     saturated: np.ndarray,
     max_gap: int,
 ) -> StripeSamples:
-    """Sub-pixel edges between valid pixels of a row whose columns differ by one."""
-    h, w = column.shape
+    """Sub-pixel stripe edges along rows between valid pixels whose columns differ.
+
+    For consecutive valid pixels of a row at most ``max_gap`` apart, with lit pixels
+    between them, whose columns ``c0 -> c1`` differ by 1 or 2 (at most the gap): each
+    boundary ``c | c + 1`` in between is located at the first sign change, walking from
+    the first pixel, of the bit that flips there (a different bit for each of two
+    consecutive boundaries), interpolated linearly between the two pixels around it.
+    """
+    w = column.shape[1]
     bits = len(diffs)
     rows, xs = np.nonzero(valid)  # row-major: sorted by row, then x
     same_row = rows[1:] == rows[:-1]
     gap = xs[1:] - xs[:-1]
     c0, c1 = column[rows[:-1], xs[:-1]], column[rows[1:], xs[1:]]
-    pair = same_row & (gap <= max_gap) & (np.abs(c1 - c0) == 1)
-    r, x0, g = rows[:-1][pair], xs[:-1][pair], gap[pair]
-    low = np.minimum(c0[pair], c1[pair]).astype(np.int64)
+    step = np.abs(c1 - c0)
+    pair = same_row & (gap <= max_gap) & (step >= 1) & (step <= np.minimum(gap, 2))
+    for between in range(1, max_gap):  # the pixels between the two must be lit
+        inside = pair & (between < gap)
+        xi = np.minimum(xs[:-1] + between, w - 1)
+        pair &= ~inside | lit[rows[:-1], xi]
+    # one entry per boundary: (pair, low + j) for j < step
+    n = step[pair].astype(np.int64)
+    idx = np.repeat(np.flatnonzero(pair), n)
+    j = np.arange(len(idx)) - np.repeat(np.cumsum(n) - n, n)
+    r, x0, g = rows[:-1][idx], xs[:-1][idx], gap[idx]
+    low = np.minimum(c0[idx], c1[idx]).astype(np.int64) + j
     flip = gray(low) ^ gray(low + 1)  # a single bit
     k = (bits - 1 - np.log2(flip).round().astype(np.int64)).astype(np.intp)
 
     # walk from x0 towards x0 + g to the first sign change of the flipping bit's difference
-    d_start = diffs[k, r, x0]
-    sign0 = d_start > 0
-    seg = np.zeros(len(r), np.int64)  # crossing lies in [x0 + seg, x0 + seg + 1]
+    sign0 = diffs[k, r, x0] > 0
+    seg = np.zeros(len(r), np.int64)  # the crossing lies in [x0 + seg, x0 + seg + 1]
     found = np.zeros(len(r), bool)
-    for step in range(1, max_gap + 1):
-        xi = np.minimum(x0 + step, w - 1)
-        change = ~found & (step <= g) & ((diffs[k, r, xi] > 0) != sign0)
-        seg[change] = step - 1
+    for offset in range(1, max_gap + 1):
+        xi = np.minimum(x0 + offset, w - 1)
+        change = ~found & (offset <= g) & ((diffs[k, r, xi] > 0) != sign0)
+        seg[change] = offset - 1
         found |= change
-    xa = x0 + seg
+    xa = np.minimum(x0 + seg, w - 2)
     da, db = diffs[k, r, xa], diffs[k, r, xa + 1]
     denom = da - db
     with np.errstate(divide="ignore", invalid="ignore"):
         frac = np.where(denom != 0, da / denom, 0.5)
-    frac = np.clip(frac, 0.0, 1.0)
-    x = xa + frac
+    x = xa + np.clip(frac, 0.0, 1.0)
 
     edge_signal = np.abs(da) + np.abs(db)
     white_sum = white[r, xa] + white[r, xa + 1]
     with np.errstate(divide="ignore", invalid="ignore"):
         rel = np.where(white_sum > 0, edge_signal / white_sum, 0.0)
     sat = saturated[r, xa] | saturated[r, xa + 1]
-    keep = found & np.isfinite(x)
+    keep = np.flatnonzero(found & np.isfinite(x))
+    keep = keep[np.lexsort((x[keep], r[keep]))]
     return StripeSamples(
         row=r[keep].astype(np.int32),
         x=x[keep].astype(np.float64),
@@ -283,7 +318,9 @@ def decode_gray_images(
         That standard deviation, fraction of full scale; default: estimated from the
         images (:func:`estimate_noise`), at least the quantisation noise.
     max_edge_gap : int, px
-        Measure an edge between valid pixels up to this far apart along a row.
+        Measure the edges between valid pixels up to this far apart along a row whose
+        columns differ by one or two (the pixels between must pass ``min_contrast``);
+        pixels right on an edge are often invalid, their flipping bit being too weak.
     where : str
         Prefix for error messages (e.g. the view folder).
 
@@ -291,8 +328,13 @@ def decode_gray_images(
     -------
     GrayResult
         Decoded columns (and rows when the set has row codes), the validity mask and the
-        sub-pixel stripe edges (one sample per camera row and column boundary; a row that
-        crosses the same boundary twice gives two samples).
+        sub-pixel stripe edges (one sample per camera row and column boundary crossed,
+        sorted by row then x; a row that crosses the same boundary twice gives two).
+        ``contrast`` of an edge sample is ``|d(xa)| + |d(xa + 1)|`` over
+        ``white(xa) + white(xa + 1)``, with ``d`` the flipping bit's ``pattern - inverse``
+        at the two pixels around the crossing (1 for a step right between two pixels
+        with no black level; blur and black lower it); ``saturated`` marks a clipped
+        image at either pixel.
 
     Raises
     ------
@@ -315,7 +357,9 @@ def decode_gray_images(
             raise SlscanError(f"{where}no captured image of Gray-code pattern {pid!r}")
     white = np.asarray(white)
     if white.ndim not in (2, 3) or (white.ndim == 3 and white.shape[2] not in (1, 3)):
-        raise SlscanError(f"{where}white: expected an (h, w) or (h, w, 3) image, got shape {white.shape}")
+        raise SlscanError(
+            f"{where}white: expected an (h, w) or (h, w, 3) image, got shape {white.shape}"
+        )
     _full_scale(white, f"{where}white")
     read = _Reader(white.shape, white.dtype, where)
     w_img, b_img = read(white, "white"), read(black, "black")
@@ -347,14 +391,22 @@ def decode_gray_images(
         row, row_valid = _decode_axis(row_diffs, height, lit, threshold)
         mask = col_valid & row_valid
         del row_diffs
-    edges = _edges(column, col_valid, col_diffs, w_img, read.saturated, max_edge_gap)
+    edges = _edges(column, col_valid, lit, col_diffs, w_img, read.saturated, max_edge_gap)
     log.debug(
         "%sGray code: %.1f%% pixels decoded, %d edges, noise %.4f of full scale",
-        where, 100 * mask.mean(), len(edges), sigma,
+        where,
+        100 * mask.mean(),
+        len(edges),
+        sigma,
     )
     return GrayResult(
-        column=column, row=row, mask=mask, edges=edges, contrast=contrast,
-        saturated=read.saturated, noise=sigma,
+        column=column,
+        row=row,
+        mask=mask,
+        edges=edges,
+        contrast=contrast,
+        saturated=read.saturated,
+        noise=sigma,
     )
 
 
@@ -393,5 +445,8 @@ def _flat_ids(session: Session) -> tuple[str, str]:
                 black = p.id
     if white is None or black is None:
         missing = "white" if white is None else "black"
-        raise SlscanError(f"{session.root}: the pattern set has no all-{missing} frame; Gray-code decoding needs one")
+        raise SlscanError(
+            f"{session.root}: the pattern set has no all-{missing} frame; "
+            "Gray-code decoding needs one"
+        )
     return white, black

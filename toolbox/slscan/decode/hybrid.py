@@ -1,4 +1,4 @@
-"""Decode the paper's hybrid pattern: index the green lines by the red/blue bands, find their medial axes.
+"""Decode the paper's hybrid pattern: green lines indexed by red/blue bands, with sub-pixel axes.
 
 Pipeline for one view (:func:`decode_hybrid_images` on arrays, :func:`decode_hybrid` on a
 capture session):
@@ -26,25 +26,37 @@ capture session):
    bits (red 0, blue 1) of images ``1 .. k−1`` read at its sub-pixel position: the
    region ``r`` is their binary number, most significant first, and the line is
    ``params["lines"][r]`` of image ``k``.
-6. **Medial axis**: local maxima of ``g`` along each camera row that stand above the
-   neighbouring bands, refined to sub-pixel by one of :data:`ESTIMATORS`.
-7. **Rejection**: ambiguous bits (``e`` near 0.5), low or flat peaks, a peak without red
-   on its left and blue on its right, and samples whose projector column disagrees with
-   every linear prediction from their neighbours along the row (wrong index).
+6. **Medial axis**: local maxima of ``g`` along each camera row (after a ``[1, 2, 1] / 4``
+   filter across rows) that stand above the neighbouring bands, refined to sub-pixel by
+   one of :data:`ESTIMATORS`.
+7. **Rejection**: ambiguous bits (``e`` near 0.5); low or flat peaks; a peak without red
+   on its left and blue on its right; a line next to a drop of the white frame (a
+   silhouette, shadow or crease truncates its profile); samples whose projector column
+   disagrees with every linear prediction from their neighbours along the row (a wrong
+   index, :func:`order_consistent`).
 
 Sub-pixel estimators (``estimator=``), on the samples ``f(c + i)`` of the line signal
 around its integer maximum ``c``:
 
 ``"centroid"``
-    centre of mass of ``max(f, 0)`` over ``c − 2 .. c + 2``.
+    centre of mass of ``max(f, 0)`` over a window ``± 2.5`` px re-centred on the
+    estimate until it settles, counting only the line's own flanks (Fisher & Naidu 1996
+    compare it with the others).
 ``"gaussian"``
     the vertex of the parabola through ``ln f(c − 1), ln f(c), ln f(c + 1)``: exact for a
-    Gaussian profile (Fisher & Naidu 1996).
+    Gaussian profile (Naidu & Fisher 1991).
 ``"parabola"``
-    the vertex of the parabola through ``f(c − 1), f(c), f(c + 1)``.
+    the vertex of the parabola through ``f(c − 1), f(c), f(c + 1)``; biased towards the
+    pixel centre ("pixel locking") on lines narrower than about 2 px: 0.07 px at σ 0.8.
 ``"blais-rioux"``
     the zero crossing, linearly interpolated, of the 4th-order FIR derivative
     ``d(i) = f(i + 1) + f(i + 2) − f(i − 1) − f(i − 2)`` (Blais & Rioux 1986).
+
+The default, ``"gaussian"``, was the most accurate everywhere on the virtual rig at full
+size (``benchmarks/stripe_axes.py``; the green lines are about 1.2 camera px wide,
+Gaussian σ ≈ 0.8 px after blur): RMS axis error 0.008 px on a noise-free tile, 0.011 px
+with sensor noise, 0.093 px on the noisy, painted figurine (centroid 0.010 / 0.016 /
+0.107, Blais-Rioux 0.016 / 0.019 / 0.122, parabola 0.069 / 0.069 / 0.120).
 
 References
 ----------
@@ -69,12 +81,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import minimum_filter1d
+from scipy.ndimage import convolve1d, minimum_filter1d
 
-from slscan.capture.session import Session, ViewRecord
+from slscan.capture.session import ImageRecord, Session, ViewRecord
 from slscan.decode.masks import (
     DEFAULT_MIN_CONTRAST,
     SaturationReport,
+    channel_max,
     full_scale,
     saturation,
     saturation_report,
@@ -89,7 +102,7 @@ log = logging.getLogger(__name__)
 
 ESTIMATORS = ("centroid", "gaussian", "parabola", "blais-rioux")
 DEFAULT_ESTIMATOR = "gaussian"
-"""Chosen from ``benchmarks/stripe_axes.py`` (virtual rig, full size): see the README table."""
+"""The most accurate on the virtual rig (``benchmarks/stripe_axes.py``, module docstring)."""
 
 DEFAULT_MIN_PEAK = 0.2
 """Smallest line signal kept: green relative to the white frame at the line's maximum."""
@@ -103,7 +116,7 @@ DEFAULT_AMBIGUITY = 0.15
 DEFAULT_MIN_POLARITY = 0.1
 """A line must be redder one pixel to its left than one pixel to its right by this much."""
 
-DEFAULT_MIN_EDGE_RATIO = 0.3
+DEFAULT_MIN_EDGE_RATIO = 0.6
 """Lines whose white-frame neighbourhood falls below this fraction of the line's own white
 level are cut by a silhouette or shadow edge, and dropped."""
 
@@ -111,10 +124,13 @@ EDGE_RADIUS = 2  # px each side checked for a white-frame edge
 PROMINENCE_RADIUS = 3  # px each side searched for the neighbouring band minimum
 PLATEAU_WIDTH = 7  # px, band pixels used for crosstalk must be this deep inside a band
 CROSSTALK_LEVELS = 3  # coarse images whose wide bands serve the crosstalk estimate
+CROSSTALK_ROWS = 240  # about this many image rows are used for it
 MIN_CROSSTALK_PIXELS = 50
-ORDER_NEIGHBOURS = 2  # neighbours each side used to predict a sample's projector column
 MAX_NEIGHBOUR_GAP = 16.0  # camera px; farther samples along a row are not compared
+MAX_LONE_SLOPE = 8.0  # projector px per camera px, for a sample with a single neighbour
+CENTROID_RADIUS = 2.5  # px each side of the centre of mass
 _EPS = 1e-6
+_ROW_KERNEL = np.array([0.25, 0.5, 0.25], np.float32)
 
 
 @dataclass(frozen=True)
@@ -149,6 +165,37 @@ def _window(signal: np.ndarray, rows: np.ndarray, cols: np.ndarray, half: int) -
     return signal[rows[:, None], idx]
 
 
+def _centroid(
+    f: np.ndarray, half: int, *, radius: float = CENTROID_RADIUS, iterations: int = 10
+) -> tuple[np.ndarray, np.ndarray]:
+    """Centre of mass of ``max(f, 0)`` over a window ``± radius`` px centred on the estimate.
+
+    f : (k, 2 half + 1) samples at offsets ``−half .. half`` from the integer maximum
+    Returns offsets (k,) and validity (k,). Only the line's own flanks count (samples
+    beyond the first rise on either side belong to a neighbour); pixels count by the share
+    of their width inside the window; re-centring the window (``iterations`` times) removes
+    the bias a fixed window has when the line is not centred on a pixel.
+    """
+    offsets = np.arange(-half, half + 1, dtype=np.float64)
+    # only the line's own flanks: stop at the first rise on either side (a neighbouring line)
+    falling_left = np.cumprod(f[:, half - 1 :: -1] <= f[:, half:0:-1], axis=1)[:, ::-1]
+    falling_right = np.cumprod(f[:, half + 1 :] <= f[:, half:-1], axis=1)
+    flank = np.concatenate([falling_left, np.ones((len(f), 1)), falling_right], axis=1)
+    w = np.maximum(f, 0.0) * flank
+    centre = np.zeros(len(f))
+    total = np.ones(len(f))
+    for _ in range(iterations):
+        lo = centre[:, None] - radius
+        hi = centre[:, None] + radius
+        share = np.clip(np.minimum(offsets + 0.5, hi) - np.maximum(offsets - 0.5, lo), 0.0, 1.0)
+        ws = w * share
+        total = ws.sum(axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            centre = np.clip((ws * offsets).sum(axis=1) / total, -1.0, 1.0)
+        centre = np.where(total > _EPS, centre, 0.0)
+    return centre, total > _EPS
+
+
 def subpixel_peaks(
     signal: np.ndarray, rows: np.ndarray, cols: np.ndarray, *, estimator: str = DEFAULT_ESTIMATOR
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -163,22 +210,22 @@ def subpixel_peaks(
     the image border, or an offset beyond one pixel).
     """
     if estimator not in ESTIMATORS:
-        raise SlscanError(f"unknown line estimator {estimator!r}: expected one of {', '.join(ESTIMATORS)}")
+        raise SlscanError(
+            f"unknown line estimator {estimator!r}: expected one of {', '.join(ESTIMATORS)}"
+        )
     signal = np.asarray(signal)
     if signal.ndim == 1:
         signal = signal[None]
     rows = np.asarray(rows, dtype=np.intp)
     cols = np.asarray(cols, dtype=np.intp)
-    half = 3 if estimator == "blais-rioux" else 2
+    half = 2 if estimator in ("gaussian", "parabola") else 3
     ok = (cols >= half) & (cols < signal.shape[1] - half)
     f = _window(signal, rows, cols, half).astype(np.float64)
     mid = half
     with np.errstate(divide="ignore", invalid="ignore"):
         if estimator == "centroid":
-            w = np.maximum(f, 0.0)
-            total = w.sum(axis=1)
-            offset = (w * np.arange(-half, half + 1)).sum(axis=1) / total
-            ok &= total > _EPS
+            offset, good = _centroid(f, half)
+            ok &= good
         elif estimator in ("gaussian", "parabola"):
             t = f[:, mid - 1 : mid + 2]
             if estimator == "gaussian":
@@ -219,22 +266,17 @@ def find_line_peaks(
     Returns ``rows, cols`` (k,) intp, row-major order.
     """
     g = np.asarray(signal, dtype=np.float32)
-    h, w = g.shape
+    w = g.shape[1]
     if w < 2 * radius + 3:
         return np.empty(0, np.intp), np.empty(0, np.intp)
     centre = g[:, 1:-1]
     peak = (centre >= g[:, :-2]) & (centre > g[:, 2:]) & (centre >= min_peak)
-    # min over [x − radius, x − 1] and [x + 1, x + radius]: a centred running minimum, shifted
-    run = minimum_filter1d(g, size=radius, axis=1, mode="nearest")
-    shift = (radius + 1) // 2 if radius % 2 else radius // 2
+    # minima over [x − radius, x − 1] and [x + 1, x + radius] (beyond the border: +inf)
     left = np.full_like(g, np.inf)
     right = np.full_like(g, np.inf)
-    if radius % 2:
-        left[:, shift:] = run[:, :-shift]
-        right[:, :-shift] = run[:, shift:]
-    else:  # even sizes centre one to the right in scipy's convention
-        left[:, shift:] = run[:, : w - shift]
-        right[:, : w - shift + 1] = run[:, shift - 1 :]
+    for o in range(1, radius + 1):
+        np.minimum(left[:, o:], g[:, :-o], out=left[:, o:])
+        np.minimum(right[:, :-o], g[:, o:], out=right[:, :-o])
     prominence = centre - np.maximum(left[:, 1:-1], right[:, 1:-1])
     peak &= prominence >= min_prominence
     rows, cols = np.nonzero(peak)
@@ -245,7 +287,7 @@ def find_line_peaks(
 
 
 def _plateau(band: np.ndarray) -> np.ndarray:
-    """Pixels (h, w) bool of ``band`` with ``PLATEAU_WIDTH // 2`` band pixels on each side along x."""
+    """Pixels (h, w) bool of ``band`` with ``PLATEAU_WIDTH // 2`` band pixels either side along x."""
     eroded = minimum_filter1d(band.astype(np.uint8), PLATEAU_WIDTH, axis=1, mode="constant")
     return eroded.astype(bool)
 
@@ -256,6 +298,7 @@ def estimate_crosstalk(
     coarse: Sequence[np.ndarray],
     *,
     mask: np.ndarray | None = None,
+    saturated: np.ndarray | None = None,
     bit_depth: int | None = None,
 ) -> np.ndarray:
     """The projector → camera colour crosstalk (3, 3), measured from a view's own captures.
@@ -264,6 +307,7 @@ def estimate_crosstalk(
     coarse : (h, w, 3) captures of coarse hybrid images (wide red and blue bands), e.g. the
         first three levels
     mask : (h, w) bool lit pixels (default: :func:`~slscan.decode.masks.shadow_mask`)
+    saturated : (h, w) bool pixels clipped in any of the images (default: computed)
 
     Returns ``M`` (3, 3) float64, camera channel (rows) response to projector primary
     (columns), each column scaled to a unit diagonal (the scale cancels in the
@@ -278,12 +322,19 @@ def estimate_crosstalk(
     pixels (fewer than ``MIN_CROSSTALK_PIXELS``) is assumed free of crosstalk, with a
     warning: the green one when a view has a single level.
     """
-    white_f = np.asarray(white, np.float32)
-    black_f = np.asarray(black, np.float32)
-    lit = white_f - black_f
+    white, black = np.asarray(white), np.asarray(black)
     if mask is None:
         mask = shadow_mask(white, black, bit_depth=bit_depth)
-    usable = mask & ~saturation(white, bit_depth=bit_depth) & (lit.max(axis=2) > 0)
+    if saturated is None:
+        saturated = np.logical_or.reduce(
+            [saturation(a, bit_depth=bit_depth) for a in (white, *coarse)]
+        )
+    # a few hundred rows hold plenty of band pixels
+    step = max(1, white.shape[0] // CROSSTALK_ROWS)
+    black_f = black[::step].astype(np.float32)
+    lit = white[::step].astype(np.float32) - black_f
+    mask = mask[::step]
+    usable = mask & ~saturated[::step]
     floor = 1e-3 * full_scale(np.asarray(white), "white image", bit_depth=bit_depth)
     with np.errstate(divide="ignore"):
         inv = np.where(lit > floor, 1.0 / lit, 0.0).astype(np.float32)
@@ -295,12 +346,10 @@ def estimate_crosstalk(
     blue_sum = np.zeros(3)
     n_red = n_blue = 0
     for image in coarse:
-        d = np.asarray(image, np.float32) - black_f
-        norm = d * inv
-        ok = usable & ~saturation(image, bit_depth=bit_depth)
-        diff = norm[..., 0] - norm[..., 2]
-        red_here = _plateau((diff > 0.4) & ok)
-        blue_here = _plateau((diff < -0.4) & ok)
+        d = np.asarray(image)[::step].astype(np.float32) - black_f
+        diff = d[..., 0] * inv[..., 0] - d[..., 2] * inv[..., 2]
+        red_here = _plateau((diff > 0.4) & usable)
+        blue_here = _plateau((diff < -0.4) & usable)
         for here, resp, has in ((red_here, red_resp, has_red), (blue_here, blue_resp, has_blue)):
             new = here & ~has
             resp[new] = d[new]
@@ -318,7 +367,10 @@ def estimate_crosstalk(
         if count < MIN_CROSSTALK_PIXELS or total[k] <= 0:
             log.warning(
                 "crosstalk: only %d pixels show the %s primary alone; assuming it reaches only the "
-                "%s camera channel", count, what, what,
+                "%s camera channel",
+                count,
+                what,
+                what,
             )
             continue
         column = np.clip(total / total[k], 0.0, 0.95)
@@ -332,8 +384,8 @@ class _Unmixer:
     """Turns black-subtracted captures into the line signal and the band "redness"."""
 
     unmix: np.ndarray  # (3, 3) float32, M⁻¹ transposed for row vectors
-    white: np.ndarray  # (h, w, 3) float32, M⁻¹ (W − B): the white frame per primary
-    weight: np.ndarray  # (h, w, 3) float32, max(white, 0)²: inverse noise variance of p_c, relative
+    white: np.ndarray  # (h, w, 3) float32, max(M⁻¹ (W − B), 0): the white frame per primary
+    weight: np.ndarray  # (h, w, 3) float32, white²: relative inverse noise variance of p_c
 
     @classmethod
     def build(cls, lit: np.ndarray, crosstalk: np.ndarray, mask: np.ndarray) -> _Unmixer:
@@ -341,15 +393,14 @@ class _Unmixer:
             unmix = np.linalg.inv(crosstalk).T.astype(np.float32)
         except np.linalg.LinAlgError:
             raise SlscanError(f"crosstalk matrix is singular:\n{crosstalk}") from None
-        white = lit @ unmix
+        white = np.maximum(lit @ unmix, 0.0)
         white[~mask] = 0.0
-        weight = np.square(np.maximum(white, 0.0))
-        return cls(unmix, white, weight)
+        return cls(unmix, white, np.square(white))
 
     def signals(self, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Line signal ``g`` and redness ``e``, (h, w) float32, from ``d = I − B`` (h, w, 3).
 
-        ``w_c p_c = W_c U_c`` with ``U = M⁻¹ d``, ``W = M⁻¹ (white − black)``, ``w_c = W_c²``.
+        ``w_c p_c = W_c U_c``, with ``U = M⁻¹ d``, ``W = M⁻¹ (white − black)``, ``w_c = W_c²``
         """
         u = d @ self.unmix
         wu = u * self.white  # w_c p_c
@@ -417,13 +468,20 @@ def _region_lines(desc: PatternImage) -> tuple[np.ndarray, np.ndarray]:
     for i, c in lines:
         r = int(np.searchsorted(starts, c, side="right")) - 1
         if r < 0 or not regions[r][0] <= c < regions[r][1] or index[r] >= 0:
-            raise SlscanError(f"pattern {desc.id!r}: line {i} at column {c} is not alone in a region")
+            raise SlscanError(
+                f"pattern {desc.id!r}: line {i} at column {c} is not alone in a region"
+            )
         index[r], column[r] = i, c
     return index, column
 
 
 def order_consistent(
-    row: np.ndarray, x: np.ndarray, column: np.ndarray, *, tolerance: float, max_gap: float = MAX_NEIGHBOUR_GAP
+    row: np.ndarray,
+    x: np.ndarray,
+    column: np.ndarray,
+    *,
+    tolerance: float,
+    max_gap: float = MAX_NEIGHBOUR_GAP,
 ) -> np.ndarray:
     """Which samples agree with their neighbours along the row, (k,) bool.
 
@@ -447,7 +505,12 @@ def order_consistent(
 
     def neighbour(offset: int) -> tuple[np.ndarray, np.ndarray]:
         j = np.clip(idx + offset, 0, k - 1)
-        ok = (idx + offset >= 0) & (idx + offset < k) & (row[j] == row) & (np.abs(x[j] - x) <= max_gap)
+        ok = (
+            (idx + offset >= 0)
+            & (idx + offset < k)
+            & (row[j] == row)
+            & (np.abs(x[j] - x) <= max_gap)
+        )
         return j, ok
 
     near = {o: neighbour(o) for o in (-2, -1, 1, 2)}
@@ -469,7 +532,7 @@ def order_consistent(
         j, ok = near[o]
         dcol = (column[j] - column) * np.sign(x[j] - x)
         slope = dcol / np.maximum(np.abs(x[j] - x), 1e-9)
-        keep |= lone & ok & (dcol > 0) & (slope < 8.0)
+        keep |= lone & ok & (dcol > 0) & (slope < MAX_LONE_SLOPE)
     return keep
 
 
@@ -486,7 +549,9 @@ def _check_inputs(
 ) -> tuple[list[np.ndarray], list[PatternImage], list[str]]:
     """Validate shapes, dtypes and levels; return images, descriptions and names in level order."""
     if len(images) != len(descs):
-        raise SlscanError(f"{where}{len(images)} hybrid images for {len(descs)} pattern descriptions")
+        raise SlscanError(
+            f"{where}{len(images)} hybrid images for {len(descs)} pattern descriptions"
+        )
     names = list(names) if names is not None else [d.id for d in descs]
     if len(names) != len(descs):
         raise SlscanError(f"{where}{len(names)} names for {len(descs)} pattern descriptions")
@@ -501,14 +566,24 @@ def _check_inputs(
     for name, image in (("black image", black), *zip(names, images)):
         image = np.asarray(image)
         if image.shape != white.shape:
-            raise SlscanError(f"{where}{name}: image is {image.shape}, expected {white.shape} like the white image")
+            raise SlscanError(
+                f"{where}{name}: image is {image.shape}, "
+                f"expected {white.shape} like the white image"
+            )
         if image.dtype != white.dtype:
-            raise SlscanError(f"{where}{name}: pixels are {image.dtype}, expected {white.dtype} like the white image")
+            raise SlscanError(
+                f"{where}{name}: pixels are {image.dtype}, "
+                f"expected {white.dtype} like the white image"
+            )
     for d, name in zip(descs, names):
         if d.family != "hybrid":
-            raise SlscanError(f"{where}{name}: pattern {d.id!r} is {d.family!r}, not a hybrid pattern")
+            raise SlscanError(
+                f"{where}{name}: pattern {d.id!r} is {d.family!r}, not a hybrid pattern"
+            )
         if "level" not in d.params or "lines" not in d.params or "regions" not in d.params:
-            raise SlscanError(f"{where}pattern {d.id!r}: hybrid description lacks level, lines or regions")
+            raise SlscanError(
+                f"{where}pattern {d.id!r}: hybrid description lacks level, lines or regions"
+            )
     order = sorted(range(len(descs)), key=lambda i: int(descs[i].params["level"]))
     levels = [int(descs[i].params["level"]) for i in order]
     total = int(descs[order[0]].params.get("levels", len(descs)))
@@ -525,8 +600,20 @@ def _check_inputs(
     width = descs[order[0]].width
     for i in order:
         if descs[i].width != width:
-            raise SlscanError(f"{where}pattern {descs[i].id!r} is {descs[i].width} px wide, expected {width}")
-    return [np.asarray(images[i]) for i in order], [descs[i] for i in order], [names[i] for i in order]
+            raise SlscanError(
+                f"{where}pattern {descs[i].id!r} is {descs[i].width} px wide, expected {width}"
+            )
+    return (
+        [np.asarray(images[i]) for i in order],
+        [descs[i] for i in order],
+        [names[i] for i in order],
+    )
+
+
+def _keep(ok: np.ndarray, cond: np.ndarray, rejected: dict[str, int], reason: str) -> np.ndarray:
+    """``ok & cond``, counting under ``reason`` the samples ``cond`` rejects."""
+    rejected[reason] += int(np.count_nonzero(ok & ~cond))
+    return ok & cond
 
 
 def decode_hybrid_images(
@@ -542,6 +629,7 @@ def decode_hybrid_images(
     ambiguity: float = DEFAULT_AMBIGUITY,
     min_polarity: float = DEFAULT_MIN_POLARITY,
     min_edge_ratio: float = DEFAULT_MIN_EDGE_RATIO,
+    smooth_rows: bool = True,
     crosstalk: np.ndarray | None = None,
     bit_depth: int | None = None,
     names: Sequence[str] | None = None,
@@ -556,13 +644,19 @@ def decode_hybrid_images(
     descs : their pattern descriptions (:func:`slscan.patterns.hybrid.generate`), same order
     estimator : {"centroid", "gaussian", "parabola", "blais-rioux"}, the sub-pixel line
         centre (module docstring)
-    min_contrast : shadow-mask threshold, fraction of full scale (:func:`~slscan.decode.masks.shadow_mask`)
+    min_contrast : shadow-mask threshold, fraction of full scale
+        (:func:`~slscan.decode.masks.shadow_mask`)
     min_peak, min_prominence : line detection thresholds on the normalised line signal
         (fraction of the white frame), :func:`find_line_peaks`
     ambiguity : band bits whose redness is within this of 0.5 are unreadable
     min_polarity : a line's redness one pixel left minus one pixel right must reach this
     min_edge_ratio : lines are dropped where the white frame within ``EDGE_RADIUS`` px
-        falls below this fraction of its value at the line (silhouette and shadow edges)
+        along the row, or in the rows above and below, falls below this fraction of its
+        value at the line (silhouette and shadow edges)
+    smooth_rows : filter the line signal across rows with ``[1, 2, 1] / 4`` before finding
+        maxima; a straight line keeps its centre on the middle row, the noise drops by
+        about 1.6× (full-size noisy figurine, Gaussian estimator: RMS axis error 0.115 →
+        0.093 px)
     crosstalk : (3, 3) camera × projector-primary response; None estimates it from the
         captures (:func:`estimate_crosstalk`)
     bit_depth : {8, 16} when the values do not use their dtype's full range
@@ -580,26 +674,45 @@ def decode_hybrid_images(
         Images of different sizes or dtypes, grey captures, or levels missing or repeated.
     """
     if estimator not in ESTIMATORS:
-        raise SlscanError(f"unknown line estimator {estimator!r}: expected one of {', '.join(ESTIMATORS)}")
+        raise SlscanError(
+            f"unknown line estimator {estimator!r}: expected one of {', '.join(ESTIMATORS)}"
+        )
     prefix = f"{where}: " if where else ""
     images, descs, names = _check_inputs(white, black, images, descs, names, prefix)
     white, black = np.asarray(white), np.asarray(black)
     h, w = white.shape[:2]
     mask = shadow_mask(white, black, min_contrast=min_contrast, bit_depth=bit_depth)
+    clipped = {
+        name: saturation(image, bit_depth=bit_depth)
+        for name, image in zip((*flat_names, *names), (white, black, *images))
+    }
+    sat_white = clipped[flat_names[0]]
     if crosstalk is None:
         crosstalk = estimate_crosstalk(
-            white, black, images[:CROSSTALK_LEVELS], mask=mask, bit_depth=bit_depth
+            white,
+            black,
+            images[:CROSSTALK_LEVELS],
+            mask=mask,
+            bit_depth=bit_depth,
+            saturated=np.logical_or.reduce(
+                [sat_white, *(clipped[n] for n in names[:CROSSTALK_LEVELS])]
+            ),
         )
     crosstalk = np.asarray(crosstalk, np.float64)
     if crosstalk.shape != (3, 3):
         raise SlscanError(f"{prefix}crosstalk must be a (3, 3) matrix, got shape {crosstalk.shape}")
 
     black_f = black.astype(np.float32)
-    unmixer = _Unmixer.build(white.astype(np.float32) - black_f, crosstalk, mask)
-    sat_white = saturation(white, bit_depth=bit_depth)
-    white_level = np.where(mask, (white.astype(np.float32) - black_f).max(axis=2), 0.0).astype(np.float32)
+    lit = white.astype(np.float32) - black_f
+    unmixer = _Unmixer.build(lit, crosstalk, mask)
+    white_level = np.where(mask, channel_max(lit), 0.0).astype(np.float32)
+    del lit
     all_columns = np.concatenate([_region_lines(d)[1] for d in descs])
-    spacing = float(np.min(np.diff(np.sort(all_columns)))) if len(all_columns) > 1 else float(descs[0].width)
+    spacing = (
+        float(np.min(np.diff(np.sort(all_columns))))
+        if len(all_columns) > 1
+        else float(descs[0].width)
+    )
 
     redness: list[np.ndarray] = []
     parts: list[tuple[np.ndarray, ...]] = []
@@ -610,51 +723,66 @@ def decode_hybrid_images(
         g, e = unmixer.signals(image.astype(np.float32) - black_f)
         g[~mask] = 0.0
         e[~mask] = 0.5
+        if smooth_rows:
+            g = convolve1d(g, _ROW_KERNEL, axis=0, mode="constant")
         rows, cols = find_line_peaks(g, min_peak=min_peak, min_prominence=min_prominence)
         n_peaks += len(rows)
         x, ok = subpixel_peaks(g, rows, cols, estimator=estimator)
         rejected["sub-pixel fit"] += int((~ok).sum())
-
-        def keep_only(cond: np.ndarray, reason: str) -> None:
-            rejected[reason] += int((ok & ~cond).sum())
-            ok[...] = ok & cond
+        lines = np.zeros((h, w), bool)  # every maximum, kept or not, for the saturation report
+        for o in (-1, 0, 1):
+            lines[rows, np.clip(cols + o, 0, w - 1)] = True
+        line_maps[name] = lines
 
         region = np.zeros(len(rows), np.int64)
         for j, e_j in enumerate(redness):
             v = _interp_row(e_j, rows, x)
-            keep_only(np.abs(v - 0.5) >= ambiguity, "ambiguous bit")
+            ok = _keep(ok, np.abs(v - 0.5) >= ambiguity, rejected, "ambiguous bit")
             region |= (v < 0.5).astype(np.int64) << (k - 2 - j)
         # the white frame must not fall off around the line: a silhouette or shadow edge
         # truncates the line's profile and drags its centre
-        lowest = _window(white_level, rows, cols, EDGE_RADIUS).min(axis=1)
-        keep_only(lowest >= min_edge_ratio * white_level[rows, cols], "edge")
+        lowest = np.minimum(
+            _window(white_level, rows, cols, EDGE_RADIUS).min(axis=1),
+            np.minimum(
+                white_level[np.maximum(rows - 1, 0), cols],
+                white_level[np.minimum(rows + 1, h - 1), cols],
+            ),
+        )
+        ok = _keep(ok, lowest >= min_edge_ratio * white_level[rows, cols], rejected, "edge")
         # red on the left, blue on the right
         polarity = _interp_row(e, rows, x - 1.0) - _interp_row(e, rows, x + 1.0)
-        keep_only(polarity >= min_polarity, "polarity")
+        ok = _keep(ok, polarity >= min_polarity, rejected, "polarity")
         line_index, line_column = _region_lines(desc)
         rows, cols, x, region = rows[ok], cols[ok], x[ok], region[ok]
-        sat_image = saturation(image, bit_depth=bit_depth) | sat_white
+        sat_image = clipped[name] | sat_white
         around = _window(sat_image, rows, cols, 1).any(axis=1)
         parts.append(
             (
-                rows.astype(np.int32), x, line_column[region].astype(np.float64),
-                line_index[region].astype(np.int32), g[rows, cols].astype(np.float32), around,
+                rows.astype(np.int32),
+                x,
+                line_column[region].astype(np.float64),
+                line_index[region].astype(np.int32),
+                g[rows, cols].astype(np.float32),
+                around,
             )
         )
-        lines = np.zeros((h, w), bool)
-        for o in (-1, 0, 1):
-            lines[rows, np.clip(cols + o, 0, w - 1)] = True
-        line_maps[name] = lines
         redness.append(e)
 
     row, x, column, stripe, contrast, saturated = (np.concatenate(f) for f in zip(*parts))
     order = np.lexsort((x, row))
-    samples = StripeSamples(row[order], x[order], column[order], stripe[order], contrast[order], saturated[order])
-    consistent = order_consistent(samples.row, samples.x, samples.projector_column, tolerance=spacing)
+    samples = StripeSamples(
+        row[order], x[order], column[order], stripe[order], contrast[order], saturated[order]
+    )
+    consistent = order_consistent(
+        samples.row, samples.x, samples.projector_column, tolerance=spacing
+    )
     rejected["order"] = int((~consistent).sum())
     log.debug(
-        "%shybrid decode: %d line maxima, %d samples kept; rejected: %s", prefix, n_peaks,
-        int(consistent.sum()), ", ".join(f"{v} {k}" for k, v in rejected.items()),
+        "%shybrid decode: %d line maxima, %d samples kept; rejected: %s",
+        prefix,
+        n_peaks,
+        int(consistent.sum()),
+        ", ".join(f"{v} {k}" for k, v in rejected.items()),
     )
     samples = samples.subset(consistent)
 
@@ -666,11 +794,11 @@ def decode_hybrid_images(
         readable &= np.abs(e_j - 0.5) >= ambiguity
     codes = np.where(readable, codes, -1).astype(np.int32)
 
-    report = saturation_report(
-        {flat_names[0]: white, flat_names[1]: black, **dict(zip(names, images))}, mask, line_maps, bit_depth=bit_depth
-    )
+    report = saturation_report(clipped, mask, line_maps)
     warn_saturation(report, where=where)
-    return HybridResult(samples=samples, mask=mask, codes=codes, crosstalk=crosstalk, saturation=report)
+    return HybridResult(
+        samples=samples, mask=mask, codes=codes, crosstalk=crosstalk, saturation=report
+    )
 
 
 def hybrid_pattern_ids(session: Session) -> tuple[str, str, list[PatternImage]]:
@@ -685,8 +813,13 @@ def hybrid_pattern_ids(session: Session) -> tuple[str, str, list[PatternImage]]:
                 black = p.id
     if white is None or black is None:
         missing = "white" if white is None else "black"
-        raise SlscanError(f"{session.root}: the pattern set has no all-{missing} frame; hybrid decoding needs one")
-    descs = sorted((p for p in session.patterns if p.family == "hybrid"), key=lambda p: p.params.get("level", 0))
+        raise SlscanError(
+            f"{session.root}: the pattern set has no all-{missing} frame; hybrid decoding needs one"
+        )
+    descs = sorted(
+        (p for p in session.patterns if p.family == "hybrid"),
+        key=lambda p: p.params.get("level", 0),
+    )
     if not descs:
         raise SlscanError(f"{session.root}: the pattern set has no hybrid patterns")
     return white, black, descs
@@ -722,13 +855,16 @@ def decode_hybrid(
         )
     white_id, black_id, descs = hybrid_pattern_ids(session)
 
-    def record(pid: str):
+    def record(pid: str) -> ImageRecord:
         recs = [r for r in view.images if r.kind == "pattern" and r.pattern == pid]
         if not recs:
-            raise SlscanError(f"{where}: no image of pattern {pid!r}; hybrid decoding needs one per pattern")
+            raise SlscanError(
+                f"{where}: no image of pattern {pid!r}; hybrid decoding needs one per pattern"
+            )
         if len(recs) > 1:
             raise SlscanError(
-                f"{where}: {len(recs)} images of pattern {pid!r} ({', '.join(r.file for r in recs)}); expected one"
+                f"{where}: {len(recs)} images of pattern {pid!r} "
+                f"({', '.join(r.file for r in recs)}); expected one"
             )
         return recs[0]
 
@@ -737,8 +873,15 @@ def decode_hybrid(
     black = session.read_image(view, record(black_id))
     images = [session.read_image(view, r) for r in recs]
     return decode_hybrid_images(
-        white[..., :3], black[..., :3], [im[..., :3] for im in images], descs,
-        estimator=estimator, min_contrast=min_contrast, bit_depth=session.bit_depth,
-        names=[r.file for r in recs], flat_names=(record(white_id).file, record(black_id).file),
-        where=where, **options,
+        white[..., :3],
+        black[..., :3],
+        [im[..., :3] for im in images],
+        descs,
+        estimator=estimator,
+        min_contrast=min_contrast,
+        bit_depth=session.bit_depth,
+        names=[r.file for r in recs],
+        flat_names=(record(white_id).file, record(black_id).file),
+        where=where,
+        **options,
     )

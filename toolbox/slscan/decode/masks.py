@@ -44,16 +44,25 @@ def full_scale(image: np.ndarray, name: str = "image", *, bit_depth: int | None 
         return 65535.0
     if np.issubdtype(image.dtype, np.floating):
         return 1.0
-    raise SlscanError(f"{name}: pixels are {image.dtype}; expected uint8, uint16 or float in [0, 1]")
+    raise SlscanError(
+        f"{name}: pixels are {image.dtype}; expected uint8, uint16 or float in [0, 1]"
+    )
 
 
-def _per_pixel_max(image: np.ndarray) -> np.ndarray:
+def channel_max(image: np.ndarray) -> np.ndarray:
+    """Per-pixel maximum over channels, (h, w); a grey (h, w) image is returned as is.
+
+    (Channel by channel: several times faster than ``image.max(axis=2)`` on 3 channels.)
+    """
     image = np.asarray(image)
-    if image.ndim == 3:
-        return image.max(axis=2)
     if image.ndim == 2:
         return image
-    raise SlscanError(f"expected an (h, w) or (h, w, channels) image, got shape {image.shape}")
+    if image.ndim != 3:
+        raise SlscanError(f"expected an (h, w) or (h, w, channels) image, got shape {image.shape}")
+    out = image[..., 0].copy()
+    for c in range(1, image.shape[2]):
+        np.maximum(out, image[..., c], out=out)
+    return out
 
 
 def noise_sigma(black: np.ndarray) -> float:
@@ -64,11 +73,9 @@ def noise_sigma(black: np.ndarray) -> float:
     Uses the median absolute deviation of horizontal neighbour differences (scene texture
     under ambient light is smooth next to sensor noise), so one dark frame suffices.
     """
-    b = np.asarray(black, dtype=np.float32)
-    if b.ndim == 3:
-        b = b.max(axis=2)
-    step = max(1, b.shape[0] // 256)
-    d = np.diff(b[::step], axis=1).ravel()
+    step = max(1, np.shape(black)[0] // 256)
+    b = channel_max(np.asarray(black)[::step]).astype(np.float32)
+    d = np.diff(b, axis=1).ravel()
     if d.size == 0:
         return 0.0
     mad = float(np.median(np.abs(d - np.median(d))))
@@ -99,14 +106,21 @@ def shadow_mask(
     """
     white, black = np.asarray(white), np.asarray(black)
     if white.shape != black.shape:
-        raise SlscanError(f"shadow mask: white image is {white.shape}, black image is {black.shape}")
+        raise SlscanError(
+            f"shadow mask: white image is {white.shape}, black image is {black.shape}"
+        )
     if white.dtype != black.dtype:
-        raise SlscanError(f"shadow mask: white image is {white.dtype}, black image is {black.dtype}")
+        raise SlscanError(
+            f"shadow mask: white image is {white.dtype}, black image is {black.dtype}"
+        )
     if not 0 <= min_contrast < 1:
-        raise SlscanError(f"shadow mask: min_contrast must be a fraction of full scale in [0, 1), got {min_contrast}")
+        raise SlscanError(
+            "shadow mask: min_contrast must be a fraction of full scale in [0, 1), "
+            f"got {min_contrast}"
+        )
     scale = full_scale(white, "white image", bit_depth=bit_depth)
     diff = white.astype(np.float32) - black.astype(np.float32)
-    contrast = _per_pixel_max(diff)
+    contrast = channel_max(diff)
     threshold = max(min_contrast * scale, noise_sigmas * np.sqrt(2.0) * noise_sigma(black))
     return contrast > threshold
 
@@ -119,7 +133,7 @@ def saturation(image: np.ndarray, *, bit_depth: int | None = None) -> np.ndarray
     """
     image = np.asarray(image)
     scale = full_scale(image, "image", bit_depth=bit_depth)
-    return _per_pixel_max(image) >= scale
+    return channel_max(image) >= scale
 
 
 @dataclass(frozen=True)
@@ -141,19 +155,16 @@ class SaturationReport:
 
 
 def saturation_report(
-    images: Mapping[str, np.ndarray],
+    saturated: Mapping[str, np.ndarray],
     mask: np.ndarray,
     line_pixels: Mapping[str, np.ndarray] | np.ndarray | None = None,
-    *,
-    bit_depth: int | None = None,
 ) -> tuple[SaturationReport, ...]:
-    """Per-image saturation of one view, in the order of ``images``.
+    """Per-image saturation of one view, in the order of ``saturated``.
 
-    images : name -> (h, w) or (h, w, c) capture
+    saturated : image name -> (h, w) bool clipped pixels (:func:`saturation` of the capture)
     mask : (h, w) bool lit pixels (:func:`shadow_mask`)
     line_pixels : (h, w) bool pixels on the measured lines, either one map for all images
         or per image name (images missing from the mapping use the union of the others)
-    bit_depth : {8, 16}, full scale of the captures (default: from the dtype)
     """
     mask = np.asarray(mask, bool)
     if isinstance(line_pixels, Mapping):
@@ -162,18 +173,21 @@ def saturation_report(
     else:
         maps = {}
         union = np.zeros_like(mask) if line_pixels is None else np.asarray(line_pixels, bool)
+    n_mask = int(mask.sum())
     reports = []
-    for name, image in images.items():
-        if np.shape(image)[:2] != mask.shape:
-            raise SlscanError(f"{name}: image is {np.shape(image)[:2]}, the mask is {mask.shape}")
-        sat = saturation(image, bit_depth=bit_depth)
+    for name, sat in saturated.items():
+        sat = np.asarray(sat, bool)
+        if sat.shape != mask.shape:
+            raise SlscanError(f"{name}: saturation map is {sat.shape}, the mask is {mask.shape}")
         lines = maps.get(name, union)
-        n_mask, n_line = int(mask.sum()), int(lines.sum())
+        n_line = int(lines.sum())
         reports.append(
             SaturationReport(
                 name=name,
-                masked_share=float((sat & mask).sum()) / n_mask if n_mask else 0.0,
-                line_share=float((sat & lines).sum()) / n_line if n_line else float("nan"),
+                masked_share=float(np.count_nonzero(sat & mask)) / n_mask if n_mask else 0.0,
+                line_share=float(np.count_nonzero(sat & lines)) / n_line
+                if n_line
+                else float("nan"),
                 masked_pixels=n_mask,
                 line_pixels=n_line,
             )
@@ -194,6 +208,8 @@ def warn_saturation(
         log.warning(
             "%ssaturated green-line pixels in %d image(s): %s; clipped lines lose their sub-pixel "
             "profile and leave ribs (paper Fig. 9): lower the exposure or the projector brightness",
-            f"{where}: " if where else "", len(bad), listing,
+            f"{where}: " if where else "",
+            len(bad),
+            listing,
         )
     return bad

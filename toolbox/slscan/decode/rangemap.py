@@ -2,8 +2,8 @@
 
 The samples of a view lie on a regular grid, camera rows by projector stripes, so the
 mesh is the grid's quads split in two, with the triangles that bridge depth
-discontinuities or are seen at grazing angles left out (Rocchini et al. 2001, §4). The
-PLY files open directly in MeshLab, with per-vertex normal, colour and quality.
+discontinuities or are seen at grazing angles left out (after [1]_ and [2]_). The PLY
+files open directly in MeshLab, with per-vertex normal, colour and quality.
 
 References
 ----------
@@ -32,20 +32,39 @@ log = logging.getLogger(__name__)
 
 PLY_VERTEX_DTYPE = np.dtype(
     [
-        ("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
-        ("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4"),
-        ("red", "u1"), ("green", "u1"), ("blue", "u1"),
+        ("x", "<f4"),
+        ("y", "<f4"),
+        ("z", "<f4"),
+        ("nx", "<f4"),
+        ("ny", "<f4"),
+        ("nz", "<f4"),
+        ("red", "u1"),
+        ("green", "u1"),
+        ("blue", "u1"),
         ("quality", "<f4"),
-        ("row", "<i4"), ("stripe", "<i4"),
+        ("row", "<i4"),
+        ("stripe", "<i4"),
     ]
 )
 """Vertex record of the range-map PLY files this module writes."""
 
 _PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "<i2", "int16": "<i2", "ushort": "<u2", "uint16": "<u2",
-    "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4",
-    "float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8",
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "<i2",
+    "int16": "<i2",
+    "ushort": "<u2",
+    "uint16": "<u2",
+    "int": "<i4",
+    "int32": "<i4",
+    "uint": "<u4",
+    "uint32": "<u4",
+    "float": "<f4",
+    "float32": "<f4",
+    "double": "<f8",
+    "float64": "<f8",
 }
 
 
@@ -183,7 +202,9 @@ def build_range_map(
     k = len(samples)
     points = np.asarray(points, dtype=np.float64)
     if points.shape != (k, 3):
-        raise SlscanError(f"range map: expected ({k}, 3) points for {k} samples, got shape {points.shape}")
+        raise SlscanError(
+            f"range map: expected ({k}, 3) points for {k} samples, got shape {points.shape}"
+        )
     white = np.asarray(white_image)
     if white.shape[:2] != (camera.height, camera.width):
         raise SlscanError(
@@ -213,11 +234,15 @@ def build_range_map(
         d = find(keys[a] + span + 1)  # (r + 1, s + 1)
         quad = (b >= 0) & (c >= 0) & (d >= 0)
         a, b, c, d = a[quad], b[quad], c[quad], d[quad]
-        split_ad = np.linalg.norm(points[a] - points[d], axis=1) <= np.linalg.norm(points[b] - points[c], axis=1)
-        tri = np.concatenate([
-            np.where(split_ad[:, None], np.stack([a, c, d], 1), np.stack([a, c, b], 1)),
-            np.where(split_ad[:, None], np.stack([a, d, b], 1), np.stack([b, c, d], 1)),
-        ])
+        split_ad = np.linalg.norm(points[a] - points[d], axis=1) <= np.linalg.norm(
+            points[b] - points[c], axis=1
+        )
+        tri = np.concatenate(
+            [
+                np.where(split_ad[:, None], np.stack([a, c, d], 1), np.stack([a, c, b], 1)),
+                np.where(split_ad[:, None], np.stack([a, d, b], 1), np.stack([b, c, d], 1)),
+            ]
+        )
         faces = _filter_faces(
             tri, points, depth, rows, stripes, m_row, m_stripe, max_edge_factor, max_view_angle_deg
         )
@@ -237,7 +262,11 @@ def build_range_map(
     kept_faces = new_index[faces].astype(np.int32)
     colors = _white_rgb(white, rows[keep], np.asarray(samples.x, np.float64)[keep])
     log.debug(
-        "range map %s: %d samples -> %d vertices, %d faces", view or "?", k, int(keep.sum()), len(kept_faces)
+        "range map %s: %d samples -> %d vertices, %d faces",
+        view or "?",
+        k,
+        int(keep.sum()),
+        len(kept_faces),
     )
     return RangeMap(
         vertices=points[keep],
@@ -273,9 +302,13 @@ def _filter_faces(
         length = np.linalg.norm(points[p] - points[q], axis=1)
         d_row = rows[p] != rows[q]
         d_stripe = stripes[p] != stripes[q]
-        expected = np.where(
-            d_row & d_stripe, math.hypot(m_row, m_stripe), np.where(d_row, m_row, m_stripe)
-        ) * 0.5 * (depth[p] + depth[q])
+        expected = (
+            np.where(
+                d_row & d_stripe, math.hypot(m_row, m_stripe), np.where(d_row, m_row, m_stripe)
+            )
+            * 0.5
+            * (depth[p] + depth[q])
+        )
         keep &= length <= factor * expected
     v0, v1, v2 = points[tri[:, 0]], points[tri[:, 1]], points[tri[:, 2]]
     normal = np.cross(v1 - v0, v2 - v0)
@@ -343,11 +376,10 @@ def write_ply(range_map: RangeMap, path: str | os.PathLike) -> Path:
     header.append(f"element vertex {n}")
     header += [f"property {_ply_name(verts.dtype[f])} {f}" for f in verts.dtype.names]
     header += [f"element face {m}", "property list uchar int vertex_indices", "end_header"]
-    with atomic_output_file(path) as tmp:
-        with open(tmp, "wb") as f:
-            f.write(("\n".join(header) + "\n").encode("ascii"))
-            f.write(verts.tobytes())
-            f.write(faces.tobytes())
+    with atomic_output_file(path) as tmp, open(tmp, "wb") as f:
+        f.write(("\n".join(header) + "\n").encode("ascii"))
+        f.write(verts.tobytes())
+        f.write(faces.tobytes())
     return path
 
 
@@ -403,10 +435,14 @@ def read_ply(path: str | os.PathLike) -> RangeMap:
             if len(props) != 1 or len(props[0]) != 4:
                 raise SlscanError(f"{path}: element {name!r}: expected a single list property")
             _, count_t, index_t, _ = props[0]
-            dt = np.dtype([("n", _ply_dtype(path, count_t)), ("i", _ply_dtype(path, index_t), (3,))])
+            dt = np.dtype(
+                [("n", _ply_dtype(path, count_t)), ("i", _ply_dtype(path, index_t), (3,))]
+            )
             arr = _frombuffer(path, data, dt, count, offset)
             if count and np.any(arr["n"] != 3):
-                raise SlscanError(f"{path}: element {name!r} has non-triangle faces; expected triangles only")
+                raise SlscanError(
+                    f"{path}: element {name!r} has non-triangle faces; expected triangles only"
+                )
         else:
             if any(p[0] == "list" for p in props):
                 raise SlscanError(f"{path}: element {name!r} mixes list and scalar properties")
@@ -449,5 +485,7 @@ def _ply_dtype(path: Path, name: str) -> str:
 
 def _frombuffer(path: Path, data: bytes, dtype: np.dtype, count: int, offset: int) -> np.ndarray:
     if offset + dtype.itemsize * count > len(data):
-        raise SlscanError(f"{path}: file is truncated (expected {count} records of {dtype.itemsize} bytes)")
+        raise SlscanError(
+            f"{path}: file is truncated (expected {count} records of {dtype.itemsize} bytes)"
+        )
     return np.frombuffer(data, dtype=dtype, count=count, offset=offset).copy()

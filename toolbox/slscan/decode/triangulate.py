@@ -28,7 +28,9 @@ class RigPlanes:
 
     def __init__(self, projector: Projector) -> None:
         if not isinstance(projector, Projector):
-            raise SlscanError(f"RigPlanes needs a slscan.rig.Projector, got {type(projector).__name__}")
+            raise SlscanError(
+                f"RigPlanes needs a slscan.rig.Projector, got {type(projector).__name__}"
+            )
         self.projector = projector
         if any(projector.lens.dist):
             log.warning("the projector lens has distortion: its columns are approximated by planes")
@@ -89,11 +91,17 @@ def triangulate(
     k = len(samples)
     if k == 0:
         return np.zeros((0, 3))
-    pixels = np.stack([np.asarray(samples.x, np.float64), np.asarray(samples.row, np.float64)], axis=1)
+    pixels = np.stack(
+        [np.asarray(samples.x, np.float64), np.asarray(samples.row, np.float64)], axis=1
+    )
     rays = camera.rays_local(pixels)
-    pl = np.asarray(planes.planes(np.asarray(samples.projector_column, np.float64)), dtype=np.float64)
+    pl = np.asarray(
+        planes.planes(np.asarray(samples.projector_column, np.float64)), dtype=np.float64
+    )
     if pl.shape != (k, 4):
-        raise SlscanError(f"light planes: expected ({k}, 4) planes for {k} samples, got shape {pl.shape}")
+        raise SlscanError(
+            f"light planes: expected ({k}, 4) planes for {k} samples, got shape {pl.shape}"
+        )
     points = intersect_rays_planes(rays, pl, min_angle_deg=min_angle_deg)
     bad = int(np.isnan(points[:, 0]).sum())
     if bad:

@@ -62,12 +62,19 @@ def capture_blueprint() -> rrb.Blueprint:
         name="Ground truth",
     )
     log = rrb.TextLogView(origin="log", name="Frames")
-    return rrb.Blueprint(
+    return _blueprint(
         rrb.Horizontal(
             scene,
             rrb.Vertical(frames, truth, log, row_shares=[3, 3, 1]),
             column_shares=[1, 1],
-        ),
+            name="Capture",
+        )
+    )
+
+
+def _blueprint(root: rrb.Container) -> rrb.Blueprint:
+    return rrb.Blueprint(
+        root,
         rrb.TimePanel(expanded=True, timeline=VIEW_TIMELINE),
         rrb.SelectionPanel(expanded=False),
         collapse_panels=False,
@@ -98,19 +105,27 @@ def decode_blueprint() -> rrb.Blueprint:
         name="Range maps",
     )
     metrics = rrb.TimeSeriesView(origin="plot/decode", name="Per-view metrics")
-    return rrb.Blueprint(
+    return _blueprint(
         rrb.Horizontal(
             rrb.Vertical(overlay, maps, row_shares=[3, 2]),
             rrb.Vertical(scans, metrics, row_shares=[3, 1]),
             column_shares=[1, 1],
-        ),
-        rrb.TimePanel(expanded=True, timeline=VIEW_TIMELINE),
-        rrb.SelectionPanel(expanded=False),
-        collapse_panels=False,
+            name="Decode",
+        )
     )
 
 
-LAYOUTS: dict[str, Callable[[], rrb.Blueprint]] = {"capture": capture_blueprint, "decode": decode_blueprint}
+def pipeline_blueprint() -> rrb.Blueprint:
+    """The whole pipeline: one tab per stage layout (capture, decode)."""
+    stages = [capture_blueprint(), decode_blueprint()]
+    return _blueprint(rrb.Tabs(*(b.root_container for b in stages), name="slscan pipeline"))
+
+
+LAYOUTS: dict[str, Callable[[], rrb.Blueprint]] = {
+    "capture": capture_blueprint,
+    "decode": decode_blueprint,
+    "pipeline": pipeline_blueprint,
+}
 """Blueprint builders by stage name; :func:`save_layouts` writes ``<name>.rbl`` for each."""
 
 

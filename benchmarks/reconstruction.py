@@ -1,0 +1,177 @@
+"""Reconstruction accuracy and speed on the virtual rig, against its ground truth.
+
+    .venv/bin/python benchmarks/reconstruction.py [--scale 1.0]
+
+At the paper's geometry with default noise (full size unless --scale), prints:
+
+  (a) green-line medial-axis error per estimator (px RMS, 95th percentile) — from
+      benchmarks/stripe_axes.py's evaluation, on the figurine;
+  (b) flat tile: mean |distance| of the range map to its fitted plane and to the true
+      plane (mm); the paper reports 0.3 mm;
+  (c) figurine: distance of every range-map vertex to the true surface (mean, 95th pct)
+      and coverage: the share of camera pixels that see projector-lit surface and are
+      covered by a range-map triangle (all lit pixels; and lit pixels more than 2 px from
+      the lit region's border, where a triangle can reach at all);
+  (d) the same at 4x exposure: the saturation warning and what it costs;
+  (e) decode + triangulate + mesh time per view next to the time to just load that
+      view's PNGs (the I/O floor), measured in the same run.
+
+Both decoders are shown: hybrid (the paper's green lines) and Gray code (stripe edges).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import statistics
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from slscan.capture.session import LIT, load_session
+from slscan.decode.pipeline import DecodeConfig, decode_view
+from slscan.fsio import read_png
+from slscan.rig import transform_points
+from slscan.virtual.device import VirtualCaptureConfig, capture_session
+from slscan.virtual.scenes import builtin_object, flat_tile
+from slscan.virtual.sensor import Sensor
+
+sys.path.insert(0, str(Path(__file__).parent))
+import stripe_axes  # noqa: E402  (the medial-axis evaluation lives there)
+
+
+class _Warnings(logging.Handler):
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.messages: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.messages.append(record.getMessage())
+
+
+def true_surface_distance(points: np.ndarray, scene, pose: np.ndarray) -> np.ndarray:
+    import open3d as o3d
+
+    rs = o3d.t.geometry.RaycastingScene()
+    rs.add_triangles(
+        o3d.core.Tensor(transform_points(pose, scene.vertices).astype(np.float32)),
+        o3d.core.Tensor(scene.triangles.astype(np.uint32)),
+    )
+    return rs.compute_distance(o3d.core.Tensor(points.astype(np.float32))).numpy()
+
+
+def coverage(range_map, camera, lit: np.ndarray) -> tuple[float, float]:
+    """Share of lit pixels covered by range-map triangles: all, and > 2 px inside."""
+    pix = camera.project_local(range_map.vertices)
+    tris = np.round(pix[range_map.faces] * 16).astype(np.int32)  # 4 bits of sub-pixel
+    covered = np.zeros(lit.shape, np.uint8)
+    cv2.fillPoly(covered, list(tris), 1, lineType=cv2.LINE_8, shift=4)
+    covered = covered.astype(bool)
+    inner = cv2.erode(lit.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    return float(covered[lit].mean()), float(covered[inner].mean())
+
+
+def plane_errors(points: np.ndarray, scene, pose: np.ndarray) -> tuple[float, float]:
+    """Mean |distance| to the fitted plane and to the tile's true front plane (mm)."""
+    centre = points.mean(axis=0)
+    normal = np.linalg.svd(points - centre, full_matrices=False)[2][2]
+    fitted = np.abs((points - centre) @ normal)
+    v = transform_points(pose, scene.vertices)[scene.triangles]
+    n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    front = int(np.argmin(n[:, 2]))
+    true = np.abs((points - v[front, 0]) @ n[front])
+    return float(fitted.mean()), float(true.mean())
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scale", type=float, default=1.0, help="resolution factor (1: 1440x960 camera)")
+    parser.add_argument("--repeat", type=int, default=3, help="timing repetitions (median)")
+    args = parser.parse_args()
+    levels = min(9, int(np.log2(1024 * args.scale)) - 1)
+    base = VirtualCaptureConfig(camera_scale=args.scale, projector_scale=args.scale, levels=levels,
+                                lit_images=False, patterns="both")
+    warnings = _Warnings()
+    logging.getLogger("slscan").addHandler(warnings)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        sessions = {
+            "tile": capture_session(replace(base, scene="tile"), tmp / "tile"),
+            "figurine": capture_session(base, tmp / "figurine"),
+            "figurine 4x exposure": capture_session(replace(base, sensor=Sensor(exposure=4.0)), tmp / "fig4"),
+        }
+        rig = base.rig()
+        w, h = rig.camera.width, rig.camera.height
+        print(f"virtual rig at the paper's geometry, camera {w}x{h}, projector "
+              f"{rig.projector.lens.width}x{rig.projector.lens.height}, {levels} hybrid levels, default noise\n")
+
+        # (a)
+        print("(a) green-line medial axis vs ground truth, figurine")
+        print(f"{'estimator':<14}{'samples':>9}{'indexed ok':>12}{'RMS px':>9}{'p95 px':>9}")
+        fig = sessions["figurine"]
+        from slscan.decode.hybrid import ESTIMATORS, decode_hybrid
+
+        for estimator in ESTIMATORS:
+            m = stripe_axes.evaluate(fig, decode_hybrid(fig, fig.views[0], estimator=estimator))
+            print(f"{estimator:<14}{m['samples']:>9d}{m['indexed']:>11.2f}%{m['rms']:>9.4f}{m['p95']:>9.4f}")
+
+        # (b)-(d)
+        print("\n(b)-(d) range maps vs ground truth")
+        header = (f"{'scene':<22}{'method':<8}{'vertices':>9}{'plane fit':>11}{'true plane':>12}"
+                  f"{'mean mm':>9}{'p95 mm':>9}{'coverage':>10}{'interior':>10}{'saturated':>11}")
+        print(header)
+        timing = {}
+        for name, session in sessions.items():
+            session = load_session(session.root)
+            view = session.views[0]
+            scene = flat_tile() if name == "tile" else builtin_object()
+            truth = session.load_ground_truth(view)
+            for method in ("hybrid", "gray"):
+                warnings.messages.clear()
+                times = []
+                for _ in range(args.repeat if "4x" not in name else 1):
+                    t = time.perf_counter()
+                    result = decode_view(session, view, DecodeConfig(method=method))
+                    times.append(time.perf_counter() - t)
+                rm = result.range_map
+                d = true_surface_distance(rm.vertices, scene, view.rig_from_object)
+                cov, inner = coverage(rm, rig.camera, truth.visibility == LIT)
+                fit, true_plane = plane_errors(rm.vertices, scene, view.rig_from_object) if name == "tile" else (np.nan, np.nan)
+                sat = result.metrics["saturated_sample_share"]
+                print(f"{name:<22}{method:<8}{len(rm.vertices):>9d}{fit:>11.4f}{true_plane:>12.4f}"
+                      f"{d.mean():>9.4f}{np.percentile(d, 95):>9.4f}{cov:>10.3f}{inner:>10.3f}{sat:>11.3f}")
+                for message in dict.fromkeys(warnings.messages):
+                    print(f"{'':<22}warning: {message}")
+                if "4x" not in name:
+                    timing[(name, method)] = (statistics.median(times), result.seconds)
+
+        # (e)
+        print("\n(e) time per view: decode + triangulate + mesh next to loading the view's PNGs")
+        print(f"{'scene':<12}{'method':<8}{'load PNGs s':>12}{'decode s':>10}{'triang. s':>10}{'mesh s':>8}"
+              f"{'total s':>9}{'x load':>8}")
+        for (name, method), (total, parts) in timing.items():
+            session = sessions[name]
+            view = session.views[0]
+            # load only the images this method reads: flat frames + its patterns
+            family = "hybrid" if method == "hybrid" else "gray"
+            recs = [r for r in view.pattern_images() if session.pattern(r.pattern).family in (family, "flat")]
+            loads = []
+            for _ in range(args.repeat):
+                t = time.perf_counter()
+                for rec in recs:
+                    read_png(session.image_path(view, rec))
+                loads.append(time.perf_counter() - t)
+            load = statistics.median(loads)
+            print(f"{name:<12}{method:<8}{load:>12.3f}{parts['decode']:>10.3f}{parts['triangulate']:>10.3f}"
+                  f"{parts['mesh']:>8.3f}{total:>9.3f}{total / load:>8.2f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,157 @@
+"""Accuracy, coverage and speed of the hybrid decoder's line estimators on the virtual rig.
+
+    .venv/bin/python benchmarks/stripe_axes.py [--scale 1.0] [--scenes figurine tile] [--repeat 3]
+                                               [--no-smooth-rows]
+
+Captures one view per scene (default sensor: shot and read noise, 8 bit) and decodes it
+with every estimator of :mod:`slscan.decode.hybrid`. Per estimator and scene the table
+gives:
+
+- samples: line samples kept by the decoder
+- indexed %: samples whose line index is the line nearest the ground-truth projector
+  column at the sample (a sample more than one line spacing off counts as wrong)
+- RMS, p95: camera-x error of the medial axis in px against the truth's crossing of the
+  line's column (``projector_uv[r, :, 0] = c``, interpolated), over correctly indexed
+  samples
+- coverage %: correctly indexed samples / line crossings the truth has over lit pixels
+  (adjacent lit pixels of a row between which ``u`` passes a line column)
+- decode s: median wall time of ``decode_hybrid`` for the view, PNG reading included
+
+Scenes: "figurine" (painted, noisy), "tile" (flat, noisy), "tile-clean" (flat, noise-free).
+Absolute times drift on shared machines.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from slscan.capture.session import LIT, Session
+from slscan.decode.hybrid import DEFAULT_ESTIMATOR, ESTIMATORS, HybridResult, decode_hybrid
+from slscan.patterns import hybrid
+from slscan.virtual.device import VirtualCaptureConfig, capture_session
+from slscan.virtual.sensor import Sensor
+
+SCENES = {
+    "figurine": {"scene": "object"},
+    "tile": {"scene": "tile"},
+    "tile-clean": {"scene": "tile", "sensor": Sensor(noise=False)},
+}
+
+
+def line_columns(session: Session) -> np.ndarray:
+    levels = max(p.params["levels"] for p in session.patterns if p.family == "hybrid")
+    return hybrid.line_columns(session.projector_size[0], levels)
+
+
+def possible_crossings(u: np.ndarray, lit: np.ndarray, columns: np.ndarray) -> int:
+    """Line columns passed between horizontally adjacent lit pixels, all rows together."""
+    a, b = u[:, :-1], u[:, 1:]
+    both = lit[:, :-1] & lit[:, 1:] & np.isfinite(a) & np.isfinite(b)
+    lo, hi = np.minimum(a[both], b[both]), np.maximum(a[both], b[both])
+    return int(
+        (
+            np.searchsorted(columns, hi, side="left") - np.searchsorted(columns, lo, side="left")
+        ).sum()
+    )
+
+
+def evaluate(session: Session, result: HybridResult) -> dict[str, float]:
+    truth = session.load_ground_truth(session.views[0])
+    u = truth.projector_uv[..., 0].astype(np.float64)
+    columns = line_columns(session)
+    s = result.samples
+    w = u.shape[1]
+    x0 = np.clip(np.floor(s.x).astype(int), 0, w - 2)
+    t = s.x - x0
+    u_at = u[s.row, x0] * (1 - t) + u[s.row, x0 + 1] * t
+    known = np.isfinite(u_at)
+    nearest = np.abs(columns[None, :] - np.where(known, u_at, -1e9)[:, None]).argmin(axis=1)
+    correct = known & (nearest == s.stripe)
+    true_x = np.full(len(s), np.nan)
+    start = np.round(s.x).astype(int) - 3
+    for o in range(7):
+        xi = np.clip(start + o, 0, w - 2)
+        ua, ub = u[s.row, xi], u[s.row, xi + 1]
+        hit = (ua <= s.projector_column) & (s.projector_column < ub) & np.isnan(true_x)
+        true_x = np.where(hit, xi + (s.projector_column - ua) / (ub - ua), true_x)
+    err = np.abs(s.x - true_x)[correct & np.isfinite(true_x)]
+    lit = truth.visibility == LIT
+    return {
+        "samples": len(s),
+        "indexed": 100.0 * correct.sum() / max(known.sum(), 1),
+        "rms": float(np.sqrt(np.mean(err**2))) if len(err) else float("nan"),
+        "p95": float(np.percentile(err, 95)) if len(err) else float("nan"),
+        "coverage": 100.0 * correct.sum() / max(possible_crossings(u, lit, columns), 1),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--scale",
+        type=float,
+        default=1.0,
+        help="resolution factor (1: 1440x960 camera, 1024x768 projector)",
+    )
+    parser.add_argument("--scenes", nargs="+", default=["figurine", "tile"], choices=sorted(SCENES))
+    parser.add_argument("--estimators", nargs="+", default=list(ESTIMATORS), choices=ESTIMATORS)
+    parser.add_argument(
+        "--repeat", type=int, default=3, help="decode repetitions; the median time is shown"
+    )
+    parser.add_argument(
+        "--smooth-rows",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="filter the line signal across rows before finding maxima (the decoder's default)",
+    )
+    args = parser.parse_args()
+
+    levels = min(9, int(np.log2(1024 * args.scale)) - 1)
+    print(
+        f"hybrid pattern, {levels} levels ({2**levels - 1} lines), scale {args.scale}; "
+        f"default estimator: {DEFAULT_ESTIMATOR}; "
+        f"row smoothing {'on' if args.smooth_rows else 'off'}"
+    )
+    header = (
+        f"{'scene':<12}{'estimator':<13}{'samples':>9}{'indexed %':>11}{'RMS px':>9}"
+        f"{'p95 px':>9}{'coverage %':>12}{'decode s':>10}"
+    )
+    print(header)
+    print("-" * len(header))
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in args.scenes:
+            config = VirtualCaptureConfig(
+                camera_scale=args.scale,
+                projector_scale=args.scale,
+                levels=levels,
+                lit_images=False,
+                **SCENES[name],
+            )
+            session = capture_session(config, Path(tmp) / name)
+            view = session.views[0]
+            for estimator in args.estimators:
+                times = []
+                for _ in range(args.repeat):
+                    t = time.perf_counter()
+                    result = decode_hybrid(
+                        session, view, estimator=estimator, smooth_rows=args.smooth_rows
+                    )
+                    times.append(time.perf_counter() - t)
+                m = evaluate(session, result)
+                print(
+                    f"{name:<12}{estimator:<13}{m['samples']:>9d}{m['indexed']:>11.2f}"
+                    f"{m['rms']:>9.3f}"
+                    f"{m['p95']:>9.3f}{m['coverage']:>12.1f}{statistics.median(times):>10.2f}"
+                )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,243 @@
+"""Tests for range-map meshing and PLY I/O, on synthetic sample grids with known answers."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from slscan.capture.session import LIT
+from slscan.decode.graycode import decode_gray
+from slscan.decode.rangemap import RangeMap, build_range_map, read_ply, write_ply
+from slscan.decode.samples import StripeSamples
+from slscan.decode.triangulate import RigPlanes, triangulate
+from slscan.errors import SlscanError
+from slscan.rig import default_rig
+from slscan.virtual.device import VirtualCaptureConfig, capture_session
+from slscan.virtual.sensor import Sensor
+
+CAMERA = default_rig(scale=0.25).camera  # 360 x 240
+ROWS = np.arange(10, 20)  # 10 camera rows
+STRIPES = np.arange(5, 25)  # 20 stripes
+FLAT_FACES = 2 * (len(ROWS) - 1) * (len(STRIPES) - 1)
+
+
+def _grid(depth=lambda x, y: 1000.0 + 0.2 * x):
+    """Samples on every (row, stripe) of the grid and their points, 3 mm x 2.5 mm apart."""
+    r, s = (a.ravel() for a in np.meshgrid(ROWS, STRIPES, indexing="ij"))
+    k = len(r)
+    samples = StripeSamples(
+        row=r.astype(np.int32),
+        x=100.0 + 2.0 * (s - 5) + 0.25,
+        projector_column=s + 0.5,
+        stripe=s.astype(np.int32),
+        contrast=np.full(k, 0.8, np.float32),
+        saturated=np.zeros(k, bool),
+    )
+    x, y = (s - 15) * 3.0, (r - 15) * 2.5
+    points = np.stack([x, y, depth(x, y)], axis=1).astype(float)
+    return samples, points
+
+
+def _white() -> np.ndarray:
+    """Grey white image whose value is the column index (bilinear colour is then x)."""
+    return np.broadcast_to(
+        np.arange(CAMERA.width, dtype=np.uint8)[None, :], (CAMERA.height, CAMERA.width)
+    ).copy()
+
+
+def _build(samples, points, **kw) -> RangeMap:
+    return build_range_map(
+        samples, points, white_image=_white(), camera=CAMERA, view="view 007", **kw
+    )
+
+
+def _facing_camera(rm: RangeMap) -> np.ndarray:
+    v = rm.vertices[rm.faces]
+    n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    return np.einsum("ij,ij->i", n, -v.mean(axis=1)) > 0
+
+
+def test_flat_grid_meshes_completely():
+    samples, points = _grid()
+    rm = _build(samples, points)
+    assert rm.n_vertices == len(samples) and rm.n_faces == FLAT_FACES
+    assert rm.faces.dtype == np.int32 and rm.faces.min() >= 0 and rm.faces.max() < rm.n_vertices
+    np.testing.assert_array_equal(rm.vertices, points)
+    np.testing.assert_array_equal(rm.row, samples.row)
+    np.testing.assert_array_equal(rm.stripe, samples.stripe)
+    assert rm.view == "view 007"
+    assert _facing_camera(rm).all()
+    # every face joins neighbouring rows and stripes only
+    rows, stripes = rm.row[rm.faces], rm.stripe[rm.faces]
+    assert np.all(np.ptp(rows, axis=1) == 1) and np.all(np.ptp(stripes, axis=1) == 1)
+    # the plane z = 1000 + 0.2 x has normal (0.2, 0, -1)/|.| towards the camera
+    expected = np.array([0.2, 0.0, -1.0]) / np.hypot(0.2, 1.0)
+    np.testing.assert_allclose(rm.normals, np.broadcast_to(expected, rm.normals.shape), atol=1e-6)
+    cos_view = -np.einsum(
+        "ij,ij->i", expected[None, :], points / np.linalg.norm(points, axis=1, keepdims=True)
+    )
+    np.testing.assert_allclose(rm.quality, 0.8 * cos_view, rtol=1e-5)
+    # colour: the white image bilinear at (x, row); here the value is x itself
+    np.testing.assert_array_equal(
+        rm.colors, np.repeat(np.rint(samples.x).astype(np.uint8)[:, None], 3, axis=1)
+    )
+
+
+def test_depth_step_is_not_bridged():
+    samples, points = _grid(lambda x, y: 1000.0 + 0.2 * x + np.where(x >= 0, 60.0, 0.0))
+    left, right = samples.stripe < 15, samples.stripe >= 15
+    expected = (
+        2 * (len(ROWS) - 1) * ((left.sum() // len(ROWS) - 1) + (right.sum() // len(ROWS) - 1))
+    )
+    for options in ({}, {"max_view_angle_deg": 90.0}):  # the edge-length test alone suffices
+        rm = _build(samples, points, **options)
+        sides = (rm.stripe >= 15)[rm.faces]
+        assert not np.any(sides.any(axis=1) & ~sides.all(axis=1)), options
+        assert rm.n_faces == expected
+    # with both tests disabled the step is bridged: the check above can fail
+    rm = _build(samples, points, max_edge_factor=1e6, max_view_angle_deg=90.0)
+    assert rm.n_faces == FLAT_FACES
+
+
+def test_grazing_faces_dropped():
+    samples, points = _grid(lambda x, y: 1000.0 + 12.0 * x)  # surface 85 degrees from the view
+    assert _build(samples, points).n_faces == 0
+    assert _build(samples, points, keep_unreferenced=True).n_vertices == len(samples)
+    assert _build(samples, points, max_view_angle_deg=89.0).n_faces == FLAT_FACES
+
+
+def test_nan_duplicate_and_saturated_samples():
+    samples, points = _grid()
+    centre = np.flatnonzero((samples.row == 14) & (samples.stripe == 12))[0]
+    points[centre] = np.nan
+    twin = np.flatnonzero((samples.row == 16) & (samples.stripe == 18))[0]
+    fields = ("row", "x", "projector_column", "stripe", "contrast", "saturated")
+    dup = StripeSamples(
+        *(np.concatenate([getattr(samples, f), getattr(samples, f)[[twin]]]) for f in fields)
+    )
+    points = np.concatenate([points, points[[twin]] + [0, 0, 0.5]])
+    saturated = dup.saturated.copy()
+    hot = np.flatnonzero((dup.row == 11) & (dup.stripe == 6))[0]
+    saturated[hot] = True
+    dup = StripeSamples(dup.row, dup.x, dup.projector_column, dup.stripe, dup.contrast, saturated)
+
+    rm = _build(dup, points)
+    assert rm.n_faces == FLAT_FACES - 8 - 8  # each interior hole removes 4 quads
+    assert rm.n_vertices == len(samples) - 1 - 1  # NaN and both twins dropped, twin's pair too
+    assert not np.isnan(rm.vertices).any()
+    is_hot = (rm.row == 11) & (rm.stripe == 6)
+    assert rm.quality[is_hot] == 0 and np.all(rm.quality[~is_hot] > 0)
+    kept = _build(dup, points, keep_unreferenced=True)
+    assert kept.n_vertices == len(dup) - 1 and kept.n_faces == rm.n_faces
+    twins = (kept.row == 16) & (kept.stripe == 18)
+    assert twins.sum() == 2 and np.all(kept.quality[twins] == 0)
+
+
+def test_bad_inputs():
+    samples, points = _grid()
+    with pytest.raises(SlscanError, match=r"expected \(200, 3\) points"):
+        _build(samples, points[:-1])
+    with pytest.raises(SlscanError, match="white image is 10x10, the camera is 360x240"):
+        build_range_map(samples, points, white_image=np.zeros((10, 10), np.uint8), camera=CAMERA)
+
+
+def test_uint16_rgb_white():
+    samples, points = _grid()
+    white = np.zeros((CAMERA.height, CAMERA.width, 3), np.uint16)
+    white[..., 0], white[..., 1], white[..., 2] = 65535, 257 * 100, 0
+    rm = build_range_map(samples, points, white_image=white, camera=CAMERA)
+    assert np.all(rm.colors == [255, 100, 0])
+
+
+# --- PLY --------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def mesh() -> RangeMap:
+    samples, points = _grid(lambda x, y: 1000.0 + 0.2 * x + 0.01 * y**2)
+    return _build(samples, points)
+
+
+def test_ply_round_trip(mesh: RangeMap, tmp_path: Path):
+    path = write_ply(mesh, tmp_path / "view.ply")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["view.ply"]  # nothing half-written left
+    header = path.read_bytes().split(b"end_header")[0].decode()
+    assert "format binary_little_endian 1.0" in header and "property float quality" in header
+    assert "comment view view 007" in header
+    back = read_ply(path)
+    np.testing.assert_allclose(back.vertices, mesh.vertices, rtol=1e-7)  # stored as float32
+    np.testing.assert_array_equal(back.faces, mesh.faces)
+    np.testing.assert_array_equal(back.normals, mesh.normals)
+    np.testing.assert_array_equal(back.colors, mesh.colors)
+    np.testing.assert_array_equal(back.quality, mesh.quality)
+    np.testing.assert_array_equal(back.row, mesh.row)
+    np.testing.assert_array_equal(back.stripe, mesh.stripe)
+    assert back.view == mesh.view
+
+
+def test_pymeshlab_opens_ply(mesh: RangeMap, tmp_path: Path):
+    pymeshlab = pytest.importorskip("pymeshlab")
+    path = write_ply(mesh, tmp_path / "view.ply")
+    ms = pymeshlab.MeshSet()
+    ms.load_new_mesh(str(path))
+    m = ms.current_mesh()
+    assert m.vertex_number() == mesh.n_vertices and m.face_number() == mesh.n_faces
+    np.testing.assert_allclose(m.vertex_matrix(), mesh.vertices, rtol=1e-6)
+    np.testing.assert_array_equal(m.face_matrix(), mesh.faces)
+    np.testing.assert_allclose(m.vertex_scalar_array(), mesh.quality, rtol=1e-6)  # vertex quality
+    np.testing.assert_allclose(m.vertex_color_matrix()[:, :3] * 255, mesh.colors, atol=0.5)
+
+
+def test_read_ply_errors(mesh: RangeMap, tmp_path: Path):
+    with pytest.raises(SlscanError, match="PLY file not found"):
+        read_ply(tmp_path / "absent.ply")
+    ascii_ply = tmp_path / "ascii.ply"
+    ascii_ply.write_text(
+        "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n0\n"
+    )
+    with pytest.raises(SlscanError, match="ascii.ply: PLY format 'ascii'"):
+        read_ply(ascii_ply)
+    path = write_ply(mesh, tmp_path / "cut.ply")
+    path.write_bytes(path.read_bytes()[:-5])
+    with pytest.raises(SlscanError, match="cut.ply: file is truncated"):
+        read_ply(path)
+    (tmp_path / "not.ply").write_text("hello")
+    with pytest.raises(SlscanError, match="not a PLY file"):
+        read_ply(tmp_path / "not.ply")
+
+
+# --- the virtual tile, end to end ---------------------------------------------------------------
+
+
+def test_tile_range_map(tmp_path: Path):
+    config = VirtualCaptureConfig(
+        scene="tile",
+        patterns="gray",
+        camera_scale=0.25,
+        projector_scale=0.25,
+        lit_images=False,
+        sensor=Sensor(noise=False),
+    )
+    session = capture_session(config, tmp_path / "session")
+    view = session.views[0]
+    rig = session.calibration
+    edges = decode_gray(session, view).edges
+    points = triangulate(edges, rig.camera, RigPlanes(rig.projector))
+    white = session.read_image(view, view.image_for("white"))
+    rm = build_range_map(edges, points, white_image=white, camera=rig.camera, view=view.name)
+    # a nearly complete grid: about two faces per vertex, every sample used
+    assert rm.n_vertices > 0.99 * len(edges)
+    assert rm.n_faces > 1.9 * rm.n_vertices
+    assert _facing_camera(rm).all()
+    truth = session.load_ground_truth(view)
+    true_normal = np.nanmedian(truth.normal[truth.visibility == LIT], axis=0)
+    true_normal /= np.linalg.norm(true_normal)
+    angle = np.degrees(np.arccos(np.clip(rm.normals @ true_normal, -1, 1)))
+    # 0.2 mm of point noise on ~3 mm spacing at this size tilts single faces by a few degrees
+    assert np.median(angle) < 5 and np.percentile(angle, 90) < 8
+    lit_white = white[truth.visibility == LIT].mean(axis=0)
+    assert np.all(np.abs(np.median(rm.colors, axis=0) - lit_white) < 10)
+    back = read_ply(write_ply(rm, tmp_path / "tile.ply"))
+    assert back.n_faces == rm.n_faces and back.view == view.name

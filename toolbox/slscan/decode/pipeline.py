@@ -1,0 +1,233 @@
+"""The decode stage end to end: a capture session in, one range map (PLY) per view out.
+
+Per view: decode the patterns (hybrid green lines or Gray-code edges) to
+:class:`~slscan.decode.samples.StripeSamples`, intersect their camera rays with the
+projector's light planes, mesh the points on their (row × stripe) grid. Writes
+``VIEW.ply`` per view and ``range_maps.json`` (what was decoded, how, and per-view
+metrics) into the output folder, atomically.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from slscan import __version__
+from slscan.capture.session import Session, ViewRecord, load_session
+from slscan.decode.graycode import decode_gray
+from slscan.decode.hybrid import DEFAULT_ESTIMATOR, ESTIMATORS, decode_hybrid, hybrid_pattern_ids
+from slscan.decode.masks import saturation
+from slscan.decode.rangemap import RangeMap, build_range_map, write_ply
+from slscan.decode.samples import LightPlanes, StripeSamples
+from slscan.decode.triangulate import RigPlanes, triangulate
+from slscan.errors import SlscanError
+from slscan.fsio import atomic_output_dir, write_json
+
+log = logging.getLogger(__name__)
+
+METHODS = ("auto", "hybrid", "gray")
+RANGE_MAPS_FORMAT = "slscan.range-maps"
+RANGE_MAPS_VERSION = 1
+
+
+@dataclass(frozen=True)
+class DecodeConfig:
+    """How the decode stage turns captures into range maps."""
+
+    method: str = "auto"
+    """{"auto", "hybrid", "gray"}: which patterns to decode; "auto" takes the hybrid
+    pattern when the session has it, else Gray code."""
+    estimator: str = DEFAULT_ESTIMATOR
+    """Sub-pixel medial-axis estimator of the hybrid green lines (see ``decode.hybrid``)."""
+    max_edge_factor: float = 4.0
+    """Mesh edges longer than this many times the expected spacing are cut (depth jumps)."""
+    max_view_angle_deg: float = 80.0
+    """Triangles seen more obliquely than this are dropped (grazing angles)."""
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise SlscanError(
+                f"unknown decode method {self.method!r}: expected one of {', '.join(METHODS)}"
+            )
+        if self.estimator not in ESTIMATORS:
+            raise SlscanError(
+                f"unknown estimator {self.estimator!r}: expected one of {', '.join(ESTIMATORS)}"
+            )
+
+
+@dataclass(frozen=True)
+class ViewDecode:
+    """Everything the decode stage found in one view.
+
+    samples : decoded features; points : (k, 3) float64 mm rig frame (NaN: no intersection)
+    range_map : the meshed range surface
+    mask : (h, w) bool decodable pixels; codes : (h, w) int display map (hybrid region code
+        or Gray-code column, -1 where invalid), up to ``code_max``
+    saturated : (h, w) bool pixels clipped (white frame for hybrid; any image for Gray)
+    """
+
+    view: str
+    method: str
+    samples: StripeSamples
+    points: np.ndarray
+    range_map: RangeMap
+    mask: np.ndarray
+    codes: np.ndarray
+    code_max: int
+    saturated: np.ndarray
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def metrics(self) -> dict[str, float]:
+        n = len(self.samples)
+        return {
+            "samples": float(n),
+            "vertices": float(len(self.range_map.vertices)),
+            "faces": float(len(self.range_map.faces)),
+            "mask_share": float(self.mask.mean()),
+            "saturated_sample_share": float(self.samples.saturated.mean()) if n else 0.0,
+            "triangulated_share": float(np.isfinite(self.points[:, 0]).mean()) if n else 0.0,
+        }
+
+
+def choose_method(session: Session, method: str = "auto") -> str:
+    """The decode method for ``session``: the one asked, or the hybrid pattern when present."""
+    families = {p.family for p in session.patterns}
+    if method == "auto":
+        method = "hybrid" if "hybrid" in families else "gray"
+    wanted = {"hybrid": "hybrid", "gray": "gray"}[method]
+    if wanted not in families:
+        raise SlscanError(f"{session.root}: the session has no {wanted} patterns to decode")
+    return method
+
+
+def decode_view(
+    session: Session,
+    view: ViewRecord | str,
+    config: DecodeConfig = DecodeConfig(),
+    *,
+    planes: LightPlanes | None = None,
+) -> ViewDecode:
+    """Decode one view of ``session`` to a range map (rig frame, mm).
+
+    planes : the projector's light planes; default: from the session's calibration
+    """
+    view = session.view(view) if isinstance(view, str) else view
+    rig = session.calibration
+    if rig is None:
+        raise SlscanError(
+            f"{session.root}: the session has no calibration, so its light planes are unknown "
+            "(calibrate the rig first)"
+        )
+    planes = planes or RigPlanes(rig.projector)
+    method = choose_method(session, config.method)
+    seconds = {}
+    t = time.perf_counter()
+    if method == "hybrid":
+        white_id, _, descs = hybrid_pattern_ids(session)
+        res = decode_hybrid(session, view, estimator=config.estimator)
+        samples, mask, codes = res.samples, res.mask, res.codes
+        code_max = 2 ** len(descs)
+        white = session.read_image(view, view.image_for(white_id))
+        saturated = saturation(white)
+    else:
+        res = decode_gray(session, view)
+        samples, mask, codes, saturated = res.edges, res.mask, res.column, res.saturated
+        code_max = session.projector_size[0]
+        white = session.read_image(view, view.image_for("white"))
+    seconds["decode"] = time.perf_counter() - t
+    t = time.perf_counter()
+    points = triangulate(samples, rig.camera, planes)
+    seconds["triangulate"] = time.perf_counter() - t
+    t = time.perf_counter()
+    range_map = build_range_map(
+        samples,
+        points,
+        white_image=white,
+        camera=rig.camera,
+        view=view.name,
+        max_edge_factor=config.max_edge_factor,
+        max_view_angle_deg=config.max_view_angle_deg,
+    )
+    seconds["mesh"] = time.perf_counter() - t
+    if len(range_map.faces) == 0:
+        log.warning("%s: the range map has no faces (%d samples)", view.name, len(samples))
+    return ViewDecode(
+        view.name, method, samples, points, range_map, mask, codes, code_max, saturated, seconds
+    )
+
+
+def decode_session(
+    session: Session | str | os.PathLike,
+    out: str | os.PathLike,
+    config: DecodeConfig = DecodeConfig(),
+    *,
+    overwrite: bool = False,
+    rec=None,
+    progress: Callable[[str], None] | None = None,
+) -> list[ViewDecode]:
+    """Decode every view of a capture session into ``out/VIEW.ply`` and ``out/range_maps.json``.
+
+    The session is validated (every image against its metadata) before anything is written.
+    rec : an ``rr.RecordingStream`` for masks, codes, stripe axes, range maps and metrics
+    """
+    from slscan.viewer import log_decode as rlog
+
+    if not isinstance(session, Session):
+        session = load_session(session)
+    results = []
+    with atomic_output_dir(out, overwrite=overwrite) as tmp:
+        entries = []
+        for index, view in enumerate(session.views):
+            result = decode_view(session, view, config)
+            ply = f"{view.name}.ply"
+            write_ply(result.range_map, tmp / ply)
+            if rec is not None:
+                rm = result.range_map
+                rlog.log_decode_maps(
+                    rec,
+                    view_index=index,
+                    mask=result.mask,
+                    codes=result.codes,
+                    code_max=result.code_max,
+                    saturated=result.saturated,
+                )
+                rlog.log_stripes(rec, result.samples, view_index=index)
+                rlog.log_range_map(
+                    rec, rm.vertices, rm.faces, rm.normals, rm.colors, view_index=index
+                )
+                rlog.log_metrics(rec, result.metrics, view_index=index)
+            entries.append(
+                {
+                    "view": view.name,
+                    "file": ply,
+                    "method": result.method,
+                    "rig_from_object": None
+                    if view.rig_from_object is None
+                    else view.rig_from_object.tolist(),
+                    "metrics": result.metrics,
+                    "seconds": result.seconds,
+                }
+            )
+            results.append(result)
+            if progress:
+                progress(view.name)
+        write_json(
+            tmp / "range_maps.json",
+            {
+                "format": RANGE_MAPS_FORMAT,
+                "version": RANGE_MAPS_VERSION,
+                "written_by": f"slscan {__version__}",
+                "session": str(Path(session.root).resolve()),
+                "frame": "rig (camera) frame, mm",
+                "config": asdict(config),
+                "views": entries,
+            },
+        )
+    return results
