@@ -155,20 +155,30 @@ def capture_session(
     overwrite: bool = False,
     rec=None,
     progress: Progress | None = None,
+    scene: Scene | None = None,
+    poses: list[np.ndarray] | None = None,
+    rig: Rig | None = None,
 ) -> Session:
     """Capture ``config.views`` views of ``config.scene`` on the virtual rig into folder ``out``.
 
     rec : an ``rr.RecordingStream`` to stream images, truth and rig to, or None
     progress : called with a short label after each image is written
+    scene : capture this scene instead of ``config.scene`` (e.g. a calibration board)
+    poses : ``rig_from_object`` (4, 4) of each view instead of ``config.views`` turntable steps
+    rig : use this rig instead of ``config.rig()`` (same sensor sizes as the config's)
     """
     from slscan.viewer import log as rlog
 
     if config.views < 1:
         raise SlscanError(f"views must be at least 1, got {config.views}")
-    rig = config.rig()
-    scene = scene_by_name(config.scene)
+    rig = rig or config.rig()
+    rig.validate()
+    scene = scene or scene_by_name(config.scene)
     patterns = config.pattern_set(rig)
-    poses = [turntable_pose(rig, 360.0 * v / config.views) for v in range(config.views)]
+    if poses is None:
+        poses = [turntable_pose(rig, 360.0 * v / config.views) for v in range(config.views)]
+    elif len(poses) == 0:
+        raise SlscanError("no poses to capture")
     for pose in poses:
         check_visible(scene, rig, pose)
     rlog.log_rig(rec, rig)
