@@ -123,13 +123,21 @@ def test_nan_duplicate_and_saturated_samples():
     saturated[hot] = True
     dup = StripeSamples(dup.row, dup.x, dup.projector_column, dup.stripe, dup.contrast, saturated)
 
+    strict = _build(dup, points, max_stripe_gap=1)
+    steps = np.abs(np.diff(strict.stripe[strict.faces][:, [0, 1, 2, 0]], axis=1))
+    assert steps.max() == 1  # no face spans a missing stripe
+    # per hole: the 6 triangles around the missing vertex go, one is re-formed from the
+    # three corners that remain of a quad: 5 fewer faces
+    assert strict.n_faces == FLAT_FACES - 5 - 5
     rm = _build(dup, points)
-    assert rm.n_faces == FLAT_FACES - 8 - 8  # each interior hole removes 4 quads
+    # bridged: the gap is closed by 4 triangles instead of 6
+    assert rm.n_faces == FLAT_FACES - 2 - 2
     assert rm.n_vertices == len(samples) - 1 - 1  # NaN and both twins dropped, twin's pair too
     assert not np.isnan(rm.vertices).any()
     is_hot = (rm.row == 11) & (rm.stripe == 6)
     assert rm.quality[is_hot] == 0 and np.all(rm.quality[~is_hot] > 0)
     kept = _build(dup, points, keep_unreferenced=True)
+    assert kept.n_faces == rm.n_faces
     assert kept.n_vertices == len(dup) - 1 and kept.n_faces == rm.n_faces
     twins = (kept.row == 16) & (kept.stripe == 18)
     assert twins.sum() == 2 and np.all(kept.quality[twins] == 0)

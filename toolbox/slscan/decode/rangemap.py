@@ -161,13 +161,17 @@ def build_range_map(
     view: str = "",
     max_edge_factor: float = 4.0,
     max_view_angle_deg: float = 80.0,
+    max_stripe_gap: int = 3,
     keep_unreferenced: bool = False,
 ) -> RangeMap:
     """Mesh triangulated samples on their (camera row x stripe) grid into a range map.
 
-    For consecutive camera rows ``r, r + 1`` and consecutive stripes ``s, s + 1`` present
-    in both rows, the quad is split along its shorter diagonal into two triangles. A
-    triangle is dropped when
+    Consecutive camera rows ``r, r + 1`` are zipped together: walking both rows' samples
+    in stripe order, each new sample makes a triangle with the latest sample of its own
+    row and of the other row (a full grid gives two triangles per quad). Stripes missing
+    in one row are bridged when the stripe step is at most ``max_stripe_gap`` (a fine line
+    lost where the surface is steep or the paint dark leaves no hole). A triangle is
+    dropped when
 
     - an edge is longer than ``max_edge_factor`` times the expected spacing there: the
       median edge length over depth of the view's row-direction (and, separately,
@@ -190,6 +194,8 @@ def build_range_map(
         Edges longer than this many times the expected spacing cut the mesh.
     max_view_angle_deg : float, degrees
         Faces seen more obliquely than this are dropped.
+    max_stripe_gap : int
+        Largest stripe step a triangle may span (1: only neighbouring stripes).
     keep_unreferenced : bool
         Keep vertices that no face uses (with the viewing direction as normal and
         quality 0); by default they are removed, so the map is a surface (the samples
@@ -231,18 +237,7 @@ def build_range_map(
         depth = np.linalg.norm(points, axis=1)
         m_stripe = _median_ratio(points, depth, a[b >= 0], b[b >= 0])
         m_row = _median_ratio(points, depth, a[c >= 0], c[c >= 0])
-        d = find(keys[a] + span + 1)  # (r + 1, s + 1)
-        quad = (b >= 0) & (c >= 0) & (d >= 0)
-        a, b, c, d = a[quad], b[quad], c[quad], d[quad]
-        split_ad = np.linalg.norm(points[a] - points[d], axis=1) <= np.linalg.norm(
-            points[b] - points[c], axis=1
-        )
-        tri = np.concatenate(
-            [
-                np.where(split_ad[:, None], np.stack([a, c, d], 1), np.stack([a, c, b], 1)),
-                np.where(split_ad[:, None], np.stack([a, d, b], 1), np.stack([b, c, d], 1)),
-            ]
-        )
+        tri = _zipper(np.flatnonzero(unique), rows, stripes, points, max_stripe_gap)
         faces = _filter_faces(
             tri, points, depth, rows, stripes, m_row, m_stripe, max_edge_factor, max_view_angle_deg
         )
@@ -280,6 +275,49 @@ def build_range_map(
     )
 
 
+def _zipper(
+    usable: np.ndarray, rows: np.ndarray, stripes: np.ndarray, points: np.ndarray, max_gap: int
+) -> np.ndarray:
+    """Triangles (m, 3) between each pair of consecutive rows, zipping them in stripe order.
+
+    Every usable sample takes part in two row pairs: as the upper row of ``(r, r + 1)``
+    and the lower row of ``(r - 1, r)``. In each pair the samples of both rows are merged
+    by stripe (upper row first on ties); each merged sample after the first of each row
+    closes a triangle with the previous sample of its own row and the current sample of
+    the other row.
+    """
+    if len(usable) == 0:
+        return np.zeros((0, 3), np.int64)
+    idx = np.concatenate([usable, usable])
+    pair = np.concatenate([rows[usable], rows[usable] - 1])
+    side = np.concatenate([np.zeros(len(usable), np.int8), np.ones(len(usable), np.int8)])
+    order = np.lexsort((side, stripes[idx], pair))
+    idx, pair, side = idx[order], pair[order], side[order]
+    n = len(idx)
+    pos = np.arange(n)
+    group_start = np.flatnonzero(np.r_[True, pair[1:] != pair[:-1]])
+    start = np.repeat(group_start, np.diff(np.r_[group_start, n]))
+
+    def last_before(which: int) -> np.ndarray:
+        """Position of the latest event of ``side == which`` before each event (-1: none)."""
+        mark = np.where(side == which, pos, -1)
+        latest = np.maximum.accumulate(mark)
+        prev = np.r_[-1, latest[:-1]]
+        return np.where(prev >= start, prev, -1)
+
+    last_up, last_down = last_before(0), last_before(1)
+    own = np.where(side == 0, last_up, last_down)
+    other = np.where(side == 0, last_down, last_up)
+    ok = (own >= 0) & (other >= 0)
+    new, own, other = idx[ok], idx[own[ok]], idx[other[ok]]
+    gap_ok = (
+        (np.abs(stripes[new] - stripes[own]) <= max_gap)
+        & (np.abs(stripes[new] - stripes[other]) <= max_gap)
+        & (np.abs(stripes[own] - stripes[other]) <= max_gap)
+    )
+    return np.stack([own, new, other], axis=1)[gap_ok]
+
+
 def _filter_faces(
     tri: np.ndarray,
     points: np.ndarray,
@@ -300,15 +338,9 @@ def _filter_faces(
     for i, j in ((0, 1), (1, 2), (2, 0)):
         p, q = tri[:, i], tri[:, j]
         length = np.linalg.norm(points[p] - points[q], axis=1)
-        d_row = rows[p] != rows[q]
-        d_stripe = stripes[p] != stripes[q]
-        expected = (
-            np.where(
-                d_row & d_stripe, math.hypot(m_row, m_stripe), np.where(d_row, m_row, m_stripe)
-            )
-            * 0.5
-            * (depth[p] + depth[q])
-        )
+        n_row = np.abs(rows[p] - rows[q])
+        n_stripe = np.abs(stripes[p] - stripes[q])
+        expected = np.hypot(n_row * m_row, n_stripe * m_stripe) * 0.5 * (depth[p] + depth[q])
         keep &= length <= factor * expected
     v0, v1, v2 = points[tri[:, 0]], points[tri[:, 1]], points[tri[:, 2]]
     normal = np.cross(v1 - v0, v2 - v0)
