@@ -70,6 +70,7 @@ class ViewDecode:
     mask : (h, w) bool decodable pixels; codes : (h, w) int display map (hybrid region code
         or Gray-code column, -1 where invalid), up to ``code_max``
     saturated : (h, w) bool pixels clipped (white frame for hybrid; any image for Gray)
+    white : the white-frame capture the range map's colours come from
     """
 
     view: str
@@ -81,6 +82,7 @@ class ViewDecode:
     codes: np.ndarray
     code_max: int
     saturated: np.ndarray
+    white: np.ndarray
     seconds: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -94,6 +96,13 @@ class ViewDecode:
             "saturated_sample_share": float(self.samples.saturated.mean()) if n else 0.0,
             "triangulated_share": float(np.isfinite(self.points[:, 0]).mean()) if n else 0.0,
         }
+
+
+def _white_id(session: Session) -> str:
+    for p in session.patterns:
+        if p.family == "flat" and list(p.params.get("value", [])) == [255, 255, 255]:
+            return p.id
+    raise SlscanError(f"{session.root}: the pattern set has no all-white frame")
 
 
 def choose_method(session: Session, method: str = "auto") -> str:
@@ -130,17 +139,17 @@ def decode_view(
     seconds = {}
     t = time.perf_counter()
     if method == "hybrid":
-        white_id, _, descs = hybrid_pattern_ids(session)
+        _, _, descs = hybrid_pattern_ids(session)
         res = decode_hybrid(session, view, estimator=config.estimator)
         samples, mask, codes = res.samples, res.mask, res.codes
         code_max = 2 ** len(descs)
-        white = session.read_image(view, view.image_for(white_id))
-        saturated = saturation(white)
     else:
         res = decode_gray(session, view)
         samples, mask, codes, saturated = res.edges, res.mask, res.column, res.saturated
         code_max = session.projector_size[0]
-        white = session.read_image(view, view.image_for("white"))
+    white = session.read_image(view, view.image_for(_white_id(session)))
+    if method == "hybrid":
+        saturated = saturation(white)
     seconds["decode"] = time.perf_counter() - t
     t = time.perf_counter()
     points = triangulate(samples, rig.camera, planes)
@@ -159,7 +168,8 @@ def decode_view(
     if len(range_map.faces) == 0:
         log.warning("%s: the range map has no faces (%d samples)", view.name, len(samples))
     return ViewDecode(
-        view.name, method, samples, points, range_map, mask, codes, code_max, saturated, seconds
+        view=view.name, method=method, samples=samples, points=points, range_map=range_map,
+        mask=mask, codes=codes, code_max=code_max, saturated=saturated, white=white, seconds=seconds,
     )
 
 
@@ -178,6 +188,7 @@ def decode_session(
     rec : an ``rr.RecordingStream`` for masks, codes, stripe axes, range maps and metrics
     """
     from slscan.viewer import log_decode as rlog
+    from slscan.viewer.log import log_capture
 
     if not isinstance(session, Session):
         session = load_session(session)
@@ -198,6 +209,7 @@ def decode_session(
                     code_max=result.code_max,
                     saturated=result.saturated,
                 )
+                log_capture(rec, result.white, view_index=index, frame_index=0, label="white")
                 rlog.log_stripes(rec, result.samples, view_index=index)
                 rlog.log_range_map(
                     rec, rm.vertices, rm.faces, rm.normals, rm.colors, view_index=index
