@@ -127,6 +127,21 @@ class Session:
                 return p
         raise SlscanError(f"{self.root / SESSION_FILE}: no pattern with id {pattern_id!r}")
 
+    def flat_frame_ids(self, purpose: str = "decoding") -> tuple[str, str]:
+        """Ids of the all-white and all-black frames of the pattern set (the first of each)."""
+        white = black = None
+        for p in self.patterns:
+            if p.family == "flat":
+                value = list(p.params.get("value", []))
+                if value == [255, 255, 255] and white is None:
+                    white = p.id
+                elif value == [0, 0, 0] and black is None:
+                    black = p.id
+        if white is None or black is None:
+            missing = "white" if white is None else "black"
+            raise SlscanError(f"{self.root}: the pattern set has no all-{missing} frame; {purpose} needs one")
+        return white, black
+
     def view(self, name: str) -> ViewRecord:
         for v in self.views:
             if v.name == name:

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slscan.capture.session import Session, ViewRecord
+from slscan.decode.masks import full_scale
 from slscan.decode.samples import StripeSamples
 from slscan.errors import SlscanError
 from slscan.patterns import PatternImage
@@ -134,24 +135,12 @@ def gray_pairs(descs: Sequence[PatternImage], axis: str) -> list[tuple[str, str]
     return pairs
 
 
-def _full_scale(image: np.ndarray, name: str) -> float:
-    if image.dtype == np.uint8:
-        return 255.0
-    if image.dtype == np.uint16:
-        return 65535.0
-    if np.issubdtype(image.dtype, np.floating):
-        return 1.0
-    raise SlscanError(
-        f"{name}: pixels are {image.dtype}; expected uint8, uint16 or float in [0, 1]"
-    )
-
-
 class _Reader:
     """Turns captures into grey float32 images in fractions of full scale, tracking clipping."""
 
     def __init__(self, shape: tuple[int, ...], dtype: np.dtype, where: str) -> None:
         self.shape, self.dtype, self.where = shape, dtype, where
-        self.scale = _full_scale(np.empty(0, dtype), where)
+        self.scale = full_scale(np.empty(0, dtype), where)
         self.saturated = np.zeros(shape[:2], bool)
 
     def __call__(self, image: np.ndarray, name: str) -> np.ndarray:
@@ -360,7 +349,7 @@ def decode_gray_images(
         raise SlscanError(
             f"{where}white: expected an (h, w) or (h, w, 3) image, got shape {white.shape}"
         )
-    _full_scale(white, f"{where}white")
+    full_scale(white, f"{where}white")
     read = _Reader(white.shape, white.dtype, where)
     w_img, b_img = read(white, "white"), read(black, "black")
     contrast = w_img - b_img
@@ -429,24 +418,6 @@ def decode_gray(session: Session, view: ViewRecord | str, **options) -> GrayResu
     def read(pid: str) -> np.ndarray:
         return session.read_image(view, view.image_for(pid))
 
-    white_id, black_id = _flat_ids(session)
+    white_id, black_id = session.flat_frame_ids("Gray-code decoding")
     images = {p.id: read(p.id) for p in descs}
     return decode_gray_images(images, descs, read(white_id), read(black_id), where=where, **options)
-
-
-def _flat_ids(session: Session) -> tuple[str, str]:
-    white = black = None
-    for p in session.patterns:
-        if p.family == "flat":
-            value = list(p.params.get("value", []))
-            if value == [255, 255, 255] and white is None:
-                white = p.id
-            elif value == [0, 0, 0] and black is None:
-                black = p.id
-    if white is None or black is None:
-        missing = "white" if white is None else "black"
-        raise SlscanError(
-            f"{session.root}: the pattern set has no all-{missing} frame; "
-            "Gray-code decoding needs one"
-        )
-    return white, black

@@ -803,19 +803,7 @@ def decode_hybrid_images(
 
 def hybrid_pattern_ids(session: Session) -> tuple[str, str, list[PatternImage]]:
     """The white and black frames' ids and the hybrid descriptions (level order) of ``session``."""
-    white = black = None
-    for p in session.patterns:
-        if p.family == "flat":
-            value = list(p.params.get("value", []))
-            if value == [255, 255, 255] and white is None:
-                white = p.id
-            elif value == [0, 0, 0] and black is None:
-                black = p.id
-    if white is None or black is None:
-        missing = "white" if white is None else "black"
-        raise SlscanError(
-            f"{session.root}: the pattern set has no all-{missing} frame; hybrid decoding needs one"
-        )
+    white, black = session.flat_frame_ids("hybrid decoding")
     descs = sorted(
         (p for p in session.patterns if p.family == "hybrid"),
         key=lambda p: p.params.get("level", 0),

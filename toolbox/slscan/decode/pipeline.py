@@ -98,13 +98,6 @@ class ViewDecode:
         }
 
 
-def _white_id(session: Session) -> str:
-    for p in session.patterns:
-        if p.family == "flat" and list(p.params.get("value", [])) == [255, 255, 255]:
-            return p.id
-    raise SlscanError(f"{session.root}: the pattern set has no all-white frame")
-
-
 def choose_method(session: Session, method: str = "auto") -> str:
     """The decode method for ``session``: the one asked, or the hybrid pattern when present."""
     families = {p.family for p in session.patterns}
@@ -147,7 +140,7 @@ def decode_view(
         res = decode_gray(session, view)
         samples, mask, codes, saturated = res.edges, res.mask, res.column, res.saturated
         code_max = session.projector_size[0]
-    white = session.read_image(view, view.image_for(_white_id(session)))
+    white = session.read_image(view, view.image_for(session.flat_frame_ids()[0]))
     if method == "hybrid":
         saturated = saturation(white)
     seconds["decode"] = time.perf_counter() - t
