@@ -12,8 +12,6 @@ from slscan.capture.session import LIT
 from slscan.decode.graycode import decode_gray, decode_gray_images, gray_pairs
 from slscan.errors import SlscanError
 from slscan.patterns import graycode
-from slscan.virtual.device import VirtualCaptureConfig, capture_session
-from slscan.virtual.sensor import Sensor
 
 # --- synthetic images with a known answer ----------------------------------------------------
 
@@ -154,16 +152,8 @@ def test_gray_pairs_order():
 
 
 @pytest.fixture(scope="module")
-def tile(tmp_path_factory: pytest.TempPathFactory):
-    config = VirtualCaptureConfig(
-        scene="tile",
-        patterns="gray",
-        camera_scale=0.25,
-        projector_scale=0.25,
-        lit_images=False,
-        sensor=Sensor(noise=False),
-    )
-    session = capture_session(config, tmp_path_factory.mktemp("tile") / "session")
+def tile(gray_tile_session):
+    session = gray_tile_session
     view = session.views[0]
     return session, view, session.load_ground_truth(view), decode_gray(session, view)
 

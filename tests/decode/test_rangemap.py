@@ -14,8 +14,6 @@ from slscan.decode.samples import StripeSamples
 from slscan.decode.triangulate import RigPlanes, triangulate
 from slscan.errors import SlscanError
 from slscan.rig import default_rig
-from slscan.virtual.device import VirtualCaptureConfig, capture_session
-from slscan.virtual.sensor import Sensor
 
 CAMERA = default_rig(scale=0.25).camera  # 360 x 240
 ROWS = np.arange(10, 20)  # 10 camera rows
@@ -219,16 +217,8 @@ def test_read_ply_errors(mesh: RangeMap, tmp_path: Path):
 # --- the virtual tile, end to end ---------------------------------------------------------------
 
 
-def test_tile_range_map(tmp_path: Path):
-    config = VirtualCaptureConfig(
-        scene="tile",
-        patterns="gray",
-        camera_scale=0.25,
-        projector_scale=0.25,
-        lit_images=False,
-        sensor=Sensor(noise=False),
-    )
-    session = capture_session(config, tmp_path / "session")
+def test_tile_range_map(gray_tile_session, tmp_path: Path):
+    session = gray_tile_session
     view = session.views[0]
     rig = session.calibration
     edges = decode_gray(session, view).edges

@@ -12,8 +12,6 @@ from slscan.decode.samples import StripeSamples
 from slscan.decode.triangulate import RigPlanes, intersect_rays_planes, triangulate
 from slscan.errors import SlscanError
 from slscan.rig import PinholeModel, default_rig, distort
-from slscan.virtual.device import VirtualCaptureConfig, capture_session
-from slscan.virtual.sensor import Sensor
 
 
 def _rays_on_rows(camera: PinholeModel, rows: np.ndarray, xn: np.ndarray):
@@ -135,16 +133,8 @@ def test_errors_and_empty():
 
 
 @pytest.fixture(scope="module")
-def tile(tmp_path_factory: pytest.TempPathFactory):
-    config = VirtualCaptureConfig(
-        scene="tile",
-        patterns="gray",
-        camera_scale=0.25,
-        projector_scale=0.25,
-        lit_images=False,
-        sensor=Sensor(noise=False),
-    )
-    session = capture_session(config, tmp_path_factory.mktemp("tile") / "session")
+def tile(gray_tile_session):
+    session = gray_tile_session
     view = session.views[0]
     edges = decode_gray(session, view).edges
     points = triangulate(
