@@ -209,6 +209,54 @@ def _cmd_decode(args: argparse.Namespace) -> int:
     return 0
 
 
+# --- run (recipes) ---------------------------------------------------------------------
+
+
+class _StageReporter:
+    """Shows each recipe stage with its own progress bar, or says it was skipped."""
+
+    def __init__(self, quiet: bool) -> None:
+        self.quiet = quiet
+        self.bar: _ProgressBar | None = None
+
+    def stage_started(self, stage, total: int) -> None:
+        self.bar = _ProgressBar(total, f"{stage.name:<9}", self.quiet).__enter__()
+
+    def step(self, label: str) -> None:
+        if self.bar:
+            self.bar.step(label)
+
+    def stage_finished(self, run) -> None:
+        if self.bar:
+            self.bar.__exit__(None, None, None)
+            self.bar = None
+        summary = ", ".join(f"{k} {v:,}" if isinstance(v, int) else f"{k} {v}" for k, v in run.summary.items())
+        if run.ran:
+            _console().print(f"[green]{run.stage:<9}[/] done in {run.seconds:.1f} s: {summary} -> {run.out}",
+                             highlight=False)
+        else:
+            _console().print(f"[cyan]{run.stage:<9}[/] unchanged, not run again ({summary})")
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from slscan.recipe.runner import load_recipe, run_recipe
+    from slscan.viewer.layouts import pipeline_blueprint
+    from slscan.viewer.recording import recording_from_args
+
+    recipe = load_recipe(args.recipe, overrides=args.set or [], reduced=args.reduced)
+    out = args.out or Path(recipe.out or f"{recipe.name}-run")
+    t0 = time.perf_counter()
+    reporter = _StageReporter(args.quiet)
+    with recording_from_args(args, recording_name=f"recipe {recipe.name}", blueprint=pipeline_blueprint()) as rec:
+        runs = run_recipe(recipe, out, force=args.force, rec=rec, reporter=reporter)
+    ran = sum(r.ran for r in runs)
+    _console().print(
+        f"[bold]{recipe.name}[/]: {ran} of {len(runs)} stage(s) run in {time.perf_counter() - t0:.1f} s; "
+        f"results and recipe.resolved.toml in {out}"
+    )
+    return 0
+
+
 # --- patterns ---------------------------------------------------------------------------
 
 
@@ -331,6 +379,28 @@ def build_parser() -> argparse.ArgumentParser:
     add_recording_arguments(p)
     p.set_defaults(func=_cmd_decode)
 
+    from slscan.recipe.runner import describe_stages
+
+    p = sub.add_parser(
+        "run", help="run a recipe (a named pipeline in TOML), resuming where it can",
+        description="Run the stages of a recipe in order into one folder (OUT/<stage>/). A stage "
+                    "whose settings and inputs are unchanged since the last run is not run again. "
+                    "The recipe with every default filled in is written to OUT/recipe.resolved.toml.",
+        epilog="stages:\n" + describe_stages() + "\n\nexamples:\n"
+               "  slscan run recipes/demo.toml --out demo-run\n"
+               "  slscan run recipes/paper.toml --set capture.views=4 --set decode.estimator=centroid",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("recipe", type=Path, help="recipe file (TOML), e.g. recipes/demo.toml")
+    p.add_argument("--out", type=Path, help="output folder (default: the recipe's, or NAME-run)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override a setting, e.g. capture.views=4 (repeatable)")
+    p.add_argument("--reduced", action="store_true", help="the recipe's quick reduced-size version")
+    p.add_argument("--force", action="store_true", help="run every stage even if unchanged")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_recording_arguments(p)
+    p.set_defaults(func=_cmd_run)
+
     p = sub.add_parser(
         "patterns", help="write pattern images for a real projector",
         description="Write the pattern images (PNG, shown full-screen on the projector, in file "
@@ -384,7 +454,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except SlscanError as exc:
-        _console().print(f"[red]slscan: error:[/] {exc}", highlight=False, soft_wrap=True)
+        from rich.markup import escape
+
+        _console().print(f"[red]slscan: error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
         return 2
     except KeyboardInterrupt:
         _console().print("[red]slscan: interrupted[/]")

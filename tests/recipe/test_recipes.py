@@ -1,0 +1,80 @@
+"""Recipes: every recipe in recipes/ runs at reduced size, resumes, and refuses bad keys by name."""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from slscan.errors import SlscanError
+from slscan.recipe.config import dumps_toml
+from slscan.recipe.runner import load_recipe, parse_recipe, run_recipe
+
+RECIPES = sorted((Path(__file__).parents[2] / "recipes").glob("*.toml"))
+
+
+def test_there_are_recipes():
+    assert {p.stem for p in RECIPES} >= {"demo", "paper"}
+
+
+@pytest.mark.parametrize("path", RECIPES, ids=[p.stem for p in RECIPES])
+def test_every_recipe_runs_at_reduced_size_and_resumes(path, tmp_path, request):
+    recipe = load_recipe(path, reduced=True)
+    if any(s.name == "import" for s, _ in recipe.steps) or "SLSCAN_DATA" in path.read_text():
+        request.getfixturevalue("shared_data")  # skips with the reason when the real data is absent
+    out = tmp_path / "run"
+    first = run_recipe(recipe, out)
+    assert all(r.ran for r in first)
+    for r in first:
+        assert r.out.is_dir() and any(r.out.iterdir())
+    again = run_recipe(load_recipe(path, reduced=True), out)
+    assert not any(r.ran for r in again)
+    resolved = tomllib.loads((out / "recipe.resolved.toml").read_text())
+    assert resolved == recipe.resolved()
+
+
+def test_a_changed_setting_reruns_that_stage_and_those_after_it(tmp_path):
+    demo = Path(__file__).parents[2] / "recipes" / "demo.toml"
+    out = tmp_path / "run"
+    run_recipe(load_recipe(demo, reduced=True), out)
+    runs = run_recipe(load_recipe(demo, reduced=True, overrides=["decode.estimator=centroid"]), out)
+    assert [(r.stage, r.ran) for r in runs] == [("capture", False), ("decode", True)]
+    runs = run_recipe(load_recipe(demo, reduced=True, overrides=["capture.seed=7"]), out)
+    assert [(r.stage, r.ran) for r in runs] == [("capture", True), ("decode", True)]
+    # a stage whose record is gone is run again
+    (out / "decode.stage.json").unlink()
+    runs = run_recipe(load_recipe(demo, reduced=True, overrides=["capture.seed=7"]), out)
+    assert [(r.stage, r.ran) for r in runs] == [("capture", False), ("decode", True)]
+
+
+@pytest.mark.parametrize(
+    "data,message",
+    [
+        ({"capture": {"scenes": "tile"}}, "[capture]: unknown key 'scenes'"),
+        ({"capture": {"views": "two"}}, "[capture].views: expected an integer"),
+        ({"capture": {"sensor": {"exposure": "high"}}}, "[capture].sensor.exposure: expected a number"),
+        ({"capture": {"sensor": {"bit_depth": 12}}}, "bit depth must be 8 or 16"),
+        ({"laser": {}}, "unknown stage 'laser'"),
+        ({"decode": {}}, "stage 'decode' needs a session"),
+        ({"recipe": {"colour": "red"}, "capture": {}}, "[recipe] unknown key 'colour'"),
+    ],
+)
+def test_bad_recipes_name_the_key(data, message):
+    with pytest.raises(SlscanError) as exc:
+        parse_recipe(data, where="r.toml")
+    assert message in str(exc.value)
+
+
+def test_overrides_are_typed_and_checked():
+    recipe = parse_recipe({"capture": {}}, where="r.toml",
+                          overrides=["capture.views=3", "capture.scene=tile", "capture.sensor.noise=false"])
+    config = recipe.steps[0][1]
+    assert (config.views, config.scene, config.sensor.noise) == (3, "tile", False)
+    with pytest.raises(SlscanError, match="expected KEY=VALUE"):
+        parse_recipe({"capture": {}}, where="r.toml", overrides=["capture.views"])
+
+
+def test_toml_writer_round_trips():
+    data = {"a": {"x": 1, "y": [1.5, 2.0], "s": 'say "hi"', "b": True, "n": {"deep": [[1, 2], [3, 4]]}}}
+    assert tomllib.loads(dumps_toml(data)) == data

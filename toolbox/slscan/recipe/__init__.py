@@ -1,0 +1,1 @@
+"""Recipes: named pipelines in TOML, mapped onto the stages' configuration dataclasses."""

@@ -1,0 +1,130 @@
+"""The stages a recipe can name: each a config dataclass and a function writing one folder.
+
+A stage **provides** one kind of result (a capture session, range maps, ...) and **needs**
+results of earlier stages; the runner hands it the folders of the latest earlier stages
+that provide what it needs. Each stage writes its whole output folder ``ctx.out``.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from slscan.errors import SlscanError
+
+
+@dataclass
+class StageContext:
+    """What a stage's ``run`` gets.
+
+    out : the folder the stage must write (replacing what is there)
+    inputs : result kind → folder of the stage that provided it
+    rec : an ``rr.RecordingStream`` or None
+    progress : called with a short label as work advances
+    """
+
+    out: Path
+    inputs: dict[str, Path]
+    rec: Any = None
+    progress: Callable[[str], None] = lambda label: None
+
+
+@dataclass(frozen=True)
+class Stage:
+    name: str
+    config_type: type
+    provides: str
+    needs: tuple[str, ...]
+    run: Callable[[StageContext, Any], dict[str, Any]]
+    """Does the work; returns a small summary (counts, metrics) stored with the stage."""
+    size: Callable[[Any], int] = lambda config: 1
+    """Steps the progress bar should expect."""
+    summary: str = ""
+
+
+@dataclass(frozen=True)
+class ImportConfig:
+    """Captures made by another tool, turned into a capture session."""
+
+    source: str = ""
+    """Folder of the other tool's captures; ``${SLSCAN_DATA}`` expands to the shared data."""
+    format: str = "kamino410"
+    """{"kamino410"}: procam-calibration's 42 Gray-code images per pose."""
+
+
+def expand_path(text: str) -> Path:
+    """Expand ``${SLSCAN_DATA}`` (the shared real-data folder) and ``~`` in a recipe path."""
+    if "${SLSCAN_DATA}" in text:
+        from slscan.data import ENV_VAR, shared_data_dir
+
+        data = shared_data_dir()
+        if data is None:
+            raise SlscanError(f"{text}: the shared data folder is not there (set {ENV_VAR})")
+        text = text.replace("${SLSCAN_DATA}", str(data))
+    return Path(os.path.expanduser(text))
+
+
+def _run_capture(ctx: StageContext, config) -> dict[str, Any]:
+    from slscan.virtual.device import capture_session
+
+    session = capture_session(config, ctx.out, overwrite=True, rec=ctx.rec, progress=ctx.progress)
+    return {"views": len(session.views), "images": sum(len(v.images) for v in session.views)}
+
+
+def _capture_size(config) -> int:
+    from slscan.virtual.device import images_per_view
+
+    return config.views * images_per_view(config)
+
+
+def _run_import(ctx: StageContext, config: ImportConfig) -> dict[str, Any]:
+    if config.format != "kamino410":
+        raise SlscanError(f"import.format: unknown format {config.format!r} (known: kamino410)")
+    if not config.source:
+        raise SlscanError("import.source: the folder of captures to import is not set")
+    from slscan.capture.kamino410 import import_kamino410
+
+    session = import_kamino410(expand_path(config.source), ctx.out, overwrite=True,
+                               progress=lambda done, total: ctx.progress(f"{done}/{total}"))
+    return {"views": len(session.views), "images": sum(len(v.images) for v in session.views)}
+
+
+def _run_decode(ctx: StageContext, config) -> dict[str, Any]:
+    from slscan.capture.session import load_session
+    from slscan.decode.pipeline import decode_session
+
+    session = load_session(ctx.inputs["session"])
+    results = decode_session(session, ctx.out, config, overwrite=True, rec=ctx.rec, progress=ctx.progress)
+    return {
+        "range_maps": len(results),
+        "vertices": sum(len(r.range_map.vertices) for r in results),
+        "faces": sum(len(r.range_map.faces) for r in results),
+    }
+
+
+def _registry() -> dict[str, Stage]:
+    from slscan.decode.pipeline import DecodeConfig
+    from slscan.virtual.device import VirtualCaptureConfig
+
+    stages = [
+        Stage("capture", VirtualCaptureConfig, "session", (), _run_capture, _capture_size,
+              "render a capture session on the virtual rig"),
+        Stage("import", ImportConfig, "session", (), _run_import, summary="import another tool's captures"),
+        Stage("decode", DecodeConfig, "range_maps", ("session",), _run_decode, lambda config: 1,
+              "decode patterns into range maps"),
+    ]
+    return {s.name: s for s in stages}
+
+
+STAGES: dict[str, Stage] = {}
+
+
+def stages() -> dict[str, Stage]:
+    """All stages by name, in pipeline order."""
+    if not STAGES:
+        STAGES.update(_registry())
+    return STAGES
+
