@@ -38,6 +38,11 @@ def test_demo_at_reduced_size_reaches_a_range_map(tmp_path, capsys):
     assert main(["decode", str(out / "capture"), "--out", str(tmp_path / "again"), "--quiet"]) == 0
     again = read_ply(tmp_path / "again" / "view_000.ply")
     np.testing.assert_array_equal(again.faces, range_map.faces)
+    # slscan view logs a result folder (here to a file instead of a viewer)
+    for result in (out / "capture", out / "range_maps"):
+        rrd = tmp_path / f"{result.name}.rrd"
+        assert main(["view", str(result), "--save", str(rrd)]) == 0
+        assert rrd.stat().st_size > 10_000
 
 
 def test_capture_and_patterns_commands(tmp_path):

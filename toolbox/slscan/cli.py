@@ -309,6 +309,30 @@ def _cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_view(args: argparse.Namespace) -> int:
+    import shutil
+    import subprocess
+
+    from slscan.viewer.recording import _rerun_executable, open_recording
+    from slscan.viewer.show import log_result, result_kind
+
+    kind = result_kind(args.result)
+    if kind == "recording":
+        exe = shutil.which("rerun") or _rerun_executable()
+        if exe is None:
+            raise SlscanError("the Rerun viewer (rerun) is not installed next to slscan")
+        subprocess.Popen([exe, str(args.result)], start_new_session=True)
+        _console().print(f"opening {args.result} in the Rerun viewer")
+        return 0
+    spawn = args.save is None
+    with open_recording(save=args.save, spawn=spawn, recording_name=f"view {args.result.name}") as rec:
+        blueprint = log_result(rec, args.result)
+        rec.send_blueprint(blueprint)
+    _console().print(f"{'sent' if spawn else 'saved'} {args.result} ({kind}) "
+                     + ("to the Rerun viewer" if spawn else f"to {args.save}"))
+    return 0
+
+
 def _cmd_layouts(args: argparse.Namespace) -> int:
     from slscan.viewer.layouts import save_layouts
 
@@ -431,6 +455,18 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Validate every image of a capture session against its metadata and summarise it.")
     p.add_argument("session", type=Path, help="capture-session folder")
     p.set_defaults(func=_cmd_info)
+
+    p = sub.add_parser(
+        "view", help="open a result in the Rerun viewer with the layout that fits it",
+        description="Open a recording (.rrd), a capture session, a range-maps folder or a recipe "
+                    "run folder in the Rerun viewer, arranged with the matching layout.",
+        epilog="examples:\n  slscan view demo-scan.rrd\n  slscan view demo-scan/range_maps\n"
+               "  slscan view demo-run --save demo-run.rrd   (write a recording instead)",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("result", type=Path, help="a .rrd file or a result folder")
+    p.add_argument("--save", type=Path, metavar="FILE.rrd", help="write a recording instead of opening the viewer")
+    p.set_defaults(func=_cmd_view)
 
     p = sub.add_parser("layouts", help="write the Rerun viewer layouts (.rbl)",
                        description="Write the Rerun blueprints that arrange each stage's views.")
