@@ -257,6 +257,32 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_baseline(args: argparse.Namespace) -> int:
+    from slscan.recipe.regress import make_baseline
+    from slscan.recipe.runner import load_recipe
+
+    recipe = load_recipe(args.recipe, overrides=args.set or [], reduced=args.reduced)
+    make_baseline(recipe, args.out, reporter=_StageReporter(args.quiet))
+    _console().print(f"[green]wrote[/] baseline {args.out}: check later with  slscan regress {args.out}")
+    return 0
+
+
+def _cmd_regress(args: argparse.Namespace) -> int:
+    from rich.markup import escape
+
+    from slscan.recipe.regress import format_table, regress
+
+    checks = regress(args.baseline, work=args.keep, reporter=_StageReporter(args.quiet))
+    print(format_table(checks))
+    failed = [c for c in checks if not c.ok]
+    console = _console()
+    if failed:
+        console.print(f"[red]{len(failed)} of {len(checks)} checks regressed[/] against {escape(str(args.baseline))}")
+        return 1
+    console.print(f"[green]all {len(checks)} checks pass[/] against {escape(str(args.baseline))}")
+    return 0
+
+
 # --- patterns ---------------------------------------------------------------------------
 
 
@@ -424,6 +450,34 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     add_recording_arguments(p)
     p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser(
+        "baseline", help="record a regression baseline: a recipe run with its recording and metrics",
+        description="Run a recipe into a new baseline folder, with its Rerun recording and the "
+                    "metrics of every stage, for later `slscan regress` checks.",
+        epilog="example:\n  slscan baseline recipes/demo.toml --reduced --out baselines/demo",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("recipe", type=Path, help="recipe file (TOML)")
+    p.add_argument("--out", required=True, type=Path, help="baseline folder to create")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a setting (repeatable)")
+    p.add_argument("--reduced", action="store_true", help="the recipe's quick reduced-size version")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=_cmd_baseline)
+
+    p = sub.add_parser(
+        "regress", help="re-run a baseline's recorded session and compare (exit 1 on regression)",
+        description="Re-run every stage after the recorded capture of a baseline, then compare "
+                    "with it metric by metric (counts, distances between range maps) and "
+                    "recording by recording. Prints a table; exits 1 on a regression. The "
+                    "baseline is never written.",
+        epilog="example:\n  slscan regress tests/data/baselines/demo",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("baseline", type=Path, help="baseline folder (from slscan baseline)")
+    p.add_argument("--keep", type=Path, help="keep the re-run in this (new) folder")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=_cmd_regress)
 
     p = sub.add_parser(
         "patterns", help="write pattern images for a real projector",

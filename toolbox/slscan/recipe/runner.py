@@ -134,8 +134,15 @@ class Reporter:
 
 
 def run_recipe(recipe: Recipe, out: str | os.PathLike, *, force: bool = False, rec=None,
-               reporter: Reporter | None = None) -> list[StageRun]:
-    """Run ``recipe`` into folder ``out``, resuming: unchanged stages are not run again."""
+               reporter: Reporter | None = None, given: dict[str, Path] | None = None,
+               unrecorded: tuple[str, ...] = ()) -> list[StageRun]:
+    """Run ``recipe`` into folder ``out``, resuming: unchanged stages are not run again.
+
+    given : results already at hand by kind (e.g. ``{"session": recorded_capture}``); the
+        stages that would provide them are not run and later stages read these folders
+    unrecorded : kinds of result whose stages do not log to ``rec``
+    """
+    given = {k: Path(v) for k, v in (given or {}).items()}
     out = Path(out)
     reporter = reporter or Reporter()
     try:
@@ -149,6 +156,13 @@ def run_recipe(recipe: Recipe, out: str | os.PathLike, *, force: bool = False, r
     results: list[StageRun] = []
     provided: dict[str, tuple[Path, str]] = {}  # kind -> (folder, fingerprint)
     for stage, config in recipe.steps:
+        if stage.provides in given:
+            folder = given[stage.provides]
+            digest = hashlib.sha256(str(folder.resolve()).encode()).hexdigest()
+            provided[stage.provides] = (folder, digest)
+            results.append(StageRun(stage.name, False, 0.0, {"given": str(folder)}, folder))
+            reporter.stage_finished(results[-1])
+            continue
         inputs = {need: provided[need] for need in stage.needs}
         fingerprint = _fingerprint(stage, config, {k: v[1] for k, v in inputs.items()})
         folder = out / stage.name
@@ -160,7 +174,8 @@ def run_recipe(recipe: Recipe, out: str | os.PathLike, *, force: bool = False, r
             record_path.unlink(missing_ok=True)  # a stage half-redone is never trusted
             reporter.stage_started(stage, stage.size(config))
             t = time.perf_counter()
-            ctx = StageContext(folder, {k: v[0] for k, v in inputs.items()}, rec, reporter.step)
+            stage_rec = None if stage.provides in unrecorded else rec
+            ctx = StageContext(folder, {k: v[0] for k, v in inputs.items()}, stage_rec, reporter.step)
             summary = stage.run(ctx, config)
             seconds = time.perf_counter() - t
             write_json(record_path, {"stage": stage.name, "fingerprint": fingerprint, "seconds": seconds,
