@@ -13,6 +13,8 @@ from pathlib import Path
 
 from slscan import __version__
 from slscan.errors import SlscanError
+from slscan.progress import ProgressBar as _ProgressBar
+from slscan.progress import console as _console
 
 EPILOG = """\
 quick start:
@@ -24,53 +26,6 @@ quick start:
 Every command that logs takes --save FILE.rrd, --spawn (start a viewer) or
 --connect [URL]; without them nothing is logged. Docs: docs/ in the repository.
 """
-
-
-def _console():
-    from rich.console import Console
-
-    return Console(stderr=True)
-
-
-class _ProgressBar:
-    """A rich progress bar on stderr; a no-op when ``quiet``."""
-
-    def __init__(self, total: int, description: str, quiet: bool = False) -> None:
-        self.quiet = quiet
-        if quiet:
-            return
-        from rich.progress import (
-            BarColumn,
-            MofNCompleteColumn,
-            Progress,
-            TextColumn,
-            TimeElapsedColumn,
-            TimeRemainingColumn,
-        )
-
-        self._progress = Progress(
-            TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-            TextColumn("{task.fields[label]}"), TimeElapsedColumn(), TimeRemainingColumn(),
-            console=_console(), transient=False,
-        )
-        self._task = self._progress.add_task(description, total=total, label="")
-
-    def __enter__(self) -> _ProgressBar:
-        if not self.quiet:
-            self._progress.__enter__()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        if not self.quiet:
-            self._progress.__exit__(*exc)
-
-    def step(self, label: str = "") -> None:
-        if not self.quiet:
-            self._progress.update(self._task, advance=1, label=label)
-
-    def set(self, done: int, total: int) -> None:
-        if not self.quiet:
-            self._progress.update(self._task, completed=done, total=total)
 
 
 def _folder_size(path: Path) -> int:
@@ -176,12 +131,13 @@ def _check_demo_folder(out: Path, overwrite: bool) -> None:
 # --- decode -------------------------------------------------------------------------------
 
 
-def _decode(session, out: Path, config, overwrite: bool, rec, quiet: bool) -> None:
+def _decode(session, out: Path, config, overwrite: bool, rec, quiet: bool, planes=None) -> None:
     from slscan.decode.pipeline import decode_session
 
     t0 = time.perf_counter()
     with _ProgressBar(len(session.views), "decoding", quiet) as bar:
-        results = decode_session(session, out, config, overwrite=overwrite, rec=rec, progress=bar.step)
+        results = decode_session(session, out, config, overwrite=overwrite, rec=rec, progress=bar.step,
+                                 planes=planes)
     elapsed = time.perf_counter() - t0
     vertices = sum(len(r.range_map.vertices) for r in results)
     faces = sum(len(r.range_map.faces) for r in results)
@@ -199,13 +155,20 @@ def _cmd_decode(args: argparse.Namespace) -> int:
 
     config = DecodeConfig(method=args.method, estimator=args.estimator)
     session = load_session(args.session)
+    planes = None
+    if args.calibration is not None:
+        from slscan.calibrate.io import apply_calibration, calibration_planes, load_calibration
+
+        calibration = load_calibration(args.calibration)
+        session = apply_calibration(session, calibration)
+        planes = calibration_planes(calibration, source=args.planes)
     with recording_from_args(args, recording_name=f"decode {args.session.name}", blueprint=decode_blueprint()) as rec:
         if rec is not None:
             from slscan.viewer.log import log_rig
 
             if session.calibration is not None:
                 log_rig(rec, session.calibration)
-        _decode(session, args.out, config, args.overwrite, rec, args.quiet)
+        _decode(session, args.out, config, args.overwrite, rec, args.quiet, planes=planes)
     return 0
 
 
@@ -426,8 +389,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"green-line sub-pixel estimator (default {DEFAULT_ESTIMATOR})")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--calibration", type=Path, metavar="CALIB.json",
+                   help="decode with this measured calibration (slscan calibrate) instead of the session's")
+    p.add_argument("--planes", choices=("auto", "planes", "raw-planes", "inverse-camera"), default="auto",
+                   help="with --calibration: which projector model gives the light planes (default auto: "
+                        "the light-plane model when measured, else the inverse camera)")
     add_recording_arguments(p)
     p.set_defaults(func=_cmd_decode)
+
+    from slscan.calibrate.command import add_command as add_calibrate_command
+
+    add_calibrate_command(sub)
 
     from slscan.recipe.runner import describe_stages
 

@@ -174,11 +174,13 @@ def decode_session(
     overwrite: bool = False,
     rec=None,
     progress: Callable[[str], None] | None = None,
+    planes: LightPlanes | None = None,
 ) -> list[ViewDecode]:
     """Decode every view of a capture session into ``out/VIEW.ply`` and ``out/range_maps.json``.
 
     The session is validated (every image against its metadata) before anything is written.
     rec : an ``rr.RecordingStream`` for masks, codes, stripe axes, range maps and metrics
+    planes : the projector's light planes (a measured calibration); default: the session's
     """
     from slscan.viewer import log_decode as rlog
     from slscan.viewer.log import log_capture
@@ -189,7 +191,7 @@ def decode_session(
     with atomic_output_dir(out, overwrite=overwrite) as tmp:
         entries = []
         for index, view in enumerate(session.views):
-            result = decode_view(session, view, config)
+            result = decode_view(session, view, config, planes=planes)
             ply = f"{view.name}.ply"
             write_ply(result.range_map, tmp / ply)
             if rec is not None:

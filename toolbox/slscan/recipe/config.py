@@ -74,11 +74,15 @@ def from_mapping(cls: type, data: Mapping[str, Any], where: str) -> Any:
 
 
 def to_mapping(obj: Any) -> dict[str, Any]:
-    """Plain data (dicts, lists, scalars) of a configuration dataclass, for TOML and hashing."""
+    """Plain data (dicts, lists, scalars) of a configuration dataclass, for TOML and hashing.
+
+    Settings that are None (TOML has no null) are left out: absent means the default.
+    """
 
     def plain(value: Any) -> Any:
         if dataclasses.is_dataclass(value):
-            return {f.name: plain(getattr(value, f.name)) for f in dataclasses.fields(value) if f.init}
+            return {f.name: plain(getattr(value, f.name)) for f in dataclasses.fields(value)
+                    if f.init and getattr(value, f.name) is not None}
         if isinstance(value, (list, tuple)):
             return [plain(v) for v in value]
         return value

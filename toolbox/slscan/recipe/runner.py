@@ -163,7 +163,7 @@ def run_recipe(recipe: Recipe, out: str | os.PathLike, *, force: bool = False, r
             results.append(StageRun(stage.name, False, 0.0, {"given": str(folder)}, folder))
             reporter.stage_finished(results[-1])
             continue
-        inputs = {need: provided[need] for need in stage.needs}
+        inputs = {need: provided[need] for need in stage.needs + stage.optional if need in provided}
         fingerprint = _fingerprint(stage, config, {k: v[1] for k, v in inputs.items()})
         folder = out / stage.name
         record_path = out / f"{stage.name}.stage.json"

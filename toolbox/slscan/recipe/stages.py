@@ -43,6 +43,8 @@ class Stage:
     size: Callable[[Any], int] = lambda config: 1
     """Steps the progress bar should expect."""
     summary: str = ""
+    optional: tuple[str, ...] = ()
+    """Results used when an earlier stage provides them (e.g. a measured calibration)."""
 
 
 @dataclass(frozen=True)
@@ -97,7 +99,15 @@ def _run_decode(ctx: StageContext, config) -> dict[str, Any]:
     from slscan.decode.pipeline import decode_session
 
     session = load_session(ctx.inputs["session"])
-    results = decode_session(session, ctx.out, config, overwrite=True, rec=ctx.rec, progress=ctx.progress)
+    planes = None
+    if "calibration" in ctx.inputs:
+        from slscan.calibrate.io import apply_calibration, calibration_planes, load_calibration
+
+        calibration = load_calibration(ctx.inputs["calibration"] / "calibration.json")
+        session = apply_calibration(session, calibration)
+        planes = calibration_planes(calibration)
+    results = decode_session(session, ctx.out, config, overwrite=True, rec=ctx.rec, progress=ctx.progress,
+                             planes=planes)
     return {
         "range_maps": len(results),
         "vertices": sum(len(r.range_map.vertices) for r in results),
@@ -105,7 +115,24 @@ def _run_decode(ctx: StageContext, config) -> dict[str, Any]:
     }
 
 
+def _run_calibrate(ctx: StageContext, config) -> dict[str, Any]:
+    from slscan.calibrate.io import save_calibration
+    from slscan.calibrate.pipeline import calibrate_session
+    from slscan.fsio import atomic_output_dir
+
+    run = calibrate_session(ctx.inputs["session"], config, rec=ctx.rec,
+                            progress=lambda done, total, label: ctx.progress(label))
+    with atomic_output_dir(ctx.out, overwrite=True) as tmp:
+        save_calibration(run.calibration, tmp / "calibration.json")
+    return {"views": len(run.camera.views), "camera_rms_px": round(float(run.camera.rms), 4)}
+
+
+def _calibrate_size(config) -> int:
+    return 2 * 5 + len(config.methods) + 1  # the progress bar's estimate for five board views
+
+
 def _registry() -> dict[str, Stage]:
+    from slscan.calibrate.pipeline import CalibrationConfig
     from slscan.decode.pipeline import DecodeConfig
     from slscan.virtual.device import VirtualCaptureConfig
 
@@ -113,8 +140,11 @@ def _registry() -> dict[str, Stage]:
         Stage("capture", VirtualCaptureConfig, "session", (), _run_capture, _capture_size,
               "render a capture session on the virtual rig"),
         Stage("import", ImportConfig, "session", (), _run_import, summary="import another tool's captures"),
+        Stage("calibrate", CalibrationConfig, "calibration", ("session",), _run_calibrate, _calibrate_size,
+              "calibrate camera and projector from views of a printed board"),
         Stage("decode", DecodeConfig, "range_maps", ("session",), _run_decode, lambda config: 1,
-              "decode patterns into range maps"),
+              "decode patterns into range maps (with a measured calibration when one was made)",
+              optional=("calibration",)),
     ]
     return {s.name: s for s in stages}
 

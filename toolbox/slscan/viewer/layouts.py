@@ -121,8 +121,15 @@ def pipeline_blueprint() -> rrb.Blueprint:
     return _blueprint(rrb.Tabs(*(b.root_container for b in stages), name="slscan pipeline"))
 
 
+def _calibrate() -> rrb.Blueprint:
+    from slscan.viewer.log_calibrate import calibrate_blueprint
+
+    return calibrate_blueprint()
+
+
 LAYOUTS: dict[str, Callable[[], rrb.Blueprint]] = {
     "capture": capture_blueprint,
+    "calibrate": _calibrate,
     "decode": decode_blueprint,
     "pipeline": pipeline_blueprint,
 }

@@ -1,0 +1,326 @@
+"""The calibrate stage end to end: a capture session of a board in, a calibration file out.
+
+Per view: find the board's corners in the white image; calibrate the camera (Zhang);
+decode the projected patterns. Then the projector, by either or both methods:
+
+- ``"inverse-camera"`` (Moreno & Taubin 2012): board corners mapped into the projector by
+  local homographies of the decoded Gray-code columns and rows, the projector calibrated
+  as a camera, its pose by a stereo calibration that also refines the camera
+  (:mod:`slscan.calibrate.procam`);
+- ``"planes"`` (Rocchini et al. 2001): the board as the flat panel, one light plane per
+  hybrid green line or Gray-code edge, then the global fit (:mod:`slscan.calibrate.planes`).
+
+With both, the camera jointly refined by the inverse-camera method is the one the planes
+are measured with and the one written, so the two projector models share one camera.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from slscan.calibrate.camera import (
+    DISTORTION_MODELS,
+    CameraCalibration,
+    CornerDetection,
+    board_pose,
+    calibrate_camera,
+    detect_corners,
+)
+from slscan.calibrate.io import Calibration
+from slscan.calibrate.planes import LightPlaneCalibration, PanelView, calibrate_light_planes
+from slscan.calibrate.procam import (
+    CORRESPONDENCES,
+    InverseCameraCalibration,
+    ProjectorCorners,
+    calibrate_inverse_camera,
+    decode_gray_axes,
+    default_half_window,
+    projector_corners,
+    projector_corners_from_edges,
+)
+from slscan.calibrate.target import Board
+from slscan.capture.session import Session, load_session
+from slscan.decode.graycode import decode_gray, gray_pairs
+from slscan.decode.hybrid import decode_hybrid
+from slscan.errors import SlscanError
+
+log = logging.getLogger(__name__)
+
+METHODS = ("planes", "inverse-camera", "both")
+PLANE_PATTERNS = ("auto", "hybrid", "gray")
+
+Progress = Callable[[int, int, str], None]
+
+
+@dataclass(frozen=True)
+class CalibrationConfig:
+    """How the calibrate stage measures the rig."""
+
+    board: Board = field(default_factory=Board)
+    """The printed target every view shows."""
+    method: str = "both"
+    """{"planes", "inverse-camera", "both"}: the projector's model(s)."""
+    planes_pattern: str = "auto"
+    """{"auto", "hybrid", "gray"}: features whose planes are measured; "auto" takes the
+    hybrid green lines when the session has them, else the Gray-code edges."""
+    camera_distortion: str = "radial-tangential"
+    """Camera lens model: {"none", "radial", "radial-tangential", "full"}."""
+    projector_distortion: str = "radial-tangential"
+    """Projector lens model (inverse camera), as ``camera_distortion``."""
+    refine_camera: bool = True
+    """Refine the camera jointly with the projector in the stereo calibration."""
+    correspondences: str = "edges"
+    """{"edges", "pixels"}: what the local homographies are fitted to, the Gray code's
+    sub-pixel stripe edges or Moreno & Taubin's decoded pixels (see ``calibrate.procam``)."""
+    window: int = 0
+    """Half-size (camera px) of the local-homography windows; 0: 0.3 board squares."""
+    min_views: int = 3
+    """Fewest usable views of the board."""
+    panel_margin: float | None = None
+    """mm around the board's squares trusted to be the flat panel; None: half a square."""
+    keep_raw_planes: bool = True
+    """Write the measured per-feature planes into the calibration file too."""
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise SlscanError(
+                f"unknown calibration method {self.method!r}: expected one of {', '.join(METHODS)}"
+            )
+        if self.planes_pattern not in PLANE_PATTERNS:
+            raise SlscanError(
+                f"unknown planes pattern {self.planes_pattern!r}: expected one of {', '.join(PLANE_PATTERNS)}"
+            )
+        for name in ("camera_distortion", "projector_distortion"):
+            if getattr(self, name) not in DISTORTION_MODELS:
+                raise SlscanError(
+                    f"unknown {name.replace('_', ' ')} model {getattr(self, name)!r}: "
+                    f"expected one of {', '.join(DISTORTION_MODELS)}"
+                )
+        if self.correspondences not in CORRESPONDENCES:
+            raise SlscanError(
+                f"unknown correspondences {self.correspondences!r}: expected one of {', '.join(CORRESPONDENCES)}"
+            )
+        if self.window < 0 or self.min_views < 2:
+            raise SlscanError("window must be >= 0 and min_views >= 2")
+
+    @property
+    def methods(self) -> tuple[str, ...]:
+        return ("inverse-camera", "planes") if self.method == "both" else (self.method,)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["board"] = self.board.to_dict()
+        return d
+
+
+@dataclass(frozen=True)
+class CalibrationRun:
+    """Everything the calibrate stage measured.
+
+    calibration : what is written to the calibration file
+    detections : the board corners of every view (false-valued where not found)
+    camera : the camera calibration (Zhang) before any joint refinement
+    inverse_camera, light_planes : each method's result, or None
+    projector_corners : per view name, the corners mapped into the projector
+    """
+
+    calibration: Calibration
+    detections: tuple[CornerDetection, ...]
+    camera: CameraCalibration
+    inverse_camera: InverseCameraCalibration | None
+    light_planes: LightPlaneCalibration | None
+    projector_corners: dict[str, ProjectorCorners]
+
+
+def board_image_id(session: Session) -> str:
+    """The pattern id of the all-white frame, in which the board's corners are found."""
+    for p in session.patterns:
+        if p.family == "flat" and list(p.params.get("value", [])) == [255, 255, 255]:
+            return p.id
+    raise SlscanError(f"{session.root}: the session has no all-white frame to find the board in")
+
+
+def plane_pattern(session: Session, wanted: str = "auto") -> str:
+    """The features the planes method measures in ``session``: "hybrid" or "gray"."""
+    families = {p.family for p in session.patterns}
+    if wanted == "auto":
+        wanted = "hybrid" if "hybrid" in families else "gray"
+    if wanted == "gray" and not gray_pairs(session.patterns, "columns"):
+        raise SlscanError(f"{session.root}: the session has no Gray-code column patterns")
+    if wanted == "hybrid" and "hybrid" not in families:
+        raise SlscanError(f"{session.root}: the session has no hybrid patterns")
+    return wanted
+
+
+def calibration_steps(session: Session, config: CalibrationConfig) -> int:
+    """Units of work :func:`calibrate_session` reports to its ``progress`` callback."""
+    return 2 * len(session.views) + len(config.methods) + 1
+
+
+def calibrate_session(
+    session: Session | str | os.PathLike,
+    config: CalibrationConfig = CalibrationConfig(),
+    *,
+    rec=None,
+    progress: Progress | None = None,
+) -> CalibrationRun:
+    """Calibrate camera and projector from a capture session of a board in several poses.
+
+    Parameters
+    ----------
+    session : the capture session (or its folder): every view shows ``config.board``
+        under the white frame and the coded patterns (Gray code with row codes for the
+        inverse-camera method; hybrid or Gray code for the planes method)
+    config : what to measure and how
+    rec : an ``rr.RecordingStream`` for corners, board poses, the projector and its
+        planes, and residuals (see :mod:`slscan.viewer.log_calibrate`), or None
+    progress : called as ``progress(done, total, label)`` after each unit of work
+
+    Returns
+    -------
+    CalibrationRun
+
+    Raises
+    ------
+    SlscanError
+        Too few views of the board; patterns missing for the method; degenerate panel
+        poses; any image that does not match the session (naming the file).
+
+    References
+    ----------
+    Z. Zhang, TPAMI 2000; D. Moreno, G. Taubin, 3DIMPVT 2012; C. Rocchini et al.,
+    Eurographics 2001 (see the modules of :mod:`slscan.calibrate`).
+    """
+    from slscan.viewer import log_calibrate as rlog
+
+    if not isinstance(session, Session):
+        session = load_session(session)
+    board = config.board
+    methods = config.methods
+    total, done = calibration_steps(session, config), 0
+
+    def step(label: str) -> None:
+        nonlocal done
+        done += 1
+        if progress is not None:
+            progress(done, total, label)
+
+    if "inverse-camera" in methods and not gray_pairs(session.patterns, "rows"):
+        raise SlscanError(
+            f"{session.root}: the inverse-camera method needs Gray-code row patterns, the session has "
+            "none (capture with row codes, or use --method planes)"
+        )
+    pattern = plane_pattern(session, config.planes_pattern) if "planes" in methods else None
+
+    # 1. corners and the camera
+    white_id = board_image_id(session)
+    detections = []
+    for index, view in enumerate(session.views):
+        rec_img = view.image_for(white_id)
+        image = session.read_image(view, rec_img)
+        det = detect_corners(image, board, source=str(session.image_path(view, rec_img)))
+        detections.append(det)
+        rlog.log_board_image(rec, image, det, view_index=index)
+        step(f"corners {view.name}")
+    camera = calibrate_camera(
+        detections,
+        board,
+        session.camera_size,
+        distortion=config.camera_distortion,
+        min_views=config.min_views,
+    )
+    step("camera")
+    used = set(camera.views)
+    views = [
+        (i, v, d) for i, (v, d) in enumerate(zip(session.views, detections)) if d.source in used
+    ]
+
+    # 2. decode each view once
+    gray = {}
+    axes = {}
+    samples = {}
+    for _, view, _ in views:
+        if "inverse-camera" in methods and config.correspondences == "edges":
+            axes[view.name] = decode_gray_axes(session, view)
+            gray[view.name] = axes[view.name].columns
+        elif "inverse-camera" in methods or pattern == "gray":
+            gray[view.name] = decode_gray(session, view)
+        if pattern == "gray":
+            samples[view.name] = gray[view.name].edges
+        elif pattern == "hybrid":
+            samples[view.name] = decode_hybrid(session, view).samples
+        step(f"decode {view.name}")
+
+    # 3. the projector as an inverse camera
+    lens = camera.lens
+    inverse = None
+    pcs: dict[str, ProjectorCorners] = {}
+    if "inverse-camera" in methods:
+        entries = []
+        for _, view, det in views:
+            g = gray[view.name]
+            half = config.window or default_half_window(det, board)
+            if config.correspondences == "edges":
+                pc = projector_corners_from_edges(axes[view.name], det.corners, half_window=half)
+            else:
+                pc = projector_corners(g.column, g.row, g.mask, det.corners, half_window=half)
+            pcs[view.name] = pc
+            entries.append((view.name, det, pc))
+        inverse = calibrate_inverse_camera(
+            lens,
+            entries,
+            board,
+            session.projector_size,
+            distortion=config.projector_distortion,
+            camera_distortion=config.camera_distortion,
+            refine_camera=config.refine_camera,
+            min_views=config.min_views,
+        )
+        lens = inverse.rig.camera
+        step("inverse camera")
+
+    # 4. the light planes
+    planes = None
+    if "planes" in methods:
+        panels = [
+            PanelView(view.name, samples[view.name], board_pose(lens, det, board))
+            for _, view, det in views
+        ]
+        planes = calibrate_light_planes(
+            panels,
+            lens,
+            board,
+            session.projector_size[0],
+            pattern=pattern,
+            margin=config.panel_margin,
+        )
+        step("light planes")
+
+    residuals: dict = {"camera": camera.residuals()}
+    if inverse is not None:
+        residuals["inverse_camera"] = inverse.residuals()
+    if planes is not None:
+        residuals["light_planes"] = planes.residuals()
+    calibration = Calibration(
+        camera=lens,
+        projector_size=session.projector_size,
+        projector=None if inverse is None else inverse.rig.projector,
+        light_planes=None if planes is None else planes.model,
+        raw_columns=None if planes is None or not config.keep_raw_planes else planes.lines.columns,
+        raw_planes=None if planes is None or not config.keep_raw_planes else planes.lines.planes,
+        residuals=residuals,
+        board=board,
+        source={
+            "session": str(Path(session.root).resolve()),
+            "views": [v.name for _, v, _ in views],
+            "method": config.method,
+            "config": config.to_dict(),
+        },
+    )
+    run = CalibrationRun(calibration, tuple(detections), camera, inverse, planes, pcs)
+    rlog.log_calibration(rec, run, session)
+    return run
