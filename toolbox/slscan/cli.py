@@ -131,13 +131,28 @@ def _check_demo_folder(out: Path, overwrite: bool) -> None:
 # --- decode -------------------------------------------------------------------------------
 
 
-def _decode(session, out: Path, config, overwrite: bool, rec, quiet: bool, planes=None) -> None:
+def _executor(args: argparse.Namespace):
+    from slscan.executor import Executor
+
+    return Executor(scheduler=getattr(args, "scheduler", None), workers=getattr(args, "workers", None))
+
+
+def _add_executor_arguments(p: argparse.ArgumentParser) -> None:
+    group = p.add_argument_group("scale-out", "per-view stages run in parallel over views")
+    group.add_argument("--workers", type=int, metavar="N", help="local worker processes (default: one per core)")
+    group.add_argument("--scheduler", metavar="tcp://HOST:PORT",
+                       help="run per-view work on this Dask distributed cluster instead "
+                            "(its workers must see the same files)")
+
+
+def _decode(session, out: Path, config, overwrite: bool, rec, quiet: bool, planes=None, executor=None) -> None:
     from slscan.decode.pipeline import decode_session
+    from slscan.executor import LOCAL
 
     t0 = time.perf_counter()
     with _ProgressBar(len(session.views), "decoding", quiet) as bar:
         results = decode_session(session, out, config, overwrite=overwrite, rec=rec, progress=bar.step,
-                                 planes=planes)
+                                 planes=planes, executor=executor or LOCAL)
     elapsed = time.perf_counter() - t0
     vertices = sum(len(r.range_map.vertices) for r in results)
     faces = sum(len(r.range_map.faces) for r in results)
@@ -168,7 +183,8 @@ def _cmd_decode(args: argparse.Namespace) -> int:
 
             if session.calibration is not None:
                 log_rig(rec, session.calibration)
-        _decode(session, args.out, config, args.overwrite, rec, args.quiet, planes=planes)
+        _decode(session, args.out, config, args.overwrite, rec, args.quiet, planes=planes,
+                executor=_executor(args))
     return 0
 
 
@@ -211,7 +227,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     reporter = _StageReporter(args.quiet)
     with recording_from_args(args, recording_name=f"recipe {recipe.name}", blueprint=pipeline_blueprint()) as rec:
-        runs = run_recipe(recipe, out, force=args.force, rec=rec, reporter=reporter)
+        runs = run_recipe(recipe, out, force=args.force, rec=rec, reporter=reporter, executor=_executor(args))
     ran = sum(r.ran for r in runs)
     _console().print(
         f"[bold]{recipe.name}[/]: {ran} of {len(runs)} stage(s) run in {time.perf_counter() - t0:.1f} s; "
@@ -395,6 +411,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --calibration: which projector model gives the light planes (default auto: "
                         "the light-plane model when measured, else the inverse camera)")
     add_recording_arguments(p)
+    _add_executor_arguments(p)
     p.set_defaults(func=_cmd_decode)
 
     from slscan.calibrate.command import add_command as add_calibrate_command
@@ -421,6 +438,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="run every stage even if unchanged")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     add_recording_arguments(p)
+    _add_executor_arguments(p)
     p.set_defaults(func=_cmd_run)
 
     p = sub.add_parser(

@@ -27,6 +27,7 @@ from slscan.decode.rangemap import RangeMap, build_range_map, write_ply
 from slscan.decode.samples import LightPlanes, StripeSamples
 from slscan.decode.triangulate import RigPlanes, triangulate
 from slscan.errors import SlscanError
+from slscan.executor import LOCAL, Executor
 from slscan.fsio import atomic_output_dir, write_json
 
 log = logging.getLogger(__name__)
@@ -166,6 +167,14 @@ def decode_view(
     )
 
 
+def _decode_task(task: tuple) -> ViewDecode:
+    """Decode one view and write its PLY (runs in a worker process)."""
+    session, view_name, config, planes, folder = task
+    result = decode_view(session, session.view(view_name), config, planes=planes)
+    write_ply(result.range_map, Path(folder) / f"{view_name}.ply")
+    return result
+
+
 def decode_session(
     session: Session | str | os.PathLike,
     out: str | os.PathLike,
@@ -175,12 +184,15 @@ def decode_session(
     rec=None,
     progress: Callable[[str], None] | None = None,
     planes: LightPlanes | None = None,
+    executor: Executor = LOCAL,
 ) -> list[ViewDecode]:
     """Decode every view of a capture session into ``out/VIEW.ply`` and ``out/range_maps.json``.
 
     The session is validated (every image against its metadata) before anything is written.
     rec : an ``rr.RecordingStream`` for masks, codes, stripe axes, range maps and metrics
     planes : the projector's light planes (a measured calibration); default: the session's
+    executor : where the views are decoded: local processes (default), or a Dask cluster
+        whose workers can read the session's folder
     """
     from slscan.viewer import log_decode as rlog
     from slscan.viewer.log import log_capture
@@ -190,51 +202,28 @@ def decode_session(
     results = []
     with atomic_output_dir(out, overwrite=overwrite) as tmp:
         entries = []
-        for index, view in enumerate(session.views):
-            result = decode_view(session, view, config, planes=planes)
-            ply = f"{view.name}.ply"
-            write_ply(result.range_map, tmp / ply)
+        tasks = [(session, view.name, config, planes, tmp) for view in session.views]
+        for index, (view, result) in enumerate(zip(session.views, executor.map(_decode_task, tasks))):
             if rec is not None:
                 rm = result.range_map
-                rlog.log_decode_maps(
-                    rec,
-                    view_index=index,
-                    mask=result.mask,
-                    codes=result.codes,
-                    code_max=result.code_max,
-                    saturated=result.saturated,
-                )
+                rlog.log_decode_maps(rec, view_index=index, mask=result.mask, codes=result.codes,
+                                     code_max=result.code_max, saturated=result.saturated)
                 log_capture(rec, result.white, view_index=index, frame_index=0, label="white")
                 rlog.log_stripes(rec, result.samples, view_index=index)
-                rlog.log_range_map(
-                    rec, rm.vertices, rm.faces, rm.normals, rm.colors, view_index=index
-                )
+                rlog.log_range_map(rec, rm.vertices, rm.faces, rm.normals, rm.colors, view_index=index)
                 rlog.log_metrics(rec, result.metrics, view_index=index)
-            entries.append(
-                {
-                    "view": view.name,
-                    "file": ply,
-                    "method": result.method,
-                    "rig_from_object": None
-                    if view.rig_from_object is None
-                    else view.rig_from_object.tolist(),
-                    "metrics": result.metrics,
-                    "seconds": result.seconds,
-                }
-            )
+            entries.append({
+                "view": view.name, "file": f"{view.name}.ply", "method": result.method,
+                "rig_from_object": None if view.rig_from_object is None else view.rig_from_object.tolist(),
+                "metrics": result.metrics, "seconds": result.seconds,
+            })
             results.append(result)
             if progress:
                 progress(view.name)
-        write_json(
-            tmp / "range_maps.json",
-            {
-                "format": RANGE_MAPS_FORMAT,
-                "version": RANGE_MAPS_VERSION,
-                "written_by": f"slscan {__version__}",
-                "session": str(Path(session.root).resolve()),
-                "frame": "rig (camera) frame, mm",
-                "config": asdict(config),
-                "views": entries,
-            },
-        )
+        write_json(tmp / "range_maps.json", {
+            "format": RANGE_MAPS_FORMAT, "version": RANGE_MAPS_VERSION, "written_by": f"slscan {__version__}",
+            "session": str(Path(session.root).resolve()), "frame": "rig (camera) frame, mm",
+            "light_planes": repr(planes) if planes is not None else "session calibration",
+            "config": asdict(config), "views": entries,
+        })
     return results

@@ -135,12 +135,13 @@ class Reporter:
 
 def run_recipe(recipe: Recipe, out: str | os.PathLike, *, force: bool = False, rec=None,
                reporter: Reporter | None = None, given: dict[str, Path] | None = None,
-               unrecorded: tuple[str, ...] = ()) -> list[StageRun]:
+               unrecorded: tuple[str, ...] = (), executor=None) -> list[StageRun]:
     """Run ``recipe`` into folder ``out``, resuming: unchanged stages are not run again.
 
     given : results already at hand by kind (e.g. ``{"session": recorded_capture}``); the
         stages that would provide them are not run and later stages read these folders
     unrecorded : kinds of result whose stages do not log to ``rec``
+    executor : where per-view stages run (:class:`slscan.executor.Executor`)
     """
     given = {k: Path(v) for k, v in (given or {}).items()}
     out = Path(out)
@@ -175,7 +176,7 @@ def run_recipe(recipe: Recipe, out: str | os.PathLike, *, force: bool = False, r
             reporter.stage_started(stage, stage.size(config))
             t = time.perf_counter()
             stage_rec = None if stage.provides in unrecorded else rec
-            ctx = StageContext(folder, {k: v[0] for k, v in inputs.items()}, stage_rec, reporter.step)
+            ctx = StageContext(folder, {k: v[0] for k, v in inputs.items()}, stage_rec, reporter.step, executor)
             summary = stage.run(ctx, config)
             seconds = time.perf_counter() - t
             write_json(record_path, {"stage": stage.name, "fingerprint": fingerprint, "seconds": seconds,

@@ -30,6 +30,8 @@ class StageContext:
     inputs: dict[str, Path]
     rec: Any = None
     progress: Callable[[str], None] = lambda label: None
+    executor: Any = None
+    """Where per-view work runs (:class:`slscan.executor.Executor`); None: local processes."""
 
 
 @dataclass(frozen=True)
@@ -106,8 +108,10 @@ def _run_decode(ctx: StageContext, config) -> dict[str, Any]:
         calibration = load_calibration(ctx.inputs["calibration"] / "calibration.json")
         session = apply_calibration(session, calibration)
         planes = calibration_planes(calibration)
+    from slscan.executor import LOCAL
+
     results = decode_session(session, ctx.out, config, overwrite=True, rec=ctx.rec, progress=ctx.progress,
-                             planes=planes)
+                             planes=planes, executor=ctx.executor or LOCAL)
     return {
         "range_maps": len(results),
         "vertices": sum(len(r.range_map.vertices) for r in results),

@@ -1,0 +1,56 @@
+"""Per-view work gives the same results inline, in local processes and on a Dask cluster."""
+
+from __future__ import annotations
+
+import operator
+
+import numpy as np
+import pytest
+
+from slscan.decode.pipeline import decode_session
+from slscan.decode.rangemap import read_ply
+from slscan.errors import SlscanError
+from slscan.executor import Executor
+from slscan.virtual.device import VirtualCaptureConfig, capture_session
+
+
+def test_map_keeps_the_order():
+    items = list(range(7))
+    assert list(Executor(workers=1).map(operator.neg, items)) == [-i for i in items]
+    assert list(Executor(workers=2).map(operator.neg, items)) == [-i for i in items]
+
+
+def test_bad_settings_are_refused():
+    with pytest.raises(SlscanError, match="at least 1"):
+        Executor(workers=0)
+    with pytest.raises(SlscanError, match="tcp://HOST"):
+        Executor(scheduler="localhost")
+
+
+@pytest.fixture(scope="module")
+def two_views(tmp_path_factory):
+    config = VirtualCaptureConfig(views=2, camera_scale=0.25, projector_scale=0.25, levels=7, lit_images=False)
+    return capture_session(config, tmp_path_factory.mktemp("ex") / "capture")
+
+
+def _faces(folder):
+    return [read_ply(folder / f"view_00{i}.ply").vertices for i in range(2)]
+
+
+def test_decode_in_processes_and_on_a_dask_cluster_match_inline(two_views, tmp_path):
+    distributed = pytest.importorskip("distributed")
+    decode_session(two_views, tmp_path / "inline", executor=Executor(workers=1))
+    decode_session(two_views, tmp_path / "procs", executor=Executor(workers=2))
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster:
+        decode_session(two_views, tmp_path / "dask", executor=Executor(scheduler=cluster.scheduler_address))
+    for other in ("procs", "dask"):
+        for a, b in zip(_faces(tmp_path / "inline"), _faces(tmp_path / other)):
+            np.testing.assert_array_equal(a, b)
+
+
+def test_an_unreachable_scheduler_is_a_clear_error(two_views, tmp_path):
+    pytest.importorskip("distributed")
+    with pytest.raises(SlscanError, match="cannot reach the Dask scheduler"):
+        decode_session(two_views, tmp_path / "x", executor=Executor(scheduler="tcp://127.0.0.1:9"))
+    assert not (tmp_path / "x").exists()
