@@ -156,3 +156,20 @@ def test_layouts(tmp_path):
     assert [p.name for p in paths] == [f"{name}.rbl" for name in LAYOUTS]
     assert all(p.stat().st_size > 0 for p in paths)
     assert not list(tmp_path.glob(".*partial*"))
+
+
+def _capture_columns(path) -> set[str]:
+    names = set()
+    for chunk in RrdReader(path).stream().to_chunks():
+        if chunk.entity_path == "/world/camera/image/capture":
+            names |= set(chunk.to_record_batch().schema.names)
+    return names
+
+
+@pytest.mark.parametrize("lossless,column", [(False, "EncodedImage:blob"), (True, "Image:buffer")])
+def test_captures_are_jpeg_unless_lossless_is_asked(tmp_path, lossless, column):
+    path = tmp_path / "frames.rrd"
+    frame = np.random.default_rng(0).integers(0, 255, (24, 32, 3), dtype=np.uint8)
+    with open_recording(save=path, lossless_images=lossless) as rec:
+        log_capture(rec, frame, view_index=0, frame_index=0, label="white")
+    assert column in _capture_columns(path)

@@ -33,7 +33,7 @@ import rerun as rr
 
 from slscan.errors import SlscanError
 from slscan.meshes import vertex_normals
-from slscan.viewer.recording import FRAME_TIMELINE, VIEW_TIMELINE
+from slscan.viewer.recording import FRAME_TIMELINE, LOSSLESS_ATTR, VIEW_TIMELINE
 
 if TYPE_CHECKING:  # imported lazily: capture modules import these loggers
     from slscan.capture.session import GroundTruth
@@ -211,19 +211,22 @@ def log_capture(
     view_index: int,
     frame_index: int,
     label: str,
-    compress: bool = True,
+    compress: bool | None = None,
 ) -> None:
     """Log one captured camera frame at ``world/camera/image/capture``, and its name.
 
     image : (h, w) or (h, w, 3) uint8 or uint16, camera pixels, RGB
     compress : JPEG (quality 90) for display, 16-bit frames reduced to 8 bits; False logs
-        the pixels losslessly as they are
+        the pixels losslessly as they are; None (default): JPEG unless the stream was
+        opened with ``lossless_images``
     label : the frame's name (e.g. the pattern id), written to ``log/capture``
     """
     if rec is None:
         return
     image = _check_image(image, f"capture {label!r}")
     _set_view(rec, view_index, frame_index)
+    if compress is None:
+        compress = not getattr(rec, LOSSLESS_ATTR, False)
     if compress:
         archetype = rr.Image(_to_uint8(image)).compress(jpeg_quality=JPEG_QUALITY)
     else:

@@ -33,6 +33,8 @@ VIEW_TIMELINE = "view"
 FRAME_TIMELINE = "frame"
 STAGE_TIMELINE = "stage"
 
+LOSSLESS_ATTR = "slscan_lossless_images"
+"""Attribute of a recording stream opened here: log camera frames losslessly."""
 DEFAULT_PORT = 9876
 DEFAULT_CONNECT_URL = f"rerun+http://127.0.0.1:{DEFAULT_PORT}/proxy"
 
@@ -91,6 +93,7 @@ def open_recording(
     application_id: str = "slscan",
     recording_name: str | None = None,
     blueprint: rr.blueprint.BlueprintLike | None = None,
+    lossless_images: bool = False,
 ) -> Iterator[rr.RecordingStream | None]:
     """Yield a recording stream sending to every sink asked for, or ``None`` if none is.
 
@@ -105,6 +108,9 @@ def open_recording(
     recording_name : shown in the viewer's recording list.
     blueprint : default layout sent with the recording (e.g.
         :func:`slscan.viewer.layouts.capture_blueprint`).
+    lossless_images : log camera frames as they are (8 or 16 bit) instead of as JPEG; a
+        paper-scale session has 2,500 images, so JPEG is the default for live viewing.
+        Carried by the stream as ``LOSSLESS_ATTR`` for the loggers.
 
     Several sinks at once work (``save`` with ``spawn`` and/or ``connect``). The stream is
     never made the global or thread default. Raises :class:`SlscanError` for a bad URL, a
@@ -142,6 +148,7 @@ def open_recording(
             raise SlscanError(f"rerun: cannot open the recording sinks ({reason})") from None
         if recording_name:
             rec.send_recording_name(recording_name)
+        setattr(rec, LOSSLESS_ATTR, bool(lossless_images))
         try:
             yield rec
         except BaseException:
@@ -168,6 +175,10 @@ def add_recording_arguments(parser: argparse.ArgumentParser) -> None:
         "--connect", metavar="URL", nargs="?", const=DEFAULT_CONNECT_URL, default=None,
         help=f"stream to a running Rerun viewer or server (default URL: {DEFAULT_CONNECT_URL})",
     )
+    group.add_argument(
+        "--lossless-images", action="store_true",
+        help="log camera frames losslessly (default: JPEG, light enough to stream thousands)",
+    )
 
 
 def recording_from_args(
@@ -183,4 +194,5 @@ def recording_from_args(
         connect=getattr(args, "connect", None),
         recording_name=recording_name,
         blueprint=blueprint,
+        lossless_images=bool(getattr(args, "lossless_images", False)),
     )

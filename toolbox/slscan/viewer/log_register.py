@@ -1,0 +1,139 @@
+"""Loggers for registration, fusion, simplification: scans at their poses, pair residuals, models.
+
+One ``log_*`` function per thing logged; each takes the recording stream first and
+returns at once when it is ``None``.
+
+Entity tree (world frame of the aligned set, mm)::
+
+    world/scans/<name>             Transform3D world_from_scan      [stage]
+    world/scans/<name>/mesh        Mesh3D of the scan, scan frame, one colour per scan (static)
+    world/model/fused              Mesh3D of the fused model        [stage = fused]
+    world/model/simplified         Mesh3D of the simplified model   [stage = simplified]
+    plot/register/rmse/<a>-<b>     point-to-plane RMS of a pair (mm)   [stage]
+    plot/register/overlap/<a>-<b>  fraction of a's samples on b         [stage]
+
+The ``stage`` timeline counts :data:`STAGES`: scrub it to see the scans jump from their
+initial to their registered poses.
+"""
+
+from __future__ import annotations
+
+import colorsys
+from collections.abc import Iterable, Mapping, Sequence
+from typing import TYPE_CHECKING
+
+import numpy as np
+import rerun as rr
+
+from slscan.viewer.recording import STAGE_TIMELINE
+
+if TYPE_CHECKING:
+    from slscan.fuse import Mesh
+    from slscan.register.multiview import PairResidual
+    from slscan.register.rangescan import RangeScan
+
+STAGES = {"initial": 0, "registered": 1, "fused": 2, "simplified": 3}
+"""Sequence numbers of the pipeline steps on the ``stage`` timeline."""
+SCANS_PATH = "world/scans"
+MODEL_PATH = "world/model"
+MAX_LOGGED_FACES = 2_000_000
+"""Meshes with more faces are logged as a uniform subset of their faces (display only)."""
+MODEL_COLOR = (200, 200, 190)
+
+
+def scan_color(index: int) -> tuple[int, int, int]:
+    """A distinct display colour for the ``index``-th scan (golden-ratio hues)."""
+    h = (index * 0.618033988749895) % 1.0
+    r, g, b = colorsys.hsv_to_rgb(h, 0.55, 0.95)
+    return int(r * 255), int(g * 255), int(b * 255)
+
+
+def _set_stage(rec: rr.RecordingStream, stage: str) -> None:
+    rec.set_time(STAGE_TIMELINE, sequence=STAGES.get(stage, len(STAGES)))
+
+
+def _mesh3d(
+    vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None, color
+) -> rr.Mesh3D:
+    faces = np.asarray(faces)
+    if len(faces) > MAX_LOGGED_FACES:
+        faces = faces[:: int(np.ceil(len(faces) / MAX_LOGGED_FACES))]
+    return rr.Mesh3D(
+        vertex_positions=np.asarray(vertices, np.float32),
+        triangle_indices=faces.astype(np.uint32),
+        vertex_normals=None if normals is None else np.asarray(normals, np.float32),
+        albedo_factor=color,
+    )
+
+
+def log_scan_meshes(rec: rr.RecordingStream | None, scans: Sequence[RangeScan]) -> None:
+    """Each scan's mesh, own frame, at ``world/scans/<name>/mesh`` (static), one colour each."""
+    if rec is None:
+        return
+    for k, scan in enumerate(scans):
+        rec.log(
+            f"{SCANS_PATH}/{scan.name}/mesh",
+            _mesh3d(scan.vertices, scan.faces, scan.normals, scan_color(k)),
+            static=True,
+        )
+
+
+def log_scan_poses(
+    rec: rr.RecordingStream | None, poses: Mapping[str, np.ndarray], *, stage: str
+) -> None:
+    """world_from_scan of each scan as a Transform3D at ``world/scans/<name>``, at ``stage``.
+
+    poses : {name: (4, 4) world_from_scan, mm}
+    stage : a key of :data:`STAGES` ("initial", "registered")
+    """
+    if rec is None:
+        return
+    _set_stage(rec, stage)
+    for name, pose in poses.items():
+        pose = np.asarray(pose, np.float64)
+        rec.log(
+            f"{SCANS_PATH}/{name}", rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3])
+        )
+
+
+def log_scans_left_out(
+    rec: rr.RecordingStream | None, names: Iterable[str], *, stage: str = "registered"
+) -> None:
+    """Hide the scans registration left out (clear their transform and mesh) from ``stage`` on."""
+    if rec is None:
+        return
+    _set_stage(rec, stage)
+    for name in names:
+        rec.log(f"{SCANS_PATH}/{name}", rr.Clear(recursive=False))
+
+
+def log_pair_residuals(
+    rec: rr.RecordingStream | None, pairs: Sequence[PairResidual], *, stage: str = "registered"
+) -> None:
+    """Point-to-plane RMS (mm) and overlap of each registered pair, as scalars."""
+    if rec is None:
+        return
+    _set_stage(rec, stage)
+    for pair in pairs:
+        key = f"{pair.source}-{pair.target}"
+        if np.isfinite(pair.rmse):
+            rec.log(f"plot/register/rmse/{key}", rr.Scalars(float(pair.rmse)))
+        rec.log(f"plot/register/overlap/{key}", rr.Scalars(float(pair.fitness)))
+
+
+def log_fused_mesh(rec: rr.RecordingStream | None, mesh: Mesh) -> None:
+    """The fused model at ``world/model/fused`` (stage "fused")."""
+    if rec is None:
+        return
+    _set_stage(rec, "fused")
+    rec.log(f"{MODEL_PATH}/fused", _mesh3d(mesh.vertices, mesh.faces, mesh.normals, MODEL_COLOR))
+
+
+def log_simplified_mesh(rec: rr.RecordingStream | None, mesh: Mesh) -> None:
+    """The simplified model at ``world/model/simplified`` (stage "simplified")."""
+    if rec is None:
+        return
+    _set_stage(rec, "simplified")
+    rec.log(
+        f"{MODEL_PATH}/simplified", _mesh3d(mesh.vertices, mesh.faces, mesh.normals, MODEL_COLOR)
+    )
