@@ -13,6 +13,7 @@ from pathlib import Path
 
 from slscan import __version__
 from slscan.errors import SlscanError
+from slscan.executor import add_executor_arguments, executor_from_args
 from slscan.progress import ProgressBar as _ProgressBar
 from slscan.progress import console as _console
 
@@ -115,6 +116,10 @@ def _cmd_capture(args: argparse.Namespace, *, demo: bool = False) -> int:
         )
         if demo:
             _decode(session, args.out / "range_maps", DecodeConfig(), args.overwrite, rec, args.quiet)
+            from slscan.albedo.command import demo_step
+
+            demo_step(session, args.out, rec=rec, overwrite=args.overwrite, quiet=args.quiet,
+                      scale=args.scale, executor=executor_from_args(args))
     if args.save:
         console.print(f"[green]recording[/] {args.save} ({_human(Path(args.save).stat().st_size)}): "
                       f"open it with  rerun {args.save}")
@@ -129,20 +134,6 @@ def _check_demo_folder(out: Path, overwrite: bool) -> None:
 
 
 # --- decode -------------------------------------------------------------------------------
-
-
-def _executor(args: argparse.Namespace):
-    from slscan.executor import Executor
-
-    return Executor(scheduler=getattr(args, "scheduler", None), workers=getattr(args, "workers", None))
-
-
-def _add_executor_arguments(p: argparse.ArgumentParser) -> None:
-    group = p.add_argument_group("scale-out", "per-view stages run in parallel over views")
-    group.add_argument("--workers", type=int, metavar="N", help="local worker processes (default: one per core)")
-    group.add_argument("--scheduler", metavar="tcp://HOST:PORT",
-                       help="run per-view work on this Dask distributed cluster instead "
-                            "(its workers must see the same files)")
 
 
 def _decode(session, out: Path, config, overwrite: bool, rec, quiet: bool, planes=None, executor=None) -> None:
@@ -184,7 +175,7 @@ def _cmd_decode(args: argparse.Namespace) -> int:
             if session.calibration is not None:
                 log_rig(rec, session.calibration)
         _decode(session, args.out, config, args.overwrite, rec, args.quiet, planes=planes,
-                executor=_executor(args))
+                executor=executor_from_args(args))
     return 0
 
 
@@ -227,7 +218,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     reporter = _StageReporter(args.quiet)
     with recording_from_args(args, recording_name=f"recipe {recipe.name}", blueprint=pipeline_blueprint()) as rec:
-        runs = run_recipe(recipe, out, force=args.force, rec=rec, reporter=reporter, executor=_executor(args))
+        runs = run_recipe(recipe, out, force=args.force, rec=rec, reporter=reporter, executor=executor_from_args(args))
     ran = sum(r.ran for r in runs)
     _console().print(
         f"[bold]{recipe.name}[/]: {ran} of {len(runs)} stage(s) run in {time.perf_counter() - t0:.1f} s; "
@@ -411,12 +402,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --calibration: which projector model gives the light planes (default auto: "
                         "the light-plane model when measured, else the inverse camera)")
     add_recording_arguments(p)
-    _add_executor_arguments(p)
+    add_executor_arguments(p)
     p.set_defaults(func=_cmd_decode)
 
     from slscan.calibrate.command import add_command as add_calibrate_command
 
     add_calibrate_command(sub)
+
+    from slscan.albedo.command import add_command as add_albedo_command
+
+    add_albedo_command(sub)
 
     from slscan.recipe.runner import describe_stages
 
@@ -438,7 +433,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="run every stage even if unchanged")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     add_recording_arguments(p)
-    _add_executor_arguments(p)
+    add_executor_arguments(p)
     p.set_defaults(func=_cmd_run)
 
     p = sub.add_parser(

@@ -75,3 +75,17 @@ def _map_dask(address: str, fn: Callable[..., T], items: list[Any]) -> Iterator[
 
 
 LOCAL = Executor()
+
+
+def add_executor_arguments(parser) -> None:
+    """Add ``--workers N`` and ``--scheduler tcp://HOST:PORT`` to an argparse parser."""
+    group = parser.add_argument_group("scale-out", "per-view stages run in parallel over views")
+    group.add_argument("--workers", type=int, metavar="N", help="local worker processes (default: one per core)")
+    group.add_argument("--scheduler", metavar="tcp://HOST:PORT",
+                       help="run per-view work on this Dask distributed cluster instead "
+                            "(its workers must see the same files)")
+
+
+def executor_from_args(args) -> Executor:
+    """The :class:`Executor` asked for by :func:`add_executor_arguments`' options."""
+    return Executor(scheduler=getattr(args, "scheduler", None), workers=getattr(args, "workers", None))

@@ -135,10 +135,30 @@ def _calibrate_size(config) -> int:
     return 2 * 5 + len(config.methods) + 1  # the progress bar's estimate for five board views
 
 
+def _run_lights(ctx: StageContext, config) -> dict[str, Any]:
+    from slscan.virtual.panels import calibrate_virtual_lights
+
+    lights = calibrate_virtual_lights(config, ctx.out, overwrite=True, rec=ctx.rec, progress=ctx.progress)
+    return {"lights": len(lights.lights), "rms": round(float(lights.fit["rms"]), 5)}
+
+
+def _run_albedo(ctx: StageContext, config) -> dict[str, Any]:
+    from slscan.albedo.unshade import albedo_session
+    from slscan.executor import LOCAL
+
+    lights = ctx.inputs["lights"] / "lights.json" if "lights" in ctx.inputs else None
+    results = albedo_session(ctx.inputs["session"], ctx.inputs["range_maps"], ctx.out, lights=lights,
+                             config=config, overwrite=True, rec=ctx.rec, progress=ctx.progress,
+                             executor=ctx.executor or LOCAL)
+    return {"views": len(results), "valid_pixels": sum(int(r.valid.sum()) for r in results)}
+
+
 def _registry() -> dict[str, Stage]:
+    from slscan.albedo.photometric import AlbedoConfig
     from slscan.calibrate.pipeline import CalibrationConfig
     from slscan.decode.pipeline import DecodeConfig
     from slscan.virtual.device import VirtualCaptureConfig
+    from slscan.virtual.panels import LightPanelConfig
 
     stages = [
         Stage("capture", VirtualCaptureConfig, "session", (), _run_capture, _capture_size,
@@ -149,6 +169,10 @@ def _registry() -> dict[str, Stage]:
         Stage("decode", DecodeConfig, "range_maps", ("session",), _run_decode, lambda config: 1,
               "decode patterns into range maps (with a measured calibration when one was made)",
               optional=("calibration",)),
+        Stage("lights", LightPanelConfig, "lights", (), _run_lights, lambda c: c.poses * 13,
+              "calibrate the ring lights on a matte panel (virtual rig)"),
+        Stage("albedo", AlbedoConfig, "albedo", ("session", "range_maps"), _run_albedo, lambda c: 1,
+              "un-shade the ring-light images into albedo", optional=("lights",)),
     ]
     return {s.name: s for s in stages}
 

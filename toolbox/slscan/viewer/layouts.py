@@ -116,8 +116,8 @@ def decode_blueprint() -> rrb.Blueprint:
 
 
 def pipeline_blueprint() -> rrb.Blueprint:
-    """The whole pipeline: one tab per stage layout (capture, decode)."""
-    stages = [capture_blueprint(), decode_blueprint()]
+    """The whole pipeline: one tab per stage layout (capture, decode, albedo)."""
+    stages = [capture_blueprint(), decode_blueprint(), _albedo()]
     return _blueprint(rrb.Tabs(*(b.root_container for b in stages), name="slscan pipeline"))
 
 
@@ -127,10 +127,17 @@ def _calibrate() -> rrb.Blueprint:
     return calibrate_blueprint()
 
 
+def _albedo() -> rrb.Blueprint:
+    from slscan.viewer.log_albedo import albedo_blueprint
+
+    return albedo_blueprint()
+
+
 LAYOUTS: dict[str, Callable[[], rrb.Blueprint]] = {
     "capture": capture_blueprint,
     "calibrate": _calibrate,
     "decode": decode_blueprint,
+    "albedo": _albedo,
     "pipeline": pipeline_blueprint,
 }
 """Blueprint builders by stage name; :func:`save_layouts` writes ``<name>.rbl`` for each."""
