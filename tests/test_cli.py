@@ -19,8 +19,8 @@ def test_help_lists_the_commands(capsys):
         main(["--help"])
     assert exc.value.code == 0
     out = capsys.readouterr().out
-    for command in ("demo", "capture", "decode", "calibrate", "run", "regress", "view", "patterns", "import",
-                    "info", "layouts"):
+    for command in ("demo", "capture", "decode", "calibrate", "albedo", "register", "fuse", "simplify", "run",
+                    "regress", "view", "patterns", "import", "info", "layouts"):
         assert command in out
 
 

@@ -413,6 +413,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_albedo_command(sub)
 
+    from slscan.register.command import add_command as add_register_commands
+
+    add_register_commands(sub)
+
     from slscan.recipe.runner import describe_stages
 
     p = sub.add_parser(

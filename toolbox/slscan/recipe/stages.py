@@ -8,6 +8,8 @@ that provide what it needs. Each stage writes its whole output folder ``ctx.out`
 from __future__ import annotations
 
 import os
+
+import numpy as np
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -153,10 +155,82 @@ def _run_albedo(ctx: StageContext, config) -> dict[str, Any]:
     return {"views": len(results), "valid_pixels": sum(int(r.valid.sum()) for r in results)}
 
 
+@dataclass(frozen=True)
+class RegisterConfig:
+    """Align range maps: the decoded ones, or those in ``source``."""
+
+    source: str = ""
+    """Range scans to align instead of an earlier decode stage's (a Stanford folder with a
+    .conf, a folder of PLYs, a .mlp); ``${SLSCAN_DATA}`` expands to the shared data."""
+    use_poses: bool = True
+    """Start from the recorded poses (turntable, .conf); false: align from features."""
+    reference: str = ""
+    """Scan that keeps its pose (default: the first)."""
+
+
+@dataclass(frozen=True)
+class SimplifyConfig:
+    """Simplify the fused mesh."""
+
+    faces: int = 1_000_000
+    """Target face count (the paper: about 1M)."""
+    method: str = "fast"
+    """{"fast", "quadric"}: fast-simplification, or pymeshlab's quadric edge collapse."""
+    preserve_boundary: bool = True
+
+
+def _run_register(ctx: StageContext, config: RegisterConfig) -> dict[str, Any]:
+    from slscan.fsio import write_json
+    from slscan.register.command import load_scans
+    from slscan.register.meshlab import write_scan_project
+    from slscan.register.multiview import register_scans
+
+    if config.source:
+        scans, poses = load_scans(expand_path(config.source))
+    elif "range_maps" in ctx.inputs:
+        scans, poses = load_scans(ctx.inputs["range_maps"])
+    else:
+        raise SlscanError("register: set register.source, or decode range maps in an earlier stage")
+    result = register_scans(scans, initial_poses=poses if config.use_poses else None,
+                            reference=config.reference or None, progress=ctx.progress)
+    write_scan_project(ctx.out, [s for s in scans if s.name in result.poses], result.poses, overwrite=True)
+    write_json(ctx.out / "registration.json", {
+        "reference": result.reference, "poses": {k: v.tolist() for k, v in result.poses.items()},
+        "pairs": [{"source": p.source, "target": p.target, "rmse_mm": p.rmse} for p in result.pairs],
+        "left_out": result.left_out,
+    })
+    rmse = [p.rmse for p in result.pairs]
+    return {"aligned": len(result.poses), "left_out": len(result.left_out),
+            "median_pair_rmse_mm": round(float(np.median(rmse)), 4) if rmse else None}
+
+
+def _run_fuse(ctx: StageContext, config) -> dict[str, Any]:
+    from slscan.fsio import atomic_output_dir
+    from slscan.fuse import fuse_scans, write_mesh
+    from slscan.register.meshlab import load_scan_project
+
+    scans, poses = load_scan_project(ctx.inputs["aligned"] / "aligned.mlp")
+    result = fuse_scans(scans, poses, config=config, progress=ctx.progress)
+    with atomic_output_dir(ctx.out, overwrite=True) as tmp:
+        write_mesh(result.mesh, tmp / "mesh.ply")
+    return {"faces": len(result.mesh.faces), "vertices": len(result.mesh.vertices)}
+
+
+def _run_simplify(ctx: StageContext, config: SimplifyConfig) -> dict[str, Any]:
+    from slscan.fsio import atomic_output_dir
+    from slscan.simplify import simplify_file
+
+    with atomic_output_dir(ctx.out, overwrite=True) as tmp:
+        mesh = simplify_file(ctx.inputs["mesh"] / "mesh.ply", tmp / "mesh.ply", config.faces,
+                             method=config.method, preserve_boundary=config.preserve_boundary)
+    return {"faces": len(mesh.faces)}
+
+
 def _registry() -> dict[str, Stage]:
     from slscan.albedo.photometric import AlbedoConfig
     from slscan.calibrate.pipeline import CalibrationConfig
     from slscan.decode.pipeline import DecodeConfig
+    from slscan.fuse import FuseConfig
     from slscan.virtual.device import VirtualCaptureConfig
     from slscan.virtual.panels import LightPanelConfig
 
@@ -173,6 +247,12 @@ def _registry() -> dict[str, Stage]:
               "calibrate the ring lights on a matte panel (virtual rig)"),
         Stage("albedo", AlbedoConfig, "albedo", ("session", "range_maps"), _run_albedo, lambda c: 1,
               "un-shade the ring-light images into albedo", optional=("lights",)),
+        Stage("register", RegisterConfig, "aligned", (), _run_register, lambda c: 1,
+              "align range maps (ICP + pose graph) into a MeshLab project", optional=("range_maps",)),
+        Stage("fuse", FuseConfig, "mesh", ("aligned",), _run_fuse, lambda c: 1,
+              "fuse the aligned range maps (weighted TSDF)"),
+        Stage("simplify", SimplifyConfig, "mesh", ("mesh",), _run_simplify, lambda c: 1,
+              "simplify the mesh to a face count"),
     ]
     return {s.name: s for s in stages}
 

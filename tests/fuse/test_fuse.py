@@ -1,0 +1,203 @@
+"""Volumetric fusion of synthetic range scans of a sphere, and simplification."""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from slscan.errors import SlscanError
+from slscan.fuse import (
+    FuseConfig,
+    Mesh,
+    estimate_blocks,
+    fuse_scans,
+    height_map,
+    poisson_reconstruct,
+    read_mesh,
+    write_mesh,
+)
+from slscan.register.rangescan import render_range_scan
+from slscan.simplify import boundary_vertices, simplify_mesh
+
+RADIUS = 50.0
+DIRECTIONS = [
+    [1, 0, 0],
+    [-1, 0, 0],
+    [0, 1, 0],
+    [0, -1, 0],
+    [0, 0, 1],
+    [0, 0, -1],
+    [1, 1, 1],
+    [-1, -1, 1],
+]
+
+
+def looking_from(direction) -> np.ndarray:
+    d = np.asarray(direction, float) / np.linalg.norm(direction)
+    helper = np.array([0.0, 0.0, 1.0]) if abs(d[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    x = np.cross(helper, d)
+    x /= np.linalg.norm(x)
+    pose = np.eye(4)
+    pose[:3, :3] = np.stack([x, np.cross(d, x), d], axis=1)
+    return pose
+
+
+@pytest.fixture(scope="module")
+def sphere_views():
+    """Eight orthographic range scans of a 50 mm sphere, 1.3 mm pixels, 0.05 mm noise."""
+    sphere = o3d.geometry.TriangleMesh.create_sphere(radius=RADIUS, resolution=120)
+    v, f = np.asarray(sphere.vertices), np.asarray(sphere.triangles)
+    scans, poses = [], {}
+    for k, d in enumerate(DIRECTIONS):
+        pose = looking_from(d)
+        name = f"view{k}"
+        scans.append(
+            render_range_scan(
+                v,
+                f,
+                pose,
+                shape=(90, 90),
+                pixel=1.3,
+                name=name,
+                noise=0.05,
+                rng=np.random.default_rng(k),
+            )
+        )
+        poses[name] = pose
+    return scans, poses
+
+
+@pytest.mark.parametrize("weighting", ["quality", "uniform"])
+def test_fused_sphere_has_the_right_radius(sphere_views, weighting):
+    scans, poses = sphere_views
+    result = fuse_scans(scans, poses, config=FuseConfig(voxel_size=1.0, weighting=weighting))
+    mesh = result.mesh
+    assert result.n_scans == len(scans) and result.n_blocks > 0
+    assert mesh.n_faces > 50_000
+    radius = np.linalg.norm(mesh.vertices, axis=1)
+    assert abs(radius.mean() - RADIUS) < 0.5
+    assert radius.std() < 0.1 and np.abs(radius - RADIUS).max() < 0.5
+    outward = np.einsum("ij,ij->i", mesh.normals, mesh.vertices / radius[:, None])
+    assert np.all(outward > 0.8)
+    assert len(boundary_vertices(mesh.faces)) == 0  # eight views close the sphere
+
+
+def test_scans_can_come_one_at_a_time(sphere_views):
+    scans, poses = sphere_views
+    lazily = fuse_scans(iter(scans), poses, config=FuseConfig(voxel_size=1.5), expected_blocks=100)
+    at_once = fuse_scans(scans, poses, config=FuseConfig(voxel_size=1.5))
+    assert lazily.n_blocks == at_once.n_blocks
+    assert lazily.mesh.n_faces == at_once.mesh.n_faces
+    a, b = (
+        lazily.mesh.vertices,
+        at_once.mesh.vertices,
+    )  # block order may differ after the grid grows
+    np.testing.assert_allclose(a[np.lexsort(a.T)], b[np.lexsort(b.T)], atol=1e-5)
+
+
+def test_block_estimate_bounds_memory(sphere_views):
+    scans, poses = sphere_views
+    blocks = estimate_blocks(scans, poses, voxel_size=1.0)
+    result = fuse_scans(scans, poses, config=FuseConfig(voxel_size=1.0))
+    assert result.n_blocks <= blocks * 1.05
+    with pytest.raises(SlscanError, match="max_memory_gib"):
+        fuse_scans(scans, poses, config=FuseConfig(voxel_size=1.0, max_memory_gib=0.001))
+
+
+def test_fusion_checks_its_input(sphere_views):
+    scans, poses = sphere_views
+    with pytest.raises(SlscanError, match="no pose"):
+        fuse_scans(scans, {})
+    with pytest.raises(SlscanError, match="weighting"):
+        fuse_scans(scans, poses, config=FuseConfig(weighting="loud"))
+    with pytest.raises(SlscanError, match="voxel size"):
+        fuse_scans(scans, poses, config=FuseConfig(voxel_size=0))
+
+
+def test_height_map_sees_the_scan(sphere_views):
+    scans, poses = sphere_views
+    depth = height_map(scans[0], poses["view0"], pixel=1.0)
+    points = depth.surface_points()
+    assert len(points) > 5000
+    np.testing.assert_allclose(np.linalg.norm(points, axis=1), RADIUS, atol=0.3)
+    sdf, weight = depth.sample(points * 1.01)
+    ok = weight > 0
+    assert ok.mean() > 0.9
+    assert np.all(sdf[ok] > 0)  # outside the sphere: in front of the surface
+
+
+def test_poisson_alternative(sphere_views):
+    scans, poses = sphere_views
+    mesh = poisson_reconstruct(scans, poses, depth=7)
+    radius = np.linalg.norm(mesh.vertices, axis=1)
+    assert mesh.n_faces > 5000
+    assert abs(radius.mean() - RADIUS) < 0.5
+
+
+def test_mesh_file_round_trip(tmp_path):
+    v = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    mesh = Mesh(v, np.array([[0, 1, 2]]), np.tile(np.float32([0, 0, 1]), (3, 1)))
+    write_mesh(mesh, tmp_path / "m.ply")
+    back = read_mesh(tmp_path / "m.ply")
+    np.testing.assert_allclose(back.vertices, v)
+    np.testing.assert_array_equal(back.faces, [[0, 1, 2]])
+    with pytest.raises(SlscanError, match="not found"):
+        read_mesh(tmp_path / "none.ply")
+
+
+# --- simplification ---------------------------------------------------------------------------
+
+
+def bumpy_sheet(n: int = 240) -> Mesh:
+    """An open height field 100 mm square with bumps: (n - 1)² × 2 faces."""
+    x, y = np.meshgrid(np.linspace(0, 100, n), np.linspace(0, 100, n))
+    z = 3 * np.sin(x / 7) * np.cos(y / 5) + 0.5 * np.sin(x / 2 + y / 3)
+    vertices = np.stack([x, y, z], -1).reshape(-1, 3)
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = (
+        idx[:-1, :-1].ravel(),
+        idx[:-1, 1:].ravel(),
+        idx[1:, :-1].ravel(),
+        idx[1:, 1:].ravel(),
+    )
+    return Mesh(vertices, np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)]))
+
+
+@pytest.mark.parametrize("method", ["fast", "quadric"])
+def test_simplify_reaches_the_target_and_keeps_the_boundary(method):
+    mesh = bumpy_sheet()
+    target = 8000
+    out = simplify_mesh(mesh, target, method=method, preserve_boundary=True)
+    assert abs(out.n_faces - target) <= 0.01 * target
+    kept = out.vertices[boundary_vertices(out.faces)]
+    original = mesh.vertices[boundary_vertices(mesh.faces)]
+    # every boundary vertex of the open mesh is still there, at the same place
+    rows = {tuple(p) for p in np.round(kept, 9)}
+    assert all(tuple(p) in rows for p in np.round(original, 9))
+    assert out.normals.shape == out.vertices.shape
+
+
+def test_simplify_without_boundary_preservation_moves_it():
+    mesh = bumpy_sheet(120)
+    out = simplify_mesh(mesh, 1000, method="fast", preserve_boundary=False)
+    assert abs(out.n_faces - 1000) <= 10
+    assert len(boundary_vertices(out.faces)) < len(boundary_vertices(mesh.faces))
+
+
+def test_simplify_fused_sphere(sphere_views):
+    scans, poses = sphere_views
+    fused = fuse_scans(scans, poses, config=FuseConfig(voxel_size=1.5)).mesh
+    out = simplify_mesh(fused, 5000)
+    assert abs(out.n_faces - 5000) <= 50
+    radius = np.linalg.norm(out.vertices, axis=1)
+    assert abs(radius.mean() - RADIUS) < 0.5
+
+
+def test_simplify_options():
+    mesh = bumpy_sheet(20)
+    assert simplify_mesh(mesh, 10**6) is mesh
+    with pytest.raises(SlscanError, match="method"):
+        simplify_mesh(mesh, 100, method="magic")
+    with pytest.raises(SlscanError, match="at least 4"):
+        simplify_mesh(mesh, 2)

@@ -1,0 +1,179 @@
+"""``slscan register``, ``slscan fuse``, ``slscan simplify``: range maps to one model."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+from slscan.errors import SlscanError
+from slscan.progress import ProgressBar, console
+
+
+def load_scans(path: Path) -> tuple[list, dict[str, np.ndarray] | None]:
+    """Range scans and their poses (world_from_scan, mm) when known, from what ``path`` is.
+
+    - a MeshLab project (``.mlp``), or a folder holding ``aligned.mlp``;
+    - an slscan range-maps folder (``range_maps.json``): each view's pose on the rig
+      (``rig_from_object``) gives ``world_from_scan = inverse(rig_from_object)``;
+    - a Stanford folder with a ``.conf`` file (e.g. ``bun.conf``; metres);
+    - any folder of PLY meshes (no poses: features align them).
+    """
+    from slscan.fsio import read_json
+    from slscan.register.meshlab import load_scan_project
+    from slscan.register.rangescan import load_range_scan, load_stanford_dir
+
+    if path.suffix == ".mlp":
+        return load_scan_project(path)
+    if not path.is_dir():
+        raise SlscanError(f"{path}: expected a .mlp project or a folder of range maps")
+    if (path / "aligned.mlp").is_file():
+        return load_scan_project(path / "aligned.mlp")
+    if (path / "range_maps.json").is_file():
+        summary = read_json(path / "range_maps.json", "range-maps summary")
+        scans, poses = [], {}
+        for entry in summary["views"]:
+            scan = load_range_scan(path / entry["file"])
+            scans.append(scan)
+            if entry.get("rig_from_object") is not None:
+                poses[scan.name] = np.linalg.inv(np.asarray(entry["rig_from_object"], float))
+        return scans, (poses if len(poses) == len(scans) else None)
+    confs = sorted(path.glob("*.conf"))
+    if confs:
+        return load_stanford_dir(path, conf=confs[0].name)
+    plys = sorted(path.glob("*.ply"))
+    if not plys:
+        raise SlscanError(f"{path}: no range maps found (expected .ply files, range_maps.json, a .conf or a .mlp)")
+    return [load_range_scan(p) for p in plys], None
+
+
+def _cmd_register(args: argparse.Namespace) -> int:
+    from slscan.fsio import write_json
+    from slscan.register.meshlab import write_scan_project
+    from slscan.register.multiview import register_scans
+    from slscan.viewer import log_register as rlog
+    from slscan.viewer.recording import recording_from_args
+
+    scans, poses = load_scans(args.scans)
+    if args.no_poses:
+        poses = None
+    t0 = time.perf_counter()
+    with recording_from_args(args, recording_name=f"register {args.scans.name}") as rec:
+        rlog.log_scan_meshes(rec, scans)
+        if poses:
+            rlog.log_scan_poses(rec, poses, stage="initial")
+        n_pairs = len(scans) * (len(scans) - 1) // 2
+        with ProgressBar(n_pairs + 1, "registering", args.quiet) as bar:
+            result = register_scans(scans, initial_poses=poses, reference=args.reference, progress=bar.step)
+        rlog.log_scan_poses(rec, result.poses, stage="registered")
+        rlog.log_pair_residuals(rec, result.pairs)
+        rlog.log_scans_left_out(rec, result.left_out)
+    project = write_scan_project(args.out, [s for s in scans if s.name in result.poses], result.poses,
+                                 overwrite=args.overwrite)
+    write_json(args.out / "registration.json", {
+        "reference": result.reference,
+        "poses": {k: v.tolist() for k, v in result.poses.items()},
+        "pairs": [{"source": p.source, "target": p.target, "fitness": p.fitness, "rmse_mm": p.rmse}
+                  for p in result.pairs],
+        "left_out": result.left_out,
+    })
+    out = console()
+    rmse = [p.rmse for p in result.pairs]
+    out.print(f"[green]aligned[/] {len(result.poses)} of {len(scans)} scans in {time.perf_counter() - t0:.1f} s; "
+              f"{len(result.pairs)} overlapping pairs, median residual {np.median(rmse) if rmse else float('nan'):.3f} mm "
+              f"-> {project}", highlight=False)
+    for name, reason in result.left_out.items():
+        out.print(f"[yellow]left out[/] {name}: {reason}", highlight=False)
+    return 0
+
+
+def _cmd_fuse(args: argparse.Namespace) -> int:
+    from slscan.fuse import FuseConfig, fuse_scans, poisson_reconstruct, write_mesh
+    from slscan.viewer import log_register as rlog
+    from slscan.viewer.recording import recording_from_args
+
+    scans, poses = load_scans(args.aligned)
+    if poses is None:
+        raise SlscanError(f"{args.aligned}: the scans have no poses; run `slscan register` first")
+    t0 = time.perf_counter()
+    with recording_from_args(args, recording_name=f"fuse {args.aligned.name}") as rec:
+        with ProgressBar(len(scans), f"fusing ({args.method})", args.quiet) as bar:
+            if args.method == "tsdf":
+                mesh = fuse_scans(scans, poses, config=FuseConfig(voxel_size=args.voxel), progress=bar.step).mesh
+            else:
+                mesh = poisson_reconstruct(scans, poses, voxel_size=args.voxel)
+        rlog.log_fused_mesh(rec, mesh)
+    write_mesh(mesh, args.out)
+    console().print(f"[green]fused[/] {len(scans)} scans at {args.voxel} mm: {len(mesh.faces):,} faces in "
+                    f"{time.perf_counter() - t0:.1f} s -> {args.out}", highlight=False)
+    return 0
+
+
+def _cmd_simplify(args: argparse.Namespace) -> int:
+    from slscan.simplify import simplify_file
+
+    t0 = time.perf_counter()
+    mesh = simplify_file(args.mesh, args.out, args.faces, method=args.method,
+                         preserve_boundary=not args.free_boundary)
+    console().print(f"[green]simplified[/] {args.mesh} to {len(mesh.faces):,} faces in "
+                    f"{time.perf_counter() - t0:.1f} s -> {args.out}", highlight=False)
+    return 0
+
+
+def add_command(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``register``, ``fuse`` and ``simplify`` to the ``slscan`` subcommands."""
+    from slscan.viewer.recording import add_recording_arguments
+
+    p = subparsers.add_parser(
+        "register", help="align overlapping range maps (ICP + pose graph) into a MeshLab project",
+        description="Align range maps into one frame: coarse alignment from their recorded poses "
+                    "(or from geometric features when there are none), point-to-plane ICP on every "
+                    "overlapping pair, then a pose graph. Scans that match nothing are reported and "
+                    "left out. Writes each scan as PLY, aligned.mlp (MeshLab) and registration.json "
+                    "(poses and a residual per pair).",
+        epilog="examples:\n  slscan register demo-run/decode --out aligned\n"
+               "  slscan register ../shared/data/stanford_bunny --out bunny-aligned --no-poses",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("scans", type=Path, help="range-maps folder (slscan decode), Stanford folder (.conf), "
+                                            "folder of PLYs, or a .mlp project")
+    p.add_argument("--out", required=True, type=Path, help="folder for the aligned set")
+    p.add_argument("--no-poses", action="store_true", help="ignore recorded poses; align from features")
+    p.add_argument("--reference", help="scan that keeps its pose (default: the first)")
+    p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_recording_arguments(p)
+    p.set_defaults(func=_cmd_register)
+
+    p = subparsers.add_parser(
+        "fuse", help="fuse aligned range maps into one mesh (volumetric)",
+        description="Fuse an aligned set (aligned.mlp) into one watertight-where-seen mesh: a "
+                    "weighted TSDF in a sparse voxel-block grid (quality and view direction as "
+                    "weights; memory bounded), or screened Poisson (pymeshlab).",
+        epilog="example:\n  slscan fuse aligned/aligned.mlp --voxel 0.57 --out fused.ply",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("aligned", type=Path, help="aligned.mlp (or its folder) from slscan register or MeshLab")
+    p.add_argument("--out", required=True, type=Path, help="mesh file to write (PLY)")
+    p.add_argument("--voxel", type=float, default=0.57, help="voxel size, mm (default 0.57, the paper's)")
+    p.add_argument("--method", choices=("tsdf", "poisson"), default="tsdf", help="default: tsdf")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_recording_arguments(p)
+    p.set_defaults(func=_cmd_fuse)
+
+    p = subparsers.add_parser(
+        "simplify", help="simplify a mesh to a target face count (default 1,000,000)",
+        description="Quadric simplification with fast-simplification (default) or pymeshlab's "
+                    "quadric edge collapse (--method quadric, slower, higher quality); mesh "
+                    "boundaries are preserved unless --free-boundary.",
+        epilog="example:\n  slscan simplify fused.ply --faces 1000000 --out model.ply",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("mesh", type=Path, help="mesh file (PLY/OBJ)")
+    p.add_argument("--out", required=True, type=Path, help="mesh file to write")
+    p.add_argument("--faces", type=int, default=1_000_000, help="target face count (default 1000000)")
+    p.add_argument("--method", choices=("fast", "quadric"), default="fast", help="default: fast")
+    p.add_argument("--free-boundary", action="store_true", help="let boundary edges collapse")
+    p.set_defaults(func=_cmd_simplify)

@@ -1,0 +1,579 @@
+"""Global alignment of many range scans: overlap graph, pairwise ICP, pose graph, joint refinement.
+
+:func:`register_scans` takes N scans (and, when known, approximate poses), finds the
+pairs that overlap, aligns each pair (:func:`slscan.register.pairwise.register_pair`),
+and distributes the pairwise errors over all poses by optimising a pose graph (open3d's
+Levenberg–Marquardt with a line process that prunes inconsistent pairs [1]_). The graph
+is then rebuilt from the optimised poses, with tighter distances, and optimised again.
+
+A scan that matches nothing, or that the surviving edges do not connect to the
+reference scan, is left out (reported, with a :class:`RegistrationWarning`), never forced
+into place. Poses are ``world_from_scan`` 4×4 float64 on mm; the gauge is fixed by the
+reference scan, which keeps its given pose (identity when none is given).
+
+References
+----------
+.. [1] Choi, Zhou, Koltun, "Robust reconstruction of indoor scenes", CVPR 2015 (pose
+   graph with line processes).
+.. [2] Pulli, "Multiview registration for large data sets", 3DIM 1999 (pairwise
+   alignments, then a global pass that spreads their error).
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import math
+import warnings
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from slscan.errors import SlscanError
+from slscan.register.pairwise import (
+    PairwiseConfig,
+    PairwiseResult,
+    ScanFeatures,
+    default_voxel_sizes,
+    downsample,
+    median_edge_length,
+    register_pair,
+    scan_extent,
+    scan_features,
+    scan_point_cloud,
+)
+from slscan.register.rangescan import RangeScan
+
+log = logging.getLogger(__name__)
+
+_reg = o3d.pipelines.registration
+
+
+class RegistrationWarning(UserWarning):
+    """Some scans could not be registered and were left out."""
+
+
+@dataclass(frozen=True)
+class MultiviewConfig:
+    """Options of :func:`register_scans` (lengths in mm; None: from the scans' spacing)."""
+
+    pairwise: PairwiseConfig = field(default_factory=PairwiseConfig)
+    """Options of each pairwise alignment of the first round."""
+    pose_tolerance: float | None = None
+    """How far (mm) the initial poses may be off: the first round's correspondence
+    distance and the distance for finding overlapping pairs. None: 30 times the median
+    sample spacing (about 20 mm on the Stanford bunny), at most 1/8 of the scans' size."""
+    min_overlap: float = 0.2
+    """A pair is an edge when at least this fraction of the smaller scan lies on the
+    other (with the current poses) and ICP agrees."""
+    joint_distances_factor: tuple[float, ...] = (4.0, 2.0)
+    """Correspondence distances of the joint refinement, in median sample spacings,
+    coarse to fine (the last one is the residuals' distance)."""
+    edge_prune_threshold: float = 0.25
+    """open3d's line-process threshold: edges weighted below it are pruned as outliers."""
+    max_rmse_factor: float = 0.3
+    """An edge whose inlier RMSE exceeds this fraction of its correspondence distance is
+    rejected (a wrong alignment that found some overlap: its residuals spread over the
+    whole distance)."""
+
+
+@dataclass(frozen=True)
+class PairResidual:
+    """One overlapping pair, after global alignment.
+
+    source, target : scan names
+    fitness : fraction of the source's samples within ``max_distance`` of the target
+        under the final poses
+    rmse : mm, RMS point-to-plane distance of those samples to the target
+    pairwise_rmse : mm, inlier RMSE of the pair's own ICP (before the global step)
+    max_distance : mm, correspondence distance used
+    """
+
+    source: str
+    target: str
+    fitness: float
+    rmse: float
+    pairwise_rmse: float
+    max_distance: float
+
+
+@dataclass(frozen=True)
+class MultiviewResult:
+    """Outcome of :func:`register_scans`.
+
+    poses : {name: (4, 4) float64 world_from_scan, mm} of every registered scan
+    pairs : residual of every overlapping pair kept in the graph
+    left_out : {name: reason} of scans that could not be registered
+    reference : the scan whose pose fixes the gauge
+    rejected : {(source, target): reason} of candidate pairs not used
+    """
+
+    poses: dict[str, np.ndarray]
+    pairs: tuple[PairResidual, ...]
+    left_out: dict[str, str]
+    reference: str
+    rejected: dict[tuple[str, str], str]
+
+    def __bool__(self) -> bool:
+        return not self.left_out
+
+
+# --- overlap ------------------------------------------------------------------------------------
+
+
+def overlap_matrix(clouds: Sequence[np.ndarray], distance: float) -> np.ndarray:
+    """(n, n) fraction of cloud i's points within ``distance`` of cloud j (0 on the diagonal).
+
+    clouds : n (k_i, 3) float arrays, mm, common frame
+    """
+    n = len(clouds)
+    trees = [cKDTree(c) if len(c) else None for c in clouds]
+    lo = [c.min(axis=0) if len(c) else np.zeros(3) for c in clouds]
+    hi = [c.max(axis=0) if len(c) else np.zeros(3) for c in clouds]
+    out = np.zeros((n, n))
+    for i, j in itertools.permutations(range(n), 2):
+        if trees[j] is None or len(clouds[i]) == 0:
+            continue
+        if np.any(lo[i] - distance > hi[j]) or np.any(hi[i] + distance < lo[j]):
+            continue
+        d, _ = trees[j].query(clouds[i], distance_upper_bound=distance)
+        out[i, j] = float(np.mean(np.isfinite(d)))
+    return out
+
+
+def _pair_overlap(m: np.ndarray, i: int, j: int) -> float:
+    """Overlap of a pair: the larger of the two directed fractions (the smaller scan's)."""
+    return max(m[i, j], m[j, i])
+
+
+# --- pose graph ---------------------------------------------------------------------------------
+
+
+def _spanning_tree(
+    n: int, edges: Mapping[tuple[int, int], PairwiseResult], root: int
+) -> dict[int, tuple[int, int]]:
+    """Maximum spanning tree (by fitness) grown from ``root``: {node: (parent, edge key)}."""
+    tree: dict[int, tuple[int, int]] = {root: (-1, -1)}
+    candidates = sorted(edges, key=lambda k: -edges[k].fitness)
+    grew = True
+    while grew:
+        grew = False
+        for key in candidates:
+            i, j = key
+            if (i in tree) != (j in tree):
+                child = j if i in tree else i
+                tree[child] = (i if child == j else j, key)
+                grew = True
+                break
+    return tree
+
+
+def _chain_poses(
+    n: int,
+    edges: Mapping[tuple[int, int], PairwiseResult],
+    tree: dict,
+    root: int,
+    root_pose: np.ndarray,
+) -> dict[int, np.ndarray]:
+    """World poses from the tree's pairwise transforms (edge (i, j): j_from_i)."""
+    poses = {root: root_pose}
+    pending = [k for k in tree if k != root]
+    while pending:
+        for node in list(pending):
+            parent, key = tree[node]
+            if parent not in poses:
+                continue
+            t = edges[key].transform
+            poses[node] = poses[parent] @ (t if node == key[0] else np.linalg.inv(t))
+            pending.remove(node)
+    return poses
+
+
+def optimise_pose_graph(
+    poses: Mapping[int, np.ndarray],
+    edges: Mapping[tuple[int, int], PairwiseResult],
+    *,
+    root: int,
+    certain: set[tuple[int, int]],
+    max_distance: float,
+    edge_prune_threshold: float = 0.25,
+) -> tuple[dict[int, np.ndarray], set[tuple[int, int]]]:
+    """Optimise world poses over pairwise constraints; return poses and the surviving edges.
+
+    poses : {node: (4, 4) world_from_node} initial guesses, the nodes of the graph
+    edges : {(i, j): PairwiseResult with j_from_i}
+    certain : edges the line process may not prune (a spanning tree)
+    """
+    nodes = sorted(poses)
+    index = {node: k for k, node in enumerate(nodes)}
+    graph = _reg.PoseGraph()
+    for node in nodes:
+        graph.nodes.append(_reg.PoseGraphNode(np.asarray(poses[node], np.float64)))
+    keys = []
+    for (i, j), res in edges.items():
+        if i not in index or j not in index:
+            continue
+        graph.edges.append(
+            _reg.PoseGraphEdge(
+                index[i], index[j], res.transform, res.information, uncertain=(i, j) not in certain
+            )
+        )
+        keys.append((i, j))
+    option = _reg.GlobalOptimizationOption(
+        max_correspondence_distance=float(max_distance),
+        edge_prune_threshold=float(edge_prune_threshold),
+        preference_loop_closure=1.0,
+        reference_node=index[root],
+    )
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        _reg.global_optimization(
+            graph,
+            _reg.GlobalOptimizationLevenbergMarquardt(),
+            _reg.GlobalOptimizationConvergenceCriteria(),
+            option,
+        )
+    kept = {(nodes[e.source_node_id], nodes[e.target_node_id]) for e in graph.edges}
+    out = {node: np.asarray(graph.nodes[index[node]].pose).copy() for node in nodes}
+    # fix the gauge exactly on the root
+    fix = np.asarray(poses[root], np.float64) @ np.linalg.inv(out[root])
+    return {node: fix @ p for node, p in out.items()}, kept & set(keys)
+
+
+# --- joint refinement ----------------------------------------------------------------------------
+
+
+def refine_jointly(
+    scans: Sequence[RangeScan],
+    poses: Mapping[int, np.ndarray],
+    pairs: Sequence[tuple[int, int]],
+    *,
+    root: int,
+    distances: Sequence[float],
+    min_quality: float = 0.05,
+    normal_cos: float = 0.5,
+    max_points: int = 60_000,
+    max_iterations: int = 30,
+    tolerance: float = 1e-4,
+) -> tuple[dict[int, np.ndarray], list[tuple[float, float]]]:
+    """Simultaneous point-to-plane ICP of all scans over all overlapping pairs [2]_.
+
+    Minimises, over every pose but the root's, the sum over pairs (both directions) of
+    w·(n_q·(p - q))², p a source sample, q its nearest target sample within the level's
+    distance, n_q the target normal, w the product of the two samples' qualities;
+    correspondences onto target samples of quality < ``min_quality`` (the scan's
+    boundary band) or with normals more than acos(``normal_cos``) apart are rejected.
+    Gauss–Newton on the linearised motions, re-matching each iteration, until the largest
+    update is below ``tolerance`` (mm, rotations measured at 100 mm).
+
+    poses : {scan index: (4, 4) world_from_scan}
+    pairs : (i, j) scan indices to match
+    distances : correspondence distances (mm), one level each, coarse to fine
+    max_points : samples per scan used (an even stride), for speed
+
+    Returns the refined poses and, per pair, (fitness of i onto j, point-to-plane RMS mm)
+    at the finest level.
+    """
+    poses = {k: np.asarray(p, np.float64).copy() for k, p in poses.items()}
+    nodes = sorted(poses)
+    cols = {k: a for a, k in enumerate(k for k in nodes if k != root)}
+    samples = {}
+    for k in nodes:
+        usable = np.flatnonzero(scans[k].quality >= min_quality)
+        samples[k] = usable[:: max(1, len(usable) // max_points)]
+    centre = np.mean([scans[k].transformed_vertices(poses[k]).mean(axis=0) for k in nodes], axis=0)
+    stats: list[tuple[float, float]] = [(0.0, math.nan)] * len(pairs)
+    for distance in distances:
+        for _ in range(max_iterations):
+            world = {}
+            for k in nodes:
+                s, p, idx = scans[k], poses[k], samples[k]
+                world[k] = (
+                    s.vertices[idx] @ p[:3, :3].T + p[:3, 3] - centre,
+                    s.normals[idx].astype(np.float64) @ p[:3, :3].T,
+                    s.quality[idx].astype(np.float64),
+                )
+            trees = {k: cKDTree(world[k][0]) for k in nodes}
+            size = 6 * len(cols)
+            h = np.zeros((size, size))
+            g = np.zeros(size)
+            for e, (i, j) in enumerate(pairs):
+                hits, sq = 0, 0.0
+                for a, b in ((i, j), (j, i)):
+                    pa, na, qa = world[a]
+                    pb, nb, qb = world[b]
+                    d, idx = trees[b].query(pa, distance_upper_bound=distance)
+                    ok = np.isfinite(d)
+                    src, idx = np.flatnonzero(ok), idx[ok]
+                    ok = np.einsum("ij,ij->i", na[src], nb[idx]) > normal_cos
+                    src, idx = src[ok], idx[ok]
+                    p, n = pa[src], nb[idx]
+                    r = np.einsum("ij,ij->i", n, p - pb[idx])
+                    w = qa[src] * qb[idx]
+                    if a == i:
+                        hits, sq = len(src), float(np.sum(r * r))
+                        stats[e] = (
+                            hits / max(len(pa), 1),
+                            math.sqrt(sq / hits) if hits else math.nan,
+                        )
+                    jac = np.hstack(
+                        [np.cross(p, n), n]
+                    )  # d r / d (omega_a, v_a); b gets the negative
+                    jw = jac * w[:, None]
+                    jtj, jtr = jac.T @ jw, jw.T @ r
+                    blocks = [(cols[k], sign) for k, sign in ((a, 1.0), (b, -1.0)) if k in cols]
+                    for u, su in blocks:
+                        g[6 * u : 6 * u + 6] += su * jtr
+                        for v, sv in blocks:
+                            h[6 * u : 6 * u + 6, 6 * v : 6 * v + 6] += su * sv * jtj
+            if size == 0:
+                break
+            try:
+                x = -np.linalg.solve(h + 1e-9 * np.trace(h) / size * np.eye(size), g)
+            except np.linalg.LinAlgError:
+                log.warning("joint refinement: singular system, stopping")
+                break
+            step = 0.0
+            to_centre, from_centre = np.eye(4), np.eye(4)
+            to_centre[:3, 3], from_centre[:3, 3] = centre, -centre
+            for k, u in cols.items():
+                xi = x[6 * u : 6 * u + 6]
+                update = np.eye(4)
+                update[:3, :3] = Rotation.from_rotvec(xi[:3]).as_matrix()
+                update[:3, 3] = xi[3:]
+                poses[k] = to_centre @ update @ from_centre @ poses[k]
+                step = max(
+                    step, 100.0 * float(np.linalg.norm(xi[:3])) + float(np.linalg.norm(xi[3:]))
+                )
+            if step < tolerance:
+                break
+    return poses, stats
+
+
+# --- main entry -----------------------------------------------------------------------------------
+
+
+def register_scans(
+    scans: Sequence[RangeScan],
+    *,
+    initial_poses: Mapping[str, np.ndarray] | None = None,
+    reference: str | None = None,
+    config: MultiviewConfig = MultiviewConfig(),
+    progress: Callable[[str], None] | None = None,
+) -> MultiviewResult:
+    """Register N overlapping range scans into one frame.
+
+    1. Candidate pairs: with initial poses, the pairs whose samples overlap within
+       ``pose_tolerance``; without, every pair (aligned from FPFH features).
+    2. Pairwise multi-scale ICP on each candidate (coarse levels); a pair is an edge when
+       it succeeds with enough overlap and a low RMSE.
+    3. Pose graph over the edges (open3d, Levenberg–Marquardt, line process pruning
+       inconsistent edges [1]_), from poses chained along a maximum spanning tree.
+    4. Joint point-to-plane refinement of all poses over all pairs that overlap under
+       the optimised poses (:func:`refine_jointly`), at full resolution.
+
+    Parameters
+    ----------
+    scans : N RangeScan, each in its own frame (mm), distinct names
+    initial_poses : {name: (4, 4) world_from_scan} approximate poses (good to
+        ``config.pose_tolerance``); scans without one are placed from features. None: all
+        pairs are aligned from features (N(N-1)/2 feature matches: slow for many scans).
+    reference : name of the scan that fixes the gauge (keeps its initial pose, or the
+        identity); default: the first scan
+    config : MultiviewConfig
+    progress : called with a short label after each pairwise alignment (progress bars)
+
+    Returns
+    -------
+    MultiviewResult
+        Poses of the registered scans, residual per overlapping pair, scans left out.
+
+    Warns
+    -----
+    RegistrationWarning
+        When scans match nothing or the graph does not connect them to the reference.
+    """
+    names = [s.name for s in scans]
+    if len(scans) < 2:
+        raise SlscanError(f"registration needs at least 2 scans, got {len(scans)}")
+    if len(set(names)) != len(names):
+        raise SlscanError(f"scan names must be distinct, got {names}")
+    if reference is not None and reference not in names:
+        raise SlscanError(f"reference scan {reference!r} is not among the scans {names}")
+    root = names.index(reference) if reference is not None else 0
+    initial_poses = dict(initial_poses or {})
+    unknown = sorted(set(initial_poses) - set(names))
+    if unknown:
+        raise SlscanError(f"poses given for unknown scans {unknown}; scans are {names}")
+    n = len(scans)
+    spacing = float(np.median([median_edge_length(s) for s in scans]))
+    extent = float(np.median([scan_extent(s) for s in scans]))
+    tolerance = config.pose_tolerance or min(30.0 * spacing, extent / 8.0)
+    pw = config.pairwise
+    rejected: dict[tuple[str, str], str] = {}
+    tick = progress or (lambda label: None)
+
+    # 1-2. candidate pairs and their alignments
+    have = [names[k] in initial_poses for k in range(n)]
+    poses0 = {k: np.asarray(initial_poses[names[k]], np.float64) for k in range(n) if have[k]}
+    coarse_voxel = 4.0 * spacing
+    world = [
+        np.asarray(
+            downsample(
+                scan_point_cloud(s, pose=poses0.get(k), min_quality=pw.min_quality), coarse_voxel
+            ).points
+        )
+        if have[k]
+        else np.zeros((0, 3))
+        for k, s in enumerate(scans)
+    ]
+    m = overlap_matrix(world, tolerance / 2)
+    first = replace(
+        pw,
+        initial_distance=pw.initial_distance or tolerance,
+        voxel_sizes=pw.voxel_sizes or default_voxel_sizes(spacing, extent)[:-1] or (2 * spacing,),
+    )
+    features: dict[int, ScanFeatures] = {}
+    if not all(have):
+        voxel = pw.feature_voxel or 4.0 * spacing
+        features = {
+            k: scan_features(s, voxel, min_quality=pw.min_quality) for k, s in enumerate(scans)
+        }
+    edges: dict[tuple[int, int], PairwiseResult] = {}
+    for i, j in itertools.combinations(range(n), 2):
+        if have[i] and have[j]:
+            if _pair_overlap(m, i, j) < config.min_overlap / 2:
+                continue
+            res = register_pair(
+                scans[i], scans[j], init=np.linalg.inv(poses0[j]) @ poses0[i], config=first
+            )
+        else:
+            res = register_pair(
+                scans[i],
+                scans[j],
+                init=None,
+                config=replace(first, initial_distance=None),
+                features=(features[i], features[j]),
+            )
+        tick(f"{names[i]}-{names[j]}")
+        verdict = _check_edge(res, config)
+        if verdict:
+            rejected[(names[i], names[j])] = verdict
+            continue
+        edges[(i, j)] = res
+
+    # 3. pose graph
+    poses, _ = _solve(n, edges, root, poses0.get(root, np.eye(4)), spacing, config, names, rejected)
+
+    # 4. joint refinement over the pairs that overlap under the optimised poses
+    pairs: list[tuple[int, int]] = []
+    stats: list[tuple[float, float]] = []
+    if len(poses) > 1:
+        order = sorted(poses)
+        world = [
+            np.asarray(
+                downsample(
+                    scan_point_cloud(scans[k], pose=poses[k], min_quality=pw.min_quality),
+                    2 * spacing,
+                ).points
+            )
+            for k in order
+        ]
+        m = overlap_matrix(world, 4 * spacing)
+        pairs = [
+            (order[a], order[b])
+            for a, b in itertools.combinations(range(len(order)), 2)
+            if _pair_overlap(m, a, b) >= config.min_overlap
+        ]
+        poses, stats = refine_jointly(
+            scans,
+            poses,
+            pairs,
+            root=root,
+            distances=[f * spacing for f in config.joint_distances_factor],
+            min_quality=pw.min_quality,
+        )
+    residuals = tuple(
+        PairResidual(
+            names[i],
+            names[j],
+            fit,
+            rmse,
+            edges[(i, j)].inlier_rmse if (i, j) in edges else math.nan,
+            config.joint_distances_factor[-1] * spacing,
+        )
+        for (i, j), (fit, rmse) in zip(pairs, stats)
+    )
+
+    left_out = {}
+    for k in range(n):
+        if k not in poses:
+            touching = [key for key in rejected if names[k] in key]
+            matched = any(k in key for key in edges)
+            left_out[names[k]] = (
+                "not connected to the reference scan by the pairs that held"
+                if matched
+                else "matches no other scan"
+            ) + (f" ({len(touching)} candidate pairs rejected)" if touching else "")
+    if left_out:
+        message = "registration left out " + "; ".join(f"{k}: {v}" for k, v in left_out.items())
+        log.warning(message)
+        warnings.warn(message, RegistrationWarning, stacklevel=2)
+    return MultiviewResult(
+        poses={names[k]: p for k, p in sorted(poses.items())},
+        pairs=residuals,
+        left_out=left_out,
+        reference=names[root],
+        rejected=rejected,
+    )
+
+
+def _check_edge(res: PairwiseResult, config: MultiviewConfig) -> str:
+    """Why an alignment is not used as an edge ("" when it is)."""
+    if not res:
+        return res.reason
+    if res.fitness < config.min_overlap:
+        return f"overlap {res.fitness:.1%} < {config.min_overlap:.0%}"
+    limit = config.max_rmse_factor * res.max_distance
+    if not math.isfinite(res.inlier_rmse) or res.inlier_rmse > limit:
+        return (
+            f"inlier RMSE {res.inlier_rmse:.3g} mm > {config.max_rmse_factor:g} x the "
+            f"correspondence distance {res.max_distance:.3g} mm: residuals spread like a wrong match"
+        )
+    return ""
+
+
+def _solve(
+    n: int,
+    edges: dict[tuple[int, int], PairwiseResult],
+    root: int,
+    root_pose: np.ndarray,
+    spacing: float,
+    config: MultiviewConfig,
+    names: list[str],
+    rejected: dict[tuple[str, str], str],
+) -> tuple[dict[int, np.ndarray], set[tuple[int, int]]]:
+    """Spanning tree from the root, initial poses along it, pose-graph optimisation."""
+    tree = _spanning_tree(n, edges, root)
+    if len(tree) < 2:
+        return {root: root_pose}, set()
+    component = {k: v for k, v in edges.items() if k[0] in tree and k[1] in tree}
+    init = _chain_poses(n, component, tree, root, root_pose)
+    certain = {key for node, (parent, key) in tree.items() if parent >= 0}
+    distance = max(res.max_distance for res in component.values())
+    poses, kept = optimise_pose_graph(
+        init,
+        component,
+        root=root,
+        certain=certain,
+        max_distance=distance,
+        edge_prune_threshold=config.edge_prune_threshold,
+    )
+    for key in set(component) - kept:
+        rejected[(names[key[0]], names[key[1]])] = (
+            "pruned by the pose graph (inconsistent with the others)"
+        )
+    return poses, kept

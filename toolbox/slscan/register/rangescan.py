@@ -1,0 +1,934 @@
+"""Range scans to register: one view's surface mesh in its own frame, with its view direction.
+
+A :class:`RangeScan` is what registration and fusion consume: vertices in the scan's
+own frame (mm), faces, unit normals, a per-vertex quality (confidence weight) and the
+direction from the surface towards the sensor. Loaders read the Stanford range-grid
+PLY files (``bun000.ply`` …, metres, with a ``range_grid`` element), Stanford ``.conf``
+pose files, and any triangle-mesh PLY (ASCII or binary), including the range maps the
+decode stage writes.
+
+References
+----------
+.. [1] Turk, Levoy, "Zippered polygon meshes from range images", SIGGRAPH 1994 (range
+   grid triangulation with an edge-length test).
+.. [2] Curless, Levoy, "A volumetric method for building complex models from range
+   images", SIGGRAPH 1996 (weights falling off with grazing angle and near boundaries).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+
+from slscan.errors import SlscanError
+from slscan.fsio import atomic_output_file
+from slscan.meshes import vertex_normals
+
+log = logging.getLogger(__name__)
+
+STANFORD_VIEW_DIRECTION = (0.0, 0.0, 1.0)
+"""Towards the sensor in a Stanford scan's frame: the Cyberware scanner looks along -z."""
+
+UNITS_TO_MM = {"m": 1000.0, "cm": 10.0, "mm": 1.0}
+
+_PLY_TYPES = {
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
+}
+
+
+@dataclass(frozen=True, eq=False)
+class RangeScan:
+    """One range scan (a view's surface), in the scan's own frame.
+
+    vertices : (n, 3) float64, mm, scan frame
+    faces : (m, 3) int32 vertex indices, counter-clockwise seen from the sensor
+    normals : (n, 3) float32 unit vertex normals, on the sensor's side
+    quality : (n,) float32 in [0, 1], confidence used as a weight by registration and
+        fusion (for loaded Stanford scans: cos(angle between normal and view direction)
+        times a ramp falling to 0 at the scan's boundary)
+    view_direction : (3,) float64 unit vector from the surface towards the sensor, scan
+        frame. The Stanford (Cyberware) scans look along -z of their frame, so it is
+        +z there (:data:`STANFORD_VIEW_DIRECTION`); for a perspective sensor it is the
+        direction towards the sensor from the scan's centroid.
+    name : the scan's name (the file stem when loaded)
+    grid : (rows, cols) int32 or None: the vertex index of each range-grid cell, -1 where
+        the cell has no sample, when the scan came from a range grid
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    normals: np.ndarray
+    quality: np.ndarray
+    view_direction: np.ndarray
+    name: str = ""
+    grid: np.ndarray | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        n = len(self.vertices)
+        if np.shape(self.vertices) != (n, 3):
+            raise SlscanError(
+                f"scan {self.name!r}: expected (n, 3) vertices, got {np.shape(self.vertices)}"
+            )
+        if np.shape(self.normals) != (n, 3):
+            raise SlscanError(
+                f"scan {self.name!r}: expected ({n}, 3) normals, got {np.shape(self.normals)}"
+            )
+        if np.shape(self.quality) != (n,):
+            raise SlscanError(
+                f"scan {self.name!r}: expected ({n},) quality, got {np.shape(self.quality)}"
+            )
+        if np.ndim(self.faces) != 2 or np.shape(self.faces)[1] != 3:
+            raise SlscanError(
+                f"scan {self.name!r}: expected (m, 3) faces, got {np.shape(self.faces)}"
+            )
+        if np.shape(self.view_direction) != (3,):
+            raise SlscanError(f"scan {self.name!r}: expected a (3,) view direction")
+
+    @property
+    def n_vertices(self) -> int:
+        return len(self.vertices)
+
+    @property
+    def n_faces(self) -> int:
+        return len(self.faces)
+
+    def transformed_vertices(self, pose: np.ndarray) -> np.ndarray:
+        """(n, 3) float64 vertices mapped by the 4×4 ``pose`` (e.g. world_from_scan), mm."""
+        pose = np.asarray(pose, np.float64)
+        return self.vertices @ pose[:3, :3].T + pose[:3, 3]
+
+
+# --- building scans ----------------------------------------------------------------------------
+
+
+def scan_from_mesh(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    *,
+    view_direction: np.ndarray | None = None,
+    quality: np.ndarray | None = None,
+    normals: np.ndarray | None = None,
+    name: str = "",
+    grid: np.ndarray | None = None,
+    drop_unreferenced: bool = True,
+) -> RangeScan:
+    """A :class:`RangeScan` from a triangle mesh in the scan frame.
+
+    vertices : (n, 3) float, mm
+    faces : (m, 3) int; re-wound counter-clockwise as seen from ``view_direction``
+    view_direction : (3,) towards the sensor; default: the mean of the face normals
+        (area-weighted), which is right for a surface seen from one side
+    quality : (n,) float in [0, 1]; default: cos(angle between normal and view direction)
+    normals : (n, 3); default: area-weighted vertex normals of ``faces``
+    grid : (rows, cols) int index map, -1 for empty cells (re-indexed with the vertices)
+    drop_unreferenced : remove vertices no face uses
+    """
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64).reshape(-1, 3)
+    if len(f):
+        a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+        face_n = np.cross(b - a, c - a)
+    else:
+        face_n = np.zeros((0, 3))
+    if view_direction is None:
+        total = face_n.sum(axis=0)
+        if not np.isfinite(total).all() or np.linalg.norm(total) == 0:
+            total = np.array(STANFORD_VIEW_DIRECTION)
+        view_direction = total
+    d = np.asarray(view_direction, np.float64)
+    d = d / np.linalg.norm(d)
+    if len(f):
+        flip = face_n @ d < 0
+        f[flip] = f[flip][:, [0, 2, 1]]
+    if normals is None:
+        n = vertex_normals(v, f) if len(f) else np.tile(d, (len(v), 1))
+        n[np.linalg.norm(n, axis=1) == 0] = d
+    else:
+        n = np.asarray(normals, np.float64)
+        length = np.linalg.norm(n, axis=1, keepdims=True)
+        n = np.where(length > 0, n / np.where(length > 0, length, 1), d)
+    n[n @ d < 0] *= -1
+    if quality is None:
+        q = np.clip(n @ d, 0.0, 1.0)
+    else:
+        q = np.clip(np.asarray(quality, np.float64), 0.0, 1.0)
+    keep = np.ones(len(v), bool)
+    if drop_unreferenced and len(f):
+        keep[:] = False
+        keep[f.reshape(-1)] = True
+    new = np.full(len(v), -1, np.int64)
+    new[keep] = np.arange(int(keep.sum()))
+    if grid is not None:
+        g = np.asarray(grid, np.int64)
+        grid = np.where(g >= 0, new[np.clip(g, 0, None)], -1).astype(np.int32)
+    return RangeScan(
+        vertices=v[keep],
+        faces=new[f].astype(np.int32),
+        normals=n[keep].astype(np.float32),
+        quality=q[keep].astype(np.float32),
+        view_direction=d,
+        name=name,
+        grid=grid,
+    )
+
+
+def grid_faces(
+    points: np.ndarray,
+    grid: np.ndarray,
+    *,
+    max_edge_factor: float = 4.0,
+) -> np.ndarray:
+    """Triangulate a range grid: two triangles per full cell quad, one for three corners.
+
+    A quad of grid neighbours is split along its shorter diagonal; a quad with one corner
+    missing gives the triangle of the other three; triangles with an edge longer than
+    ``max_edge_factor`` times the median neighbour spacing are dropped (depth steps), so
+    the mesh breaks at missing cells and discontinuities [1]_.
+
+    points : (n, 3) float, mm
+    grid : (rows, cols) int, vertex index per cell or -1
+    Returns (m, 3) int64 vertex indices (winding not yet oriented).
+    """
+    g = np.asarray(grid, np.int64)
+    p = np.asarray(points, np.float64)
+    if g.ndim != 2 or g.shape[0] < 2 or g.shape[1] < 2:
+        return np.zeros((0, 3), np.int64)
+    a, b = g[:-1, :-1].ravel(), g[:-1, 1:].ravel()  # (r, c), (r, c + 1)
+    c, d = g[1:, :-1].ravel(), g[1:, 1:].ravel()  # (r + 1, c), (r + 1, c + 1)
+    va, vb, vc, vd = a >= 0, b >= 0, c >= 0, d >= 0
+    full = va & vb & vc & vd
+
+    def dist(i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(p[i] - p[j], axis=1)
+
+    split_ad = np.zeros(len(a), bool)
+    split_ad[full] = dist(a[full], d[full]) <= dist(b[full], c[full])
+    tris = [
+        np.stack([a, c, d], 1)[full & split_ad],
+        np.stack([a, d, b], 1)[full & split_ad],
+        np.stack([a, c, b], 1)[full & ~split_ad],
+        np.stack([b, c, d], 1)[full & ~split_ad],
+        np.stack([b, c, d], 1)[~va & vb & vc & vd],
+        np.stack([a, c, d], 1)[va & ~vb & vc & vd],
+        np.stack([a, d, b], 1)[va & vb & ~vc & vd],
+        np.stack([a, c, b], 1)[va & vb & vc & ~vd],
+    ]
+    tri = np.concatenate(tris)
+    if len(tri) == 0:
+        return tri.reshape(0, 3)
+    both_h = (g[:, :-1] >= 0) & (g[:, 1:] >= 0)
+    both_v = (g[:-1] >= 0) & (g[1:] >= 0)
+    horizontal = dist(g[:, :-1][both_h], g[:, 1:][both_h])
+    vertical = dist(g[:-1][both_v], g[1:][both_v])
+    spacing = np.concatenate([horizontal, vertical])
+    if len(spacing) == 0:
+        return tri
+    limit = max_edge_factor * float(np.median(spacing)) * math.sqrt(2.0)
+    keep = np.ones(len(tri), bool)
+    for i, j in ((0, 1), (1, 2), (2, 0)):
+        keep &= dist(tri[:, i], tri[:, j]) <= limit
+    return tri[keep]
+
+
+def boundary_ramp(grid: np.ndarray, referenced: np.ndarray, cells: float) -> np.ndarray:
+    """(n,) float in (0, 1]: grid distance of each vertex to the nearest empty cell over ``cells``.
+
+    Curless & Levoy's weight ramp [2]_: samples near a scan's edge get less weight, so
+    fusing overlapping scans leaves no step where one ends.
+    """
+    g = np.asarray(grid)
+    ramp = np.ones(len(referenced))
+    if cells <= 0:
+        return ramp
+    used = g >= 0
+    used[used] = referenced[g[used]]
+    distance = ndimage.distance_transform_edt(np.pad(used, 1))[1:-1, 1:-1]
+    ramp[g[used]] = np.clip(distance[used] / cells, 0.0, 1.0)
+    return ramp
+
+
+# --- Stanford files ----------------------------------------------------------------------------
+
+
+def load_stanford_scan(
+    path: str | os.PathLike,
+    *,
+    units: str = "m",
+    max_edge_factor: float = 4.0,
+    ramp_cells: float = 8.0,
+) -> RangeScan:
+    """Read a Stanford range-grid PLY (``bun000.ply`` …) as a :class:`RangeScan` in mm.
+
+    The vertices are meshed on the ``range_grid`` (row-major, ``num_rows`` × ``num_cols``
+    from the header's ``obj_info``) with :func:`grid_faces`. The view direction is
+    :data:`STANFORD_VIEW_DIRECTION` (+z: the scanner looks along -z of the scan frame).
+    Quality is cos(normal, view direction) times a ramp over ``ramp_cells`` grid cells
+    from the scan's boundary (:func:`boundary_ramp`), times the vertex ``confidence``
+    when the file has one.
+
+    Parameters
+    ----------
+    path : the PLY file
+    units : {"m", "cm", "mm"}, the file's length unit (Stanford: metres)
+    max_edge_factor : triangles with an edge longer than this many median grid spacings
+        are dropped
+    ramp_cells : width of the boundary weight ramp, grid cells (0: none)
+
+    Raises
+    ------
+    SlscanError
+        Not a PLY, no ``range_grid`` element, or no triangle can be made (naming the file).
+    """
+    path = Path(path)
+    scale = _unit_scale(units, path)
+    ply = read_ply_elements(path)
+    vertex = ply.get("vertex")
+    if vertex is None or not all(k in vertex for k in "xyz"):
+        raise SlscanError(f"{path}: no vertex element with x, y, z; expected a Stanford range scan")
+    grid_el = ply.get("range_grid")
+    if grid_el is None:
+        raise SlscanError(f"{path}: no range_grid element; expected a Stanford range-grid PLY")
+    rows, cols = ply.info.get("num_rows"), ply.info.get("num_cols")
+    counts, values = next(iter(grid_el.values()))
+    if rows is None or cols is None or int(rows) * int(cols) != len(counts):
+        raise SlscanError(
+            f"{path}: range_grid has {len(counts)} cells but obj_info says "
+            f"{rows} rows x {cols} columns"
+        )
+    if np.any(counts > 1):
+        log.warning("%s: some grid cells hold several samples; the first is used", path)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    grid = np.where(
+        counts > 0, values[np.minimum(starts, max(len(values) - 1, 0))] if len(values) else -1, -1
+    )
+    grid = grid.astype(np.int64).reshape(int(rows), int(cols))
+    points = np.stack([vertex[k] for k in "xyz"], axis=1).astype(np.float64) * scale
+    if len(points) == 0 or np.any(grid >= len(points)):
+        raise SlscanError(
+            f"{path}: range_grid indexes {grid.max() + 1} vertices, the file has {len(points)}"
+        )
+    faces = grid_faces(points, grid, max_edge_factor=max_edge_factor)
+    if len(faces) == 0:
+        raise SlscanError(
+            f"{path}: no triangle could be made from the range grid (empty or degenerate scan)"
+        )
+    direction = np.array(STANFORD_VIEW_DIRECTION)
+    scan = scan_from_mesh(points, faces, view_direction=direction, name=path.stem, grid=grid)
+    referenced = np.ones(scan.n_vertices, bool)
+    quality = scan.quality.astype(np.float64) * boundary_ramp(scan.grid, referenced, ramp_cells)
+    if "confidence" in vertex:
+        used = np.zeros(len(points), bool)
+        used[faces.reshape(-1)] = True
+        quality *= np.clip(vertex["confidence"][used], 0.0, 1.0)
+    return replace(scan, quality=quality.astype(np.float32))
+
+
+def load_bun_conf(path: str | os.PathLike, *, units: str = "m") -> dict[str, np.ndarray]:
+    """Read a Stanford ``.conf`` file: ``{scan name: (4, 4) world_from_scan}``, mm.
+
+    Lines ``bmesh FILE tx ty tz qx qy qz qw``; the scan name is FILE's stem. With ``R``
+    the rotation of the quaternion (qx, qy, qz, qw) as written (scalar last), a scan
+    point ``p`` maps to the common frame as ``Rᵀ·p + t`` (checked on the bunny: plain
+    ``R·p + t`` is off by 16–129 mm), so ``world_from_scan = [[Rᵀ, t], [0, 1]]``.
+    ``camera`` and other lines are ignored.
+
+    Raises
+    ------
+    SlscanError
+        Missing file, a malformed ``bmesh`` line, or no ``bmesh`` line (naming the file).
+    """
+    path = Path(path)
+    scale = _unit_scale(units, path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise SlscanError(f"{path}: pose file not found") from None
+    poses: dict[str, np.ndarray] = {}
+    for number, line in enumerate(text.splitlines(), 1):
+        parts = line.split()
+        if not parts or parts[0] != "bmesh":
+            continue
+        try:
+            t = np.array([float(x) for x in parts[2:5]]) * scale
+            q = np.array([float(x) for x in parts[5:9]])
+        except ValueError:
+            raise SlscanError(
+                f"{path}:{number}: expected 'bmesh FILE tx ty tz qx qy qz qw'"
+            ) from None
+        if len(parts) != 9 or np.linalg.norm(q) == 0:
+            raise SlscanError(f"{path}:{number}: expected 'bmesh FILE tx ty tz qx qy qz qw'")
+        pose = np.eye(4)
+        pose[:3, :3] = quaternion_matrix(q).T
+        pose[:3, 3] = t
+        poses[Path(parts[1]).stem] = pose
+    if not poses:
+        raise SlscanError(f"{path}: no 'bmesh' line; expected a Stanford .conf pose file")
+    return poses
+
+
+def quaternion_matrix(q: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation matrix of the quaternion ``q = (qx, qy, qz, qw)`` (scalar last)."""
+    x, y, z, w = np.asarray(q, np.float64) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def load_stanford_dir(
+    folder: str | os.PathLike, *, conf: str = "bun.conf", units: str = "m"
+) -> tuple[list[RangeScan], dict[str, np.ndarray]]:
+    """Every scan a Stanford ``.conf`` names (in its order), and their poses (mm)."""
+    folder = Path(folder)
+    poses = load_bun_conf(folder / conf, units=units)
+    scans = [load_stanford_scan(folder / f"{name}.ply", units=units) for name in poses]
+    return scans, poses
+
+
+# --- synthetic scans ------------------------------------------------------------------------------
+
+
+def raycasting_scene(vertices: np.ndarray, faces: np.ndarray):
+    """An open3d RaycastingScene of a mesh (world frame, mm), for :func:`render_range_scan`."""
+    import open3d as o3d
+    import open3d.core as o3c
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(
+        o3c.Tensor(np.asarray(vertices, np.float32)),
+        o3c.Tensor(np.ascontiguousarray(faces, dtype=np.uint32)),
+    )
+    return scene
+
+
+def render_range_scan(
+    vertices: np.ndarray | None,
+    faces: np.ndarray | None,
+    world_from_scan: np.ndarray,
+    *,
+    shape: tuple[int, int],
+    pixel: float | None = None,
+    focal: float | None = None,
+    name: str = "",
+    noise: float = 0.0,
+    rng: np.random.Generator | None = None,
+    max_edge_factor: float = 4.0,
+    max_view_angle_deg: float = 80.0,
+    ramp_cells: float = 8.0,
+    scene=None,
+) -> RangeScan:
+    """A synthetic range scan of a triangle mesh, ray cast on a pixel grid (open3d).
+
+    The sensor looks along -z of the scan frame, like the Stanford scanner. With
+    ``pixel`` the rays are parallel (orthographic, spacing ``pixel`` mm, the grid centred
+    on the scan frame's z axis; view direction +z); with ``focal`` (px) they leave the
+    scan frame's origin (pinhole, principal point at the centre; view direction from the
+    scan's centroid to the origin). Hits become the vertices (scan frame, mm), meshed on
+    the pixel grid (:func:`grid_faces`), with faces seen at more than
+    ``max_view_angle_deg`` dropped; quality as for :func:`load_stanford_scan`.
+
+    vertices : (n, 3) float, mm, world; faces : (m, 3) int (unused when ``scene`` is given)
+    world_from_scan : (4, 4) pose of the sensor frame
+    shape : (rows, cols) of the pixel grid
+    noise : standard deviation (mm) of Gaussian noise added along each ray
+    scene : a :func:`raycasting_scene` of the mesh, to reuse it across many scans
+    """
+    import open3d.core as o3c
+
+    if (pixel is None) == (focal is None):
+        raise SlscanError(
+            "render_range_scan: give exactly one of pixel (orthographic) or focal (pinhole)"
+        )
+    pose = np.asarray(world_from_scan, np.float64)
+    if scene is None:
+        if vertices is None or faces is None:
+            raise SlscanError("render_range_scan: give the mesh (vertices, faces) or a scene")
+        scene = raycasting_scene(vertices, faces)
+    rows, cols = shape
+    r, c = np.mgrid[0:rows, 0:cols].astype(np.float64)
+    if pixel is not None:
+        bounds = scene_bounds(scene)
+        far = (
+            float(
+                np.linalg.norm(bounds[1] - bounds[0])
+                + np.linalg.norm(pose[:3, 3] - bounds.mean(axis=0))
+            )
+            + 100.0
+        )
+        origin = np.stack(
+            [(c - (cols - 1) / 2) * pixel, ((rows - 1) / 2 - r) * pixel, np.full_like(r, far)], -1
+        )
+        direction = np.broadcast_to(np.array([0.0, 0.0, -1.0]), origin.shape)
+    else:
+        origin = np.zeros((rows, cols, 3))
+        direction = np.stack(
+            [(c - (cols - 1) / 2) / focal, ((rows - 1) / 2 - r) / focal, -np.ones_like(r)], -1
+        )
+        direction = direction / np.linalg.norm(direction, axis=-1, keepdims=True)
+    world_origin = origin @ pose[:3, :3].T + pose[:3, 3]
+    world_direction = direction @ pose[:3, :3].T
+    rays = np.concatenate([world_origin, world_direction], -1).astype(np.float32)
+    del world_origin, world_direction
+    t = scene.cast_rays(o3c.Tensor(rays))["t_hit"].numpy().astype(np.float64)
+    del rays
+    hit = np.isfinite(t)
+    if noise > 0:
+        rng = rng or np.random.default_rng(0)
+        t = t + rng.normal(0.0, noise, t.shape)
+    points = (origin + direction * np.where(hit, t, 0.0)[..., None])[hit]
+    grid = np.full((rows, cols), -1, np.int64)
+    grid[hit] = np.arange(int(hit.sum()))
+    faces_out = grid_faces(points, grid, max_edge_factor=max_edge_factor)
+    if len(faces_out) == 0:
+        raise SlscanError(f"render_range_scan {name!r}: the object is not in view")
+    view = np.array(STANFORD_VIEW_DIRECTION) if pixel is not None else -points.mean(axis=0)
+    view = view / np.linalg.norm(view)
+    a, b, cc = (points[faces_out[:, i]] for i in range(3))
+    face_n = np.cross(b - a, cc - a)
+    centre = (a + b + cc) / 3
+    toward = np.broadcast_to(view, centre.shape) if pixel is not None else -centre
+    cos = np.abs(np.einsum("ij,ij->i", face_n, toward)) / (
+        np.linalg.norm(face_n, axis=1) * np.linalg.norm(toward, axis=1) + 1e-300
+    )
+    faces_out = faces_out[cos >= math.cos(math.radians(max_view_angle_deg))]
+    if len(faces_out) == 0:
+        raise SlscanError(f"render_range_scan {name!r}: every face is seen at a grazing angle")
+    scan = scan_from_mesh(points, faces_out, view_direction=view, name=name, grid=grid)
+    ramp = boundary_ramp(scan.grid, np.ones(scan.n_vertices, bool), ramp_cells)
+    return replace(scan, quality=(scan.quality * ramp).astype(np.float32))
+
+
+def scene_bounds(scene) -> np.ndarray:
+    """(2, 3) lower and upper corners (mm) of a RaycastingScene's geometry, to within ~10 mm.
+
+    The scene keeps no bounds: the closest surface point to a probe far out along an
+    axis is (nearly) the extreme point along it.
+    """
+    import open3d.core as o3c
+
+    probes = np.concatenate([np.eye(3), -np.eye(3)]).astype(np.float32) * 1e5
+    closest = scene.compute_closest_points(o3c.Tensor(probes))["points"].numpy().astype(np.float64)
+    upper = np.diag(closest[:3])
+    lower = np.diag(closest[3:])
+    return np.stack([lower, upper])
+
+
+# --- generic PLY -------------------------------------------------------------------------------
+
+
+def load_range_scan(
+    path: str | os.PathLike,
+    *,
+    units: str = "mm",
+    view_direction: np.ndarray | None = None,
+) -> RangeScan:
+    """Read a triangle-mesh PLY (ASCII or binary) as a :class:`RangeScan`.
+
+    Stanford range-grid files are meshed as in :func:`load_stanford_scan` (their units
+    still follow ``units``). Otherwise the file needs ``vertex`` (x, y, z) and ``face``
+    (``vertex_indices``; polygons are fanned) elements; ``nx ny nz`` and ``quality``
+    (or ``confidence``) vertex properties are read when present. The view direction is,
+    in order: the argument; a ``comment view_direction X Y Z`` header line (as
+    :func:`write_range_scan` writes); for slscan range maps (``comment slscan range
+    map``, sensor at the origin) the direction from the centroid to the origin; else the
+    mean face normal. The scan is named by a ``comment name`` (or decode's ``comment
+    view``) header line, else by the file's stem.
+
+    Raises
+    ------
+    SlscanError
+        Missing or malformed file, no vertices, no faces (naming the file).
+    """
+    path = Path(path)
+    scale = _unit_scale(units, path)
+    ply = read_ply_elements(path)
+    if "range_grid" in ply:
+        return load_stanford_scan(path, units=units)
+    vertex = ply.get("vertex")
+    if vertex is None or not all(k in vertex for k in "xyz"):
+        raise SlscanError(f"{path}: no vertex element with x, y, z properties")
+    points = np.stack([vertex[k] for k in "xyz"], axis=1).astype(np.float64) * scale
+    if len(points) == 0:
+        raise SlscanError(f"{path}: the PLY has no vertices; expected a range scan mesh")
+    face_el = ply.get("face")
+    faces = np.zeros((0, 3), np.int64)
+    if face_el is not None:
+        prop = face_el.get("vertex_indices", face_el.get("vertex_index"))
+        if prop is None:
+            raise SlscanError(f"{path}: face element has no vertex_indices list")
+        faces = _fan(*prop)
+    if len(faces) == 0:
+        raise SlscanError(f"{path}: the PLY has no faces; expected a triangle mesh (range scan)")
+    if faces.min() < 0 or faces.max() >= len(points):
+        raise SlscanError(f"{path}: face indices out of range for {len(points)} vertices")
+    a, b, c = (points[faces[:, i]] for i in range(3))
+    area = np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    faces = faces[area > 0]
+    if len(faces) == 0:
+        raise SlscanError(f"{path}: every face is degenerate (zero area)")
+    direction = view_direction
+    if direction is None and ply.view_direction is not None:
+        direction = ply.view_direction
+    if direction is None and ply.is_slscan_range_map:
+        direction = -points.mean(axis=0)
+    normals = None
+    if all(k in vertex for k in ("nx", "ny", "nz")):
+        normals = np.stack([vertex[k] for k in ("nx", "ny", "nz")], axis=1)
+        if not np.any(np.linalg.norm(normals, axis=1) > 0):
+            normals = None
+    quality = None
+    for key in ("quality", "confidence"):
+        if key in vertex:
+            quality = vertex[key]
+            break
+    grid = None
+    if ply.grid_shape is not None and "row" in vertex and "col" in vertex:
+        rows, cols = ply.grid_shape
+        grid = np.full((rows, cols), -1, np.int64)
+        r, cc = vertex["row"].astype(np.int64), vertex["col"].astype(np.int64)
+        ok = (r >= 0) & (r < rows) & (cc >= 0) & (cc < cols)
+        grid[r[ok], cc[ok]] = np.flatnonzero(ok)
+    return scan_from_mesh(
+        points,
+        faces,
+        view_direction=direction,
+        quality=quality,
+        normals=normals,
+        name=ply.name or path.stem,
+        grid=grid,
+    )
+
+
+def write_range_scan(scan: RangeScan, path: str | os.PathLike) -> Path:
+    """Write ``scan`` as a binary little-endian PLY that MeshLab opens, atomically.
+
+    Vertex properties ``x y z`` (float, mm, scan frame), ``nx ny nz``, ``quality``
+    (MeshLab's vertex quality) and, with a grid, ``row col`` (int); faces
+    ``vertex_indices``. Header comments carry the name, view direction and grid size, so
+    :func:`load_range_scan` reads the scan back whole.
+    """
+    path = Path(path)
+    n = scan.n_vertices
+    fields = [
+        ("x", "<f4"),
+        ("y", "<f4"),
+        ("z", "<f4"),
+        ("nx", "<f4"),
+        ("ny", "<f4"),
+        ("nz", "<f4"),
+        ("quality", "<f4"),
+    ]
+    if scan.grid is not None:
+        fields += [("row", "<i4"), ("col", "<i4")]
+    verts = np.empty(n, np.dtype(fields))
+    for i, axis in enumerate("xyz"):
+        verts[axis] = scan.vertices[:, i]
+        verts["n" + axis] = scan.normals[:, i]
+    verts["quality"] = scan.quality
+    if scan.grid is not None:
+        verts["row"] = verts["col"] = -1
+        g = scan.grid
+        r, c = np.nonzero(g >= 0)
+        verts["row"][g[r, c]] = r
+        verts["col"][g[r, c]] = c
+    faces = np.empty(scan.n_faces, np.dtype([("n", "u1"), ("i", "<i4", (3,))]))
+    faces["n"] = 3
+    faces["i"] = scan.faces
+    d = scan.view_direction
+    header = [
+        "ply",
+        "format binary_little_endian 1.0",
+        "comment slscan range scan (mm, scan frame)",
+    ]
+    name = " ".join(str(scan.name).split())
+    if name:
+        header.append(f"comment name {name}")
+    header.append(f"comment view_direction {d[0]:.9g} {d[1]:.9g} {d[2]:.9g}")
+    if scan.grid is not None:
+        header.append(f"comment grid {scan.grid.shape[0]} {scan.grid.shape[1]}")
+    header.append(f"element vertex {n}")
+    names = {"f4": "float", "i4": "int"}
+    header += [f"property {names[verts.dtype[f].str[1:]]} {f}" for f in verts.dtype.names]
+    header += [
+        f"element face {scan.n_faces}",
+        "property list uchar int vertex_indices",
+        "end_header",
+    ]
+    with atomic_output_file(path) as tmp, open(tmp, "wb") as fh:
+        fh.write(("\n".join(header) + "\n").encode("ascii"))
+        fh.write(verts.tobytes())
+        fh.write(faces.tobytes())
+    return path
+
+
+# --- PLY parsing -------------------------------------------------------------------------------
+
+
+class PlyData(dict):
+    """Elements of a PLY file: ``{element: {property: array}}``; list properties are
+    ``(counts (k,), flat values)``. ``info`` holds ``obj_info`` key/values."""
+
+    info: dict[str, str]
+    view_direction: np.ndarray | None = None
+    grid_shape: tuple[int, int] | None = None
+    name: str = ""
+    is_slscan_range_map: bool = False
+
+
+def read_ply_elements(path: str | os.PathLike) -> PlyData:
+    """Parse a PLY file (ASCII, binary little- or big-endian) into numpy arrays.
+
+    Raises
+    ------
+    SlscanError
+        Missing, not a PLY, unknown format or type, or truncated (naming the file).
+    """
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise SlscanError(f"{path}: PLY file not found") from None
+    except IsADirectoryError:
+        raise SlscanError(f"{path}: is a folder; expected a PLY file") from None
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise SlscanError(f"{path}: not a PLY file")
+    newline = data.find(b"\n", end)
+    body_start = newline + 1 if newline >= 0 else len(data)
+    out = PlyData()
+    out.info = {}
+    elements: list[tuple[str, int, list[list[str]]]] = []
+    fmt = None
+    for line in data[:end].decode("ascii", "replace").splitlines()[1:]:
+        parts = line.split()
+        if not parts:
+            continue
+        key = parts[0]
+        if key == "format":
+            fmt = parts[1] if len(parts) > 1 else None
+        elif key == "obj_info" and len(parts) >= 3:
+            out.info[parts[1]] = parts[2]
+        elif key == "comment" and len(parts) >= 2:
+            _header_comment(out, parts[1:], line)
+        elif key == "element":
+            if len(parts) != 3 or not parts[2].isdigit():
+                raise SlscanError(f"{path}: malformed PLY header line {line.strip()!r}")
+            elements.append((parts[1], int(parts[2]), []))
+        elif key == "property":
+            if not elements:
+                raise SlscanError(f"{path}: PLY property before any element")
+            elements[-1][2].append(parts[1:])
+    for k in ("num_rows", "num_cols"):
+        if k in out.info:
+            try:
+                out.info[k] = int(out.info[k])
+            except ValueError:
+                pass
+    if fmt == "ascii":
+        _parse_ascii(path, data[body_start:], elements, out)
+    elif fmt in ("binary_little_endian", "binary_big_endian"):
+        _parse_binary(
+            path, data, body_start, elements, out, "<" if fmt == "binary_little_endian" else ">"
+        )
+    else:
+        raise SlscanError(f"{path}: unknown PLY format {fmt!r}")
+    return out
+
+
+def _header_comment(out: PlyData, words: list[str], line: str) -> None:
+    if words[0] == "view_direction" and len(words) == 4:
+        try:
+            d = np.array([float(x) for x in words[1:]])
+        except ValueError:
+            return
+        if np.linalg.norm(d) > 0:
+            out.view_direction = d
+    elif words[0] == "grid" and len(words) == 3 and words[1].isdigit() and words[2].isdigit():
+        out.grid_shape = (int(words[1]), int(words[2]))
+    elif words[0] in ("name", "view") and len(words) >= 2:  # slscan scans; decode range maps
+        out.name = line.split(None, 2)[2].strip()
+    elif " ".join(words[:3]) == "slscan range map":
+        out.is_slscan_range_map = True
+
+
+def _ply_type(path: Path, name: str) -> str:
+    try:
+        return _PLY_TYPES[name]
+    except KeyError:
+        raise SlscanError(f"{path}: unknown PLY property type {name!r}") from None
+
+
+def _parse_ascii(path: Path, body: bytes, elements, out: PlyData) -> None:
+    try:
+        tokens = np.array(body.split(), dtype=np.float64)
+    except ValueError:
+        raise SlscanError(
+            f"{path}: the ASCII PLY body holds something that is not a number"
+        ) from None
+    pos = 0
+    for name, count, props in elements:
+        is_list = [p[0] == "list" for p in props]
+        if not any(is_list):
+            size = count * len(props)
+            if pos + size > len(tokens):
+                raise SlscanError(f"{path}: file is truncated in element {name!r}")
+            block = tokens[pos : pos + size].reshape(count, len(props))
+            out[name] = {
+                p[1]: block[:, i].astype(_ply_type(path, p[0])) for i, p in enumerate(props)
+            }
+            pos += size
+            continue
+        if len(props) == 1:
+            first = int(tokens[pos]) if count and pos < len(tokens) else 0
+            stride = first + 1
+            if (
+                count
+                and pos + count * stride <= len(tokens)
+                and np.all(tokens[pos : pos + count * stride : stride] == first)
+            ):
+                block = tokens[pos : pos + count * stride].reshape(count, stride)
+                out[name] = {
+                    props[0][3]: (
+                        np.full(count, first, np.int64),
+                        block[:, 1:].reshape(-1).astype(_ply_type(path, props[0][2])),
+                    )
+                }
+                pos += count * stride
+                continue
+        columns: dict[str, list] = {p[-1]: [] for p in props}
+        counts: dict[str, list] = {p[-1]: [] for p in props if p[0] == "list"}
+        for _ in range(count):
+            for p in props:
+                if pos >= len(tokens):
+                    raise SlscanError(f"{path}: file is truncated in element {name!r}")
+                if p[0] == "list":
+                    k = int(tokens[pos])
+                    counts[p[-1]].append(k)
+                    columns[p[-1]].append(tokens[pos + 1 : pos + 1 + k])
+                    pos += 1 + k
+                else:
+                    columns[p[-1]].append(tokens[pos])
+                    pos += 1
+        element = {}
+        for p in props:
+            if p[0] == "list":
+                values = np.concatenate(columns[p[-1]]) if columns[p[-1]] else np.zeros(0)
+                element[p[-1]] = (
+                    np.array(counts[p[-1]], np.int64),
+                    values.astype(_ply_type(path, p[2])),
+                )
+            else:
+                element[p[-1]] = np.array(columns[p[-1]]).astype(_ply_type(path, p[0]))
+        out[name] = element
+
+
+def _parse_binary(path: Path, data: bytes, offset: int, elements, out: PlyData, order: str) -> None:
+    for name, count, props in elements:
+        if not any(p[0] == "list" for p in props):
+            dt = np.dtype([(p[1], order + _ply_type(path, p[0])) for p in props])
+            if offset + dt.itemsize * count > len(data):
+                raise SlscanError(f"{path}: file is truncated in element {name!r}")
+            arr = np.frombuffer(data, dt, count, offset)
+            out[name] = {p[1]: arr[p[1]].copy() for p in props}
+            offset += dt.itemsize * count
+            continue
+        if len(props) == 1 and count:
+            _, count_t, value_t, pname = props[0]
+            ct, vt = (
+                np.dtype(order + _ply_type(path, count_t)),
+                np.dtype(order + _ply_type(path, value_t)),
+            )
+            if offset + ct.itemsize > len(data):
+                raise SlscanError(f"{path}: file is truncated in element {name!r}")
+            first = int(np.frombuffer(data, ct, 1, offset)[0])
+            dt = np.dtype([("n", ct), ("v", vt, (first,))])
+            if offset + dt.itemsize * count <= len(data):
+                arr = np.frombuffer(data, dt, count, offset)
+                if np.all(arr["n"] == first):
+                    out[name] = {
+                        pname: (np.full(count, first, np.int64), arr["v"].reshape(-1).copy())
+                    }
+                    offset += dt.itemsize * count
+                    continue
+        element: dict = {p[-1]: [] for p in props}
+        counts: dict[str, list] = {p[-1]: [] for p in props if p[0] == "list"}
+        for _ in range(count):
+            for p in props:
+                if p[0] == "list":
+                    ct = np.dtype(order + _ply_type(path, p[1]))
+                    vt = np.dtype(order + _ply_type(path, p[2]))
+                    if offset + ct.itemsize > len(data):
+                        raise SlscanError(f"{path}: file is truncated in element {name!r}")
+                    k = int(np.frombuffer(data, ct, 1, offset)[0])
+                    offset += ct.itemsize
+                    if offset + vt.itemsize * k > len(data):
+                        raise SlscanError(f"{path}: file is truncated in element {name!r}")
+                    element[p[-1]].append(np.frombuffer(data, vt, k, offset))
+                    counts[p[-1]].append(k)
+                    offset += vt.itemsize * k
+                else:
+                    t = np.dtype(order + _ply_type(path, p[0]))
+                    if offset + t.itemsize > len(data):
+                        raise SlscanError(f"{path}: file is truncated in element {name!r}")
+                    element[p[-1]].append(np.frombuffer(data, t, 1, offset)[0])
+                    offset += t.itemsize
+        parsed = {}
+        for p in props:
+            if p[0] == "list":
+                values = element[p[-1]]
+                parsed[p[-1]] = (
+                    np.array(counts[p[-1]], np.int64),
+                    np.concatenate(values) if values else np.zeros(0),
+                )
+            else:
+                parsed[p[-1]] = np.array(element[p[-1]])
+        out[name] = parsed
+
+
+def _fan(counts: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """(m, 3) int64 triangles of polygons given as counts and flat indices (fans)."""
+    counts = np.asarray(counts, np.int64)
+    values = np.asarray(values).astype(np.int64)
+    if len(counts) == 0:
+        return np.zeros((0, 3), np.int64)
+    if np.all(counts == 3):
+        return values.reshape(-1, 3)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    tris = []
+    for k in range(3, int(counts.max()) + 1):
+        sel = starts[counts >= k]
+        tris.append(np.stack([values[sel], values[sel + k - 2], values[sel + k - 1]], 1))
+    return np.concatenate(tris) if tris else np.zeros((0, 3), np.int64)
+
+
+def _unit_scale(units: str, path: Path) -> float:
+    try:
+        return UNITS_TO_MM[units]
+    except KeyError:
+        raise SlscanError(
+            f"{path}: unknown units {units!r}; expected one of {sorted(UNITS_TO_MM)}"
+        ) from None
