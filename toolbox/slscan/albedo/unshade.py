@@ -368,42 +368,12 @@ def write_albedo_ply(range_map: RangeMap, per_vertex: np.ndarray, path: str | os
     ``red green blue`` replaced by the 8-bit sRGB albedo (black where unknown), plus
     ``albedo_red albedo_green albedo_blue`` (float, linear, NaN where unknown).
     """
-    from slscan.decode.rangemap import PLY_VERTEX_DTYPE, _ply_name
+    from dataclasses import replace
 
-    path = Path(path)
-    rm = range_map
-    dtype = np.dtype(
-        PLY_VERTEX_DTYPE.descr
-        + [("albedo_red", "<f4"), ("albedo_green", "<f4"), ("albedo_blue", "<f4")]
-    )
-    verts = np.empty(len(rm.vertices), dtype)
-    colors = srgb8(per_vertex)
-    for i, axis in enumerate("xyz"):
-        verts[axis] = rm.vertices[:, i]
-        verts["n" + axis] = rm.normals[:, i]
-    for i, channel in enumerate(("red", "green", "blue")):
-        verts[channel] = colors[:, i]
-        verts["albedo_" + channel] = per_vertex[:, i]
-    verts["quality"], verts["row"], verts["stripe"] = rm.quality, rm.row, rm.stripe
-    faces = np.empty(len(rm.faces), np.dtype([("n", "u1"), ("i", "<i4", (3,))]))
-    faces["n"] = 3
-    faces["i"] = rm.faces
-    header = [
-        "ply",
-        "format binary_little_endian 1.0",
-        "comment slscan range map with albedo (mm, rig frame)",
-    ]
-    view = " ".join(str(rm.view).split())
-    if view:
-        header.append(f"comment view {view}")
-    header.append(f"element vertex {len(verts)}")
-    header += [f"property {_ply_name(verts.dtype[f])} {f}" for f in verts.dtype.names]
-    header += [f"element face {len(faces)}", "property list uchar int vertex_indices", "end_header"]
-    with atomic_output_file(path) as tmp, open(tmp, "wb") as f:
-        f.write(("\n".join(header) + "\n").encode("ascii"))
-        f.write(verts.tobytes())
-        f.write(faces.tobytes())
-    return path
+    from slscan.decode.rangemap import write_ply
+
+    extra = {f"albedo_{c}": per_vertex[:, i] for i, c in enumerate(("red", "green", "blue"))}
+    return write_ply(replace(range_map, colors=srgb8(per_vertex)), path, extra=extra)
 
 
 def range_map_files(range_maps_dir: str | os.PathLike) -> dict[str, Path]:

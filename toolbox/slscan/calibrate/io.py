@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from slscan import __version__
+from slscan.calibrate.camera import lens_from_opencv
 from slscan.calibrate.planes import LightPlaneModel, MeasuredPlanes
 from slscan.calibrate.target import Board
 from slscan.capture.session import Session
@@ -311,18 +312,6 @@ def _read_matrix(
     raise SlscanError(f"{path}: missing field {names[0]!r}")
 
 
-def _lens(k: np.ndarray, dist: np.ndarray, size: tuple[int, int]) -> PinholeModel:
-    return PinholeModel(
-        int(size[0]),
-        int(size[1]),
-        float(k[0, 0]),
-        float(k[1, 1]),
-        float(k[0, 2]),
-        float(k[1, 2]),
-        tuple(float(v) for v in dist),
-    )
-
-
 def import_opencv_xml(
     path: str | os.PathLike,
     *,
@@ -376,8 +365,8 @@ def import_opencv_xml(
     u, _, vt = np.linalg.svd(r)
     projector_from_camera[:3, :3] = u @ vt
     projector_from_camera[:3, 3] = t * float(units_mm)
-    camera = _lens(kc, dc, camera_size)
-    projector = Projector(_lens(kp, dp, projector_size), np.linalg.inv(projector_from_camera))
+    camera = lens_from_opencv(kc, dc, camera_size)
+    projector = Projector(lens_from_opencv(kp, dp, projector_size), np.linalg.inv(projector_from_camera))
     residuals = {"imported": {"stereo_rms_px": rms}} if rms is not None else {}
     return Calibration(
         camera=camera,

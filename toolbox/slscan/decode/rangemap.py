@@ -380,18 +380,23 @@ def _vertex_normals(points: np.ndarray, faces: np.ndarray, finite: np.ndarray) -
 # --- PLY ----------------------------------------------------------------------------------------
 
 
-def write_ply(range_map: RangeMap, path: str | os.PathLike) -> Path:
+def write_ply(
+    range_map: RangeMap, path: str | os.PathLike, *, extra: dict[str, np.ndarray] | None = None
+) -> Path:
     """Write ``range_map`` as a binary little-endian PLY that MeshLab opens, atomically.
 
     Vertex properties: ``x y z`` (float, mm), ``nx ny nz`` (float), ``red green blue``
-    (uchar), ``quality`` (float; MeshLab's vertex quality), ``row stripe`` (int);
-    faces: ``vertex_indices`` (uchar count, int indices). The view name is stored as a
-    ``comment view NAME`` header line.
+    (uchar), ``quality`` (float; MeshLab's vertex quality), ``row stripe`` (int), then any
+    ``extra`` per-vertex float properties (name -> (n,) array); faces: ``vertex_indices``
+    (uchar count, int indices). The view name is stored as a ``comment view NAME`` line.
     """
     path = Path(path)
     rm = range_map
     n, m = len(rm.vertices), len(rm.faces)
-    verts = np.empty(n, PLY_VERTEX_DTYPE)
+    extra = extra or {}
+    verts = np.empty(n, np.dtype(PLY_VERTEX_DTYPE.descr + [(k, "<f4") for k in extra]))
+    for name, values in extra.items():
+        verts[name] = values
     for i, axis in enumerate("xyz"):
         verts[axis] = rm.vertices[:, i]
         verts["n" + axis] = rm.normals[:, i]

@@ -257,7 +257,7 @@ def refine_jointly(
     normal_cos: float = 0.5,
     max_points: int = 60_000,
     max_iterations: int = 30,
-    tolerance: float = 1e-4,
+    tolerance: float = 1e-3,
 ) -> tuple[dict[int, np.ndarray], list[tuple[float, float]]]:
     """Simultaneous point-to-plane ICP of all scans over all overlapping pairs [2]_.
 
@@ -285,6 +285,9 @@ def refine_jointly(
         usable = np.flatnonzero(scans[k].quality >= min_quality)
         samples[k] = usable[:: max(1, len(usable) // max_points)]
     centre = np.mean([scans[k].transformed_vertices(poses[k]).mean(axis=0) for k in nodes], axis=0)
+    # trees in each scan's own frame, built once: queries are mapped into the target's frame
+    local = {k: scans[k].vertices[samples[k]] for k in nodes}
+    trees = {k: cKDTree(local[k]) for k in nodes}
     stats: list[tuple[float, float]] = [(0.0, math.nan)] * len(pairs)
     for distance in distances:
         for _ in range(max_iterations):
@@ -292,11 +295,10 @@ def refine_jointly(
             for k in nodes:
                 s, p, idx = scans[k], poses[k], samples[k]
                 world[k] = (
-                    s.vertices[idx] @ p[:3, :3].T + p[:3, 3] - centre,
+                    local[k] @ p[:3, :3].T + p[:3, 3] - centre,
                     s.normals[idx].astype(np.float64) @ p[:3, :3].T,
                     s.quality[idx].astype(np.float64),
                 )
-            trees = {k: cKDTree(world[k][0]) for k in nodes}
             size = 6 * len(cols)
             h = np.zeros((size, size))
             g = np.zeros(size)
@@ -305,7 +307,9 @@ def refine_jointly(
                 for a, b in ((i, j), (j, i)):
                     pa, na, qa = world[a]
                     pb, nb, qb = world[b]
-                    d, idx = trees[b].query(pa, distance_upper_bound=distance)
+                    pose_b = poses[b]
+                    in_b = (pa + centre - pose_b[:3, 3]) @ pose_b[:3, :3]
+                    d, idx = trees[b].query(in_b, distance_upper_bound=distance)
                     ok = np.isfinite(d)
                     src, idx = np.flatnonzero(ok), idx[ok]
                     ok = np.einsum("ij,ij->i", na[src], nb[idx]) > normal_cos
@@ -445,7 +449,7 @@ def register_scans(
     edges: dict[tuple[int, int], PairwiseResult] = {}
     for i, j in itertools.combinations(range(n), 2):
         if have[i] and have[j]:
-            if _pair_overlap(m, i, j) < config.min_overlap / 2:
+            if _pair_overlap(m, i, j) < config.min_overlap:
                 continue
             res = register_pair(
                 scans[i], scans[j], init=np.linalg.inv(poses0[j]) @ poses0[i], config=first
