@@ -39,7 +39,7 @@ from slscan.capture.session import Session, ViewRecord, load_session
 from slscan.decode.rangemap import RangeMap, read_ply
 from slscan.errors import SlscanError
 from slscan.executor import LOCAL, Executor
-from slscan.fsio import atomic_output_dir, atomic_output_file, read_json, write_json, write_png
+from slscan.fsio import atomic_output_dir, read_json, write_json, write_png
 
 log = logging.getLogger(__name__)
 
