@@ -317,6 +317,11 @@ def main() -> None:
         "--work", type=Path, default=None, help="folder for the meshes (default: a temporary one)"
     )
     parser.add_argument("--verbose", action="store_true", help="progress on stderr")
+    parser.add_argument(
+        "--reuse-fused",
+        action="store_true",
+        help="with --work: reuse the fused mesh and numbers of an earlier run there",
+    )
     parser.add_argument("--stage", choices=("fuse", "simplify"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.stage:
@@ -328,7 +333,17 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="slscan-scale-") as tmp:
         args.work = args.work or Path(tmp)
         args.work.mkdir(parents=True, exist_ok=True)
-        fuse = _run_stage("fuse", args)
+        saved = args.work / "fuse.json"
+        if args.reuse_fused and saved.is_file() and (args.work / "fused.ply").is_file():
+            fuse = json.loads(saved.read_text())
+            if (fuse.get("maps"), fuse.get("voxel")) != (args.maps, args.voxel):
+                raise SystemExit(
+                    f"{saved}: made with other --maps/--voxel; run without --reuse-fused"
+                )
+            print(f"(fusion results reused from {saved})")
+        else:
+            fuse = _run_stage("fuse", args)
+            saved.write_text(json.dumps(dict(fuse, voxel=args.voxel)))
         simp = _run_stage("simplify", args)
     rows = [
         (

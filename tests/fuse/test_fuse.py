@@ -178,6 +178,17 @@ def test_simplify_reaches_the_target_and_keeps_the_boundary(method):
     assert out.normals.shape == out.vertices.shape
 
 
+def test_simplify_in_slabs_keeps_the_boundary_and_closes_the_cuts():
+    mesh = bumpy_sheet()
+    out = simplify_mesh(mesh, 8000, chunk_faces=30_000)  # 114k faces: 4 slabs, then a pass
+    assert abs(out.n_faces - 8000) <= 80
+    original = mesh.vertices[boundary_vertices(mesh.faces)]
+    kept = out.vertices[boundary_vertices(out.faces)]
+    # the cuts between slabs were welded: the only boundary left is the sheet's own
+    assert len(kept) == len(original)
+    assert {tuple(p) for p in np.round(kept, 9)} == {tuple(p) for p in np.round(original, 9)}
+
+
 def test_simplify_without_boundary_preservation_moves_it():
     mesh = bumpy_sheet(120)
     out = simplify_mesh(mesh, 1000, method="fast", preserve_boundary=False)

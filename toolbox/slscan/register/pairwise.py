@@ -71,9 +71,10 @@ class PairwiseConfig:
 class PairwiseResult:
     """Outcome of aligning a source scan to a target scan; false-valued on failure.
 
-    transform : (4, 4) float64, target_from_source (identity-like guess on failure)
-    fitness : fraction of (downsampled-free) source samples with a target sample within
-        the finest correspondence distance: their overlap, seen from the source
+    transform : (4, 4) float64, target_from_source (the last estimate, or the initial
+        guess, on failure)
+    fitness : fraction of the source's samples (at the finest ICP level) with a target
+        sample within the finest correspondence distance: the overlap, seen from the source
     inlier_rmse : mm, RMS point-to-plane distance of those correspondences (at the
         finest level; for the coarse alignment: open3d's point-to-point RMSE)
     information : (6, 6) float64 information matrix of the alignment (open3d's, for pose
