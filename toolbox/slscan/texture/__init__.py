@@ -1,0 +1,1 @@
+"""Texture stage: atlas, blended albedo baking, export to glTF/OBJ/PLY, MeshLab and Blender."""
