@@ -40,14 +40,20 @@ def test_a_changed_setting_reruns_that_stage_and_those_after_it(tmp_path):
     run_recipe(load_recipe(demo, reduced=True), out)
     ran = lambda runs: {r.stage: r.ran for r in runs}  # noqa: E731
     runs = run_recipe(load_recipe(demo, reduced=True, overrides=["decode.estimator=centroid"]), out)
-    # decode changed: it and albedo (which reads its range maps) run; lights does not depend on it
-    assert ran(runs) == {"capture": False, "decode": True, "lights": False, "albedo": True}
+    model = {"register": True, "fuse": True, "simplify": True, "texture": True}
+    # decode changed: it and what reads its range maps run; lights does not depend on it
+    assert ran(runs) == {"capture": False, "decode": True, "lights": False, "albedo": True, **model}
+    runs = run_recipe(load_recipe(demo, reduced=True, overrides=["decode.estimator=centroid", "texture.size=256"]),
+                      out)
+    assert ran(runs) == {"capture": False, "decode": False, "lights": False, "albedo": False,
+                         "register": False, "fuse": False, "simplify": False, "texture": True}
     runs = run_recipe(load_recipe(demo, reduced=True, overrides=["capture.seed=7"]), out)
-    assert ran(runs) == {"capture": True, "decode": True, "lights": False, "albedo": True}
-    # a stage whose record is gone is run again, and those after it that read it
+    assert ran(runs) == {"capture": True, "decode": True, "lights": False, "albedo": True, **model}
+    # a stage whose record is gone is run again; what reads it only if its result changed
     (out / "decode.stage.json").unlink()
     runs = run_recipe(load_recipe(demo, reduced=True, overrides=["capture.seed=7"]), out)
-    assert ran(runs) == {"capture": False, "decode": True, "lights": False, "albedo": False}
+    assert ran(runs) == {"capture": False, "decode": True, "lights": False, "albedo": False,
+                         **{k: False for k in model}}
 
 
 @pytest.mark.parametrize(

@@ -65,9 +65,11 @@ def _add_capture_options(p: argparse.ArgumentParser, *, demo: bool) -> None:
         p.add_argument("--gain", type=float, default=1.0, help="sensor gain (default 1)")
         p.add_argument("--no-noise", action="store_true", help="noise-free images (still quantised)")
         p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
-    p.add_argument("--views", type=int, default=1, help="turntable views over 360 degrees (default 1)")
-    p.add_argument("--scale", type=float, default=1.0,
-                   help="camera and projector resolution factor (default 1: 1440x960 camera, 1024x768 projector)")
+    views, scale = (8, 0.5) if demo else (1, 1.0)
+    p.add_argument("--views", type=int, default=views, help=f"turntable views over 360 degrees (default {views})")
+    p.add_argument("--scale", type=float, default=scale,
+                   help=f"camera and projector resolution factor (default {scale:g}; 1: the paper's 1440x960 "
+                        "camera and 1024x768 projector)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_recording_arguments(p)
 
@@ -120,6 +122,9 @@ def _cmd_capture(args: argparse.Namespace, *, demo: bool = False) -> int:
 
             demo_step(session, args.out, rec=rec, overwrite=args.overwrite, quiet=args.quiet,
                       scale=args.scale, executor=executor_from_args(args))
+            from slscan.texture.command import demo_step as model_step
+
+            model_step(args.out, scale=args.scale, rec=rec, overwrite=args.overwrite, quiet=args.quiet)
     if args.save:
         console.print(f"[green]recording[/] {args.save} ({_human(Path(args.save).stat().st_size)}): "
                       f"open it with  rerun {args.save}")
@@ -416,6 +421,10 @@ def build_parser() -> argparse.ArgumentParser:
     from slscan.register.command import add_command as add_register_commands
 
     add_register_commands(sub)
+
+    from slscan.texture.command import add_command as add_texture_command
+
+    add_texture_command(sub)
 
     from slscan.recipe.runner import describe_stages
 

@@ -166,6 +166,9 @@ class RegisterConfig:
     """Start from the recorded poses (turntable, .conf); false: align from features."""
     reference: str = ""
     """Scan that keeps its pose (default: the first)."""
+    pose_tolerance: float = 0.0
+    """How far (mm) the recorded poses may be off; 0: from the scans' sample spacing.
+    Small for an accurate turntable: ICP cannot then slide along a symmetric object."""
 
 
 @dataclass(frozen=True)
@@ -191,8 +194,11 @@ def _run_register(ctx: StageContext, config: RegisterConfig) -> dict[str, Any]:
         scans, poses = load_scans(ctx.inputs["range_maps"])
     else:
         raise SlscanError("register: set register.source, or decode range maps in an earlier stage")
+    from slscan.register.multiview import MultiviewConfig
+
     result = register_scans(scans, initial_poses=poses if config.use_poses else None,
-                            reference=config.reference or None, progress=ctx.progress)
+                            reference=config.reference or None, progress=ctx.progress,
+                            config=MultiviewConfig(pose_tolerance=config.pose_tolerance or None))
     write_scan_project(ctx.out, [s for s in scans if s.name in result.poses], result.poses, overwrite=True)
     write_json(ctx.out / "registration.json", {
         "reference": result.reference, "poses": {k: v.tolist() for k, v in result.poses.items()},
@@ -226,12 +232,25 @@ def _run_simplify(ctx: StageContext, config: SimplifyConfig) -> dict[str, Any]:
     return {"faces": len(mesh.faces)}
 
 
+def _run_texture(ctx: StageContext, config) -> dict[str, Any]:
+    from slscan.texture.pipeline import texture_model
+
+    poses = ctx.inputs.get("aligned")
+    result = texture_model(ctx.inputs["mesh"] / "mesh.ply", ctx.inputs["albedo"], ctx.out, poses=poses,
+                           session=ctx.inputs.get("session"), config=config, overwrite=True, rec=ctx.rec,
+                           progress=ctx.progress)
+    return {"faces": result.faces, "charts": result.charts, "size": result.size,
+            "observed_share": result.metrics["observed_share"],
+            "seam_error_mean": result.metrics["seam_error_mean"]}
+
+
 def _registry() -> dict[str, Stage]:
     from slscan.albedo.photometric import AlbedoConfig
     from slscan.calibrate.pipeline import CalibrationConfig
     from slscan.decode.pipeline import DecodeConfig
     from slscan.fuse import FuseConfig
     from slscan.virtual.device import VirtualCaptureConfig
+    from slscan.texture.pipeline import TextureConfig
     from slscan.virtual.panels import LightPanelConfig
 
     stages = [
@@ -253,6 +272,9 @@ def _registry() -> dict[str, Stage]:
               "fuse the aligned range maps (weighted TSDF)"),
         Stage("simplify", SimplifyConfig, "mesh", ("mesh",), _run_simplify, lambda c: 1,
               "simplify the mesh to a face count"),
+        Stage("texture", TextureConfig, "model", ("mesh", "albedo"), _run_texture, lambda c: 12,
+              "bake the views' un-shaded colour into a texture atlas; glb, OBJ, PLY, .mlp",
+              optional=("aligned", "session")),
     ]
     return {s.name: s for s in stages}
 

@@ -74,7 +74,8 @@ class MultiviewConfig:
     """Options of each pairwise alignment of the first round."""
     pose_tolerance: float | None = None
     """How far (mm) the initial poses may be off: the first round's correspondence
-    distance and the distance for finding overlapping pairs. None: 30 times the median
+    distance and the distance for finding overlapping pairs; a pair ICP moves by more than
+    twice this from its initial poses is rejected. At least 4 sample spacings. None: 30 times the median
     sample spacing (about 20 mm on the Stanford bunny), at most 1/8 of the scans' size."""
     min_overlap: float = 0.2
     """A pair is an edge when at least this fraction of the smaller scan lies on the
@@ -424,7 +425,8 @@ def register_scans(
     n = len(scans)
     spacing = float(np.median([median_edge_length(s) for s in scans]))
     extent = float(np.median([scan_extent(s) for s in scans]))
-    tolerance = config.pose_tolerance or min(30.0 * spacing, extent / 8.0)
+    tolerance = (max(config.pose_tolerance, 4.0 * spacing) if config.pose_tolerance
+                 else min(30.0 * spacing, extent / 8.0))
     pw = config.pairwise
     rejected: dict[tuple[str, str], str] = {}
     tick = progress or (lambda label: None)
@@ -443,7 +445,7 @@ def register_scans(
         else np.zeros((0, 3))
         for k, s in enumerate(scans)
     ]
-    m = overlap_matrix(world, tolerance / 2)
+    m = overlap_matrix(world, max(tolerance / 2, coarse_voxel))
     first = replace(
         pw,
         initial_distance=pw.initial_distance or tolerance,
@@ -460,9 +462,16 @@ def register_scans(
         if have[i] and have[j]:
             if _pair_overlap(m, i, j) < config.min_overlap:
                 continue
-            res = register_pair(
-                scans[i], scans[j], init=np.linalg.inv(poses0[j]) @ poses0[i], config=first
-            )
+            init = np.linalg.inv(poses0[j]) @ poses0[i]
+            res = register_pair(scans[i], scans[j], init=init, config=first)
+            moved = _median_displacement(res.transform, init, world[i], poses0[i])
+            if res and moved > 2 * tolerance:
+                tick(f"{names[i]}-{names[j]}")
+                rejected[(names[i], names[j])] = (
+                    f"ICP moved it {moved:.1f} mm from the recorded poses, more than twice their "
+                    f"tolerance ({tolerance:.1f} mm): a slide along a symmetric surface"
+                )
+                continue
         else:
             res = register_pair(
                 scans[i],
@@ -542,6 +551,18 @@ def register_scans(
         reference=names[root],
         rejected=rejected,
     )
+
+
+def _median_displacement(found: np.ndarray, init: np.ndarray, world_points: np.ndarray,
+                         world_from_scan: np.ndarray) -> float:
+    """Median distance (mm) the source scan's samples move between the initial guess and
+    the alignment found (both target_from_source)."""
+    if len(world_points) == 0:
+        return 0.0
+    scan_from_world = np.linalg.inv(world_from_scan)
+    p = world_points @ scan_from_world[:3, :3].T + scan_from_world[:3, 3]
+    delta = p @ (found[:3, :3] - init[:3, :3]).T + (found[:3, 3] - init[:3, 3])
+    return float(np.median(np.linalg.norm(delta, axis=1)))
 
 
 def _check_edge(res: PairwiseResult, config: MultiviewConfig) -> str:

@@ -116,8 +116,8 @@ def decode_blueprint() -> rrb.Blueprint:
 
 
 def pipeline_blueprint() -> rrb.Blueprint:
-    """The whole pipeline: one tab per stage layout (capture, decode, albedo)."""
-    stages = [capture_blueprint(), decode_blueprint(), _albedo()]
+    """The whole pipeline: one tab per stage layout (capture, decode, albedo, texture)."""
+    stages = [capture_blueprint(), decode_blueprint(), _albedo(), _texture()]
     return _blueprint(rrb.Tabs(*(b.root_container for b in stages), name="slscan pipeline"))
 
 
@@ -133,11 +133,18 @@ def _albedo() -> rrb.Blueprint:
     return albedo_blueprint()
 
 
+def _texture() -> rrb.Blueprint:
+    from slscan.viewer.log_texture import texture_blueprint
+
+    return texture_blueprint()
+
+
 LAYOUTS: dict[str, Callable[[], rrb.Blueprint]] = {
     "capture": capture_blueprint,
     "calibrate": _calibrate,
     "decode": decode_blueprint,
     "albedo": _albedo,
+    "texture": _texture,
     "pipeline": pipeline_blueprint,
 }
 """Blueprint builders by stage name; :func:`save_layouts` writes ``<name>.rbl`` for each."""

@@ -12,19 +12,21 @@ from slscan.errors import SlscanError
 
 
 def result_kind(path: Path) -> str:
-    """{"recording", "session", "range_maps", "run"} for a path ``slscan view`` can open."""
+    """{"recording", "session", "range_maps", "texture", "run"} for a path ``slscan view`` can open."""
     if path.is_file() and path.suffix == ".rrd":
         return "recording"
     if (path / "session.json").is_file():
         return "session"
     if (path / "range_maps.json").is_file():
         return "range_maps"
+    if (path / "texture.json").is_file():
+        return "texture"
     if (path / "recipe.resolved.toml").is_file():
         return "run"
     if path.exists():
         raise SlscanError(
             f"{path}: not something slscan can show (expected a .rrd file, a capture session, "
-            "a range-maps folder or a recipe run folder)"
+            "a range-maps folder, a texture result or a recipe run folder)"
         )
     raise SlscanError(f"{path}: not found")
 
@@ -71,12 +73,22 @@ def log_result(rec: rr.RecordingStream, path: str | os.PathLike) -> rrb.Blueprin
     if kind == "range_maps":
         log_range_maps(rec, path)
         return decode_blueprint()
+    if kind == "texture":
+        from slscan.viewer.log_texture import log_texture_result, texture_blueprint
+
+        log_texture_result(rec, path)
+        return texture_blueprint()
     if kind == "run":
+        from slscan.viewer.log_texture import log_texture_result
+
         for folder in sorted(p for p in path.iterdir() if p.is_dir()):
-            sub = result_kind(folder) if (folder / "session.json").is_file() or (folder / "range_maps.json").is_file() else None
+            markers = ("session.json", "range_maps.json", "texture.json")
+            sub = result_kind(folder) if any((folder / m).is_file() for m in markers) else None
             if sub == "session":
                 log_session(rec, folder)
             elif sub == "range_maps":
                 log_range_maps(rec, folder)
+            elif sub == "texture":
+                log_texture_result(rec, folder)
         return pipeline_blueprint()
     raise SlscanError(f"{path}: a recording is opened directly, not logged")

@@ -330,3 +330,23 @@ def scene_by_name(name: str, **kwargs) -> Scene:
     if name == "tile":
         return flat_tile(**kwargs)
     return load_mesh_scene(name, **kwargs)
+
+
+def surface_albedo(scene: Scene, points: np.ndarray) -> np.ndarray:
+    """True albedo (k, 3) linear RGB at the surface points nearest to object-frame ``points``
+    (k, 3): ground truth for baked textures."""
+    import open3d as o3d
+
+    rc = o3d.t.geometry.RaycastingScene()
+    rc.add_triangles(
+        o3d.core.Tensor(np.ascontiguousarray(scene.vertices, np.float32)),
+        o3d.core.Tensor(np.ascontiguousarray(scene.triangles, np.uint32)),
+    )
+    out = np.empty((len(points), 3), np.float32)
+    for start in range(0, len(points), 1_000_000):
+        chunk = np.ascontiguousarray(points[start:start + 1_000_000], np.float32)
+        hit = rc.compute_closest_points(o3d.core.Tensor(chunk))
+        ids = hit["primitive_ids"].numpy().astype(np.int64)
+        bary = hit["primitive_uvs"].numpy().astype(np.float64)
+        out[start:start + len(chunk)] = scene.albedo.at(hit["points"].numpy().astype(np.float64), ids, bary)
+    return out

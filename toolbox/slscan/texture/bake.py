@@ -1,0 +1,440 @@
+"""Bake the views' un-shaded colour into a texture atlas, and onto the vertices.
+
+For every texel covered by a chart (its surface point and interpolated normal found by
+rasterising the atlas triangles in texture space) and for every registered view:
+
+1. the point is projected through the view's camera (distortion included);
+2. it is **visible** when the model's own depth, ray cast from that view, is not nearer
+   than the point by more than a tolerance that grows with the pixel footprint and the
+   surface slope;
+3. its colour is the bilinear sample of the view's linear albedo, weighted by
+   ``cos(angle)^p`` (viewing angle), a ramp on the distance to the nearest depth
+   discontinuity or unknown albedo, and a ramp on the distance to the image border — so
+   the colour of each view fades out before its edges and seams between views blend;
+4. the weighted mean over views is the texel's colour.
+
+Texels no view sees take the colour interpolated from the per-vertex bake (which fills
+unseen vertices from the nearest seen ones); then the charts are padded into the gutter
+so bilinear sampling and mip-mapping do not pull in background across seams. The same
+view blending on the vertices gives the per-vertex colour fallback.
+
+The blending follows the weighting of Callieri, Cignoni, Scopigno, "Reconstructing
+textured meshes from multiple range+RGB maps" (VMV 2002; the paper's ref. 8) and
+Bernardini, Martin, Rushmeier, "High-quality texture reconstruction from multiple scans"
+(TVCG 2001): per-pixel weights from view angle, depth-discontinuity and border distance.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from slscan.errors import SlscanError
+from slscan.texture.views import TextureView
+
+log = logging.getLogger(__name__)
+
+BYTES_PER_TEXEL = 64
+"""Peak working memory per atlas texel (rasterisation, points, normals, accumulators)."""
+
+
+@dataclass(frozen=True)
+class BakeOptions:
+    """How views are weighted and blended (lengths in camera pixels unless noted)."""
+
+    max_angle_deg: float = 80.0
+    """A view sees a surface point at most this obliquely (angle between normal and ray)."""
+    angle_power: float = 2.0
+    """Weight ``cos(angle) ** angle_power``."""
+    edge_px: float = 12.0
+    """Weight ramps from 0 to 1 over this distance from a depth discontinuity or unknown albedo."""
+    border_px: float = 24.0
+    """Weight ramps from 0 to 1 over this distance from the image border."""
+    depth_slack_px: float = 1.5
+    """Visibility tolerance: this many pixel footprints plus the slope's depth change."""
+    jump_px: float = 12.0
+    """Neighbouring depths differing by more than this many pixel footprints are a discontinuity."""
+    prior_weight: float = 0.01
+    """Texels seen only weakly (total weight about this or less, e.g. one view at more than
+    ~75 degrees) are pulled towards the per-vertex colour with this weight."""
+    padding: int = 4
+    """Texels the charts are extended into the gutter."""
+    chunk: int = 2_000_000
+    """Texels processed at once."""
+
+
+@dataclass(frozen=True, eq=False)
+class DepthMap:
+    """The model as a view sees it: depth z (mm, camera frame) per pixel, inf where empty,
+    and the per-pixel distance (px) to a depth discontinuity or unknown albedo."""
+
+    depth: np.ndarray
+    edge_distance: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class Blend:
+    """Blended colour of a set of surface points.
+
+    color : (k, 3) float32 linear RGB, NaN where no view sees the point
+    weight : (k,) float32 summed weight
+    views : (k,) uint8 number of views that contributed
+    """
+
+    color: np.ndarray
+    weight: np.ndarray
+    views: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class BakedTexture:
+    """The baked atlas.
+
+    linear : (size, size, 3) float32 linear RGB (padded; background = mean colour)
+    covered : (size, size) bool, texels inside a chart
+    observed : (size, size) bool, texels some view saw (the rest were filled)
+    view_count : (size, size) uint8 views blended per texel
+    vertex_colors : (n, 3) float32 linear RGB per input vertex (filled, no NaN)
+    vertex_observed : (n,) bool
+    seconds : wall time per phase
+    """
+
+    linear: np.ndarray
+    covered: np.ndarray
+    observed: np.ndarray
+    view_count: np.ndarray
+    vertex_colors: np.ndarray
+    vertex_observed: np.ndarray
+    seconds: dict = field(default_factory=dict)
+
+    @property
+    def size(self) -> int:
+        return self.linear.shape[0]
+
+
+# --- rasterising the atlas ----------------------------------------------------------------------
+
+
+def rasterise_uv(uv_px: np.ndarray, faces: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Texels whose centre lies in a triangle of the atlas.
+
+    uv_px : (m, 2) texture coordinates in texels (x = column, y = row; texel centres at
+        integers)
+    faces : (n, 3) indices into ``uv_px``
+    Returns ``(texel, face, bary)``: flat texel index ``row * size + col`` (k,), the face
+    covering it (k,), and barycentric coordinates (k, 3) float32 — one entry per texel
+    (on a shared edge the lower face index wins).
+    """
+    tri = np.asarray(uv_px, np.float64)[np.asarray(faces)]
+    a = tri[:, 0]
+    e1 = tri[:, 1] - a
+    e2 = tri[:, 2] - a
+    det = e1[:, 0] * e2[:, 1] - e2[:, 0] * e1[:, 1]
+    lo = np.ceil(tri.min(axis=1) - 1e-9).astype(np.int64)
+    hi = np.floor(tri.max(axis=1) + 1e-9).astype(np.int64)
+    lo = np.clip(lo, 0, size - 1)
+    hi = np.clip(hi, -1, size - 1)
+    extent = np.maximum(hi - lo + 1, 0)
+    span = extent.max(axis=1)
+    ok = (np.abs(det) > 1e-12) & (extent.min(axis=1) > 0)
+    out_texel, out_face, out_bary = [], [], []
+    bounds = [0, 1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64, 96, 128, 192, 256]
+    while bounds[-1] < span.max(initial=0):
+        bounds.append(bounds[-1] * 2)
+    for lo_s, hi_s in itertools.pairwise(bounds):
+        ids = np.nonzero(ok & (span > lo_s) & (span <= hi_s))[0]
+        if len(ids) == 0:
+            continue
+        s = hi_s
+        dy, dx = np.divmod(np.arange(s * s), s)
+        per_chunk = max(1, 4_000_000 // (s * s))
+        for start in range(0, len(ids), per_chunk):
+            f = ids[start:start + per_chunk]
+            px = lo[f, 0:1] + dx[None, :]
+            py = lo[f, 1:2] + dy[None, :]
+            vx = px - a[f, 0:1]
+            vy = py - a[f, 1:2]
+            d = det[f, None]
+            b1 = (vx * e2[f, 1:2] - e2[f, 0:1] * vy) / d
+            b2 = (e1[f, 0:1] * vy - vx * e1[f, 1:2]) / d
+            b0 = 1.0 - b1 - b2
+            inside = (b0 >= -1e-9) & (b1 >= -1e-9) & (b2 >= -1e-9)
+            inside &= (px <= hi[f, 0:1]) & (py <= hi[f, 1:2])
+            r, c = np.nonzero(inside)
+            out_texel.append(py[r, c] * size + px[r, c])
+            out_face.append(f[r])
+            out_bary.append(np.stack([b0[r, c], b1[r, c], b2[r, c]], axis=1).astype(np.float32))
+    if not out_texel:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3), np.float32)
+    texel = np.concatenate(out_texel)
+    face = np.concatenate(out_face)
+    bary = np.concatenate(out_bary)
+    order = np.lexsort((face, texel))
+    texel, face, bary = texel[order], face[order], bary[order]
+    first = np.ones(len(texel), bool)
+    first[1:] = texel[1:] != texel[:-1]
+    return texel[first], face[first], np.clip(bary[first], 0.0, 1.0)
+
+
+# --- what each view sees ------------------------------------------------------------------------
+
+
+def _raycasting_scene(vertices: np.ndarray, faces: np.ndarray):
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(
+        o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)),
+        o3d.core.Tensor(np.ascontiguousarray(faces, np.uint32)),
+    )
+    return scene
+
+
+def depth_map(scene, view: TextureView, options: BakeOptions) -> DepthMap:
+    """Ray cast the model from ``view`` and find where its colour must fade out."""
+    import cv2
+    import open3d as o3d
+
+    from slscan.albedo.surface import pixel_rays
+
+    cam = view.camera
+    rays_cam = pixel_rays(cam)  # (h, w, 3) unit, camera frame
+    m = np.asarray(view.world_from_camera, float)
+    dirs = rays_cam.reshape(-1, 3) @ m[:3, :3].T
+    origins = np.broadcast_to(m[:3, 3], dirs.shape)
+    rays = np.concatenate([origins, dirs], axis=1).astype(np.float32)
+    t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().reshape(cam.height, cam.width)
+    depth = (t * rays_cam[..., 2]).astype(np.float32)  # inf stays inf
+    footprint = np.where(np.isfinite(depth), depth, 0.0) / cam.fx
+    usable = np.isfinite(depth) & np.all(np.isfinite(view.albedo), axis=2)
+    limit = options.jump_px * footprint
+    finite = np.where(np.isfinite(depth), depth, 0.0)
+    jump = np.zeros_like(usable)
+    dx = np.abs(np.diff(finite, axis=1)) > np.maximum(limit[:, 1:], limit[:, :-1])
+    dy = np.abs(np.diff(finite, axis=0)) > np.maximum(limit[1:], limit[:-1])
+    jump[:, 1:] |= dx
+    jump[:, :-1] |= dx
+    jump[1:] |= dy
+    jump[:-1] |= dy
+    usable &= ~jump
+    edge = cv2.distanceTransform(usable.astype(np.uint8), cv2.DIST_L2, 5).astype(np.float32)
+    return DepthMap(depth, edge)
+
+
+def _bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear samples (k, c) of ``image`` (h, w, c) at pixel centres ``x, y``; NaN if a
+    neighbour is NaN. Coordinates must lie within [0, w-1] x [0, h-1]."""
+    h, w = image.shape[:2]
+    x0 = np.minimum(np.floor(x).astype(np.int64), w - 2) if w > 1 else np.zeros(len(x), np.int64)
+    y0 = np.minimum(np.floor(y).astype(np.int64), h - 2) if h > 1 else np.zeros(len(y), np.int64)
+    fx = (x - x0).astype(np.float32)[:, None]
+    fy = (y - y0).astype(np.float32)[:, None]
+    x1 = np.minimum(x0 + 1, w - 1)
+    y1 = np.minimum(y0 + 1, h - 1)
+    top = image[y0, x0] * (1 - fx) + image[y0, x1] * fx
+    bottom = image[y1, x0] * (1 - fx) + image[y1, x1] * fx
+    return top * (1 - fy) + bottom * fy
+
+
+def blend_views(
+    points: np.ndarray,
+    normals: np.ndarray,
+    views: Sequence[TextureView],
+    depths: Sequence[DepthMap],
+    options: BakeOptions,
+) -> Blend:
+    """The views' weighted mean colour at surface ``points`` (k, 3) with unit ``normals``."""
+    k = len(points)
+    acc = np.zeros((k, 3), np.float32)
+    wsum = np.zeros(k, np.float32)
+    count = np.zeros(k, np.uint8)
+    cos_min = math.cos(math.radians(options.max_angle_deg))
+    for view, dm in zip(views, depths):
+        cam = view.camera
+        m = view.camera_from_world
+        for start in range(0, k, options.chunk):
+            sl = slice(start, min(k, start + options.chunk))
+            pc = points[sl] @ m[:3, :3].T + m[:3, 3]
+            dist = np.linalg.norm(pc, axis=1)
+            cos = -np.einsum("ij,ij->i", normals[sl] @ m[:3, :3].T, pc) / np.maximum(dist, 1e-12)
+            idx = np.nonzero((cos > cos_min) & (pc[:, 2] > 0))[0]
+            if len(idx) == 0:
+                continue
+            pix = cam.project_local(pc[idx])
+            x, y = pix[:, 0], pix[:, 1]
+            inside = (x >= 0) & (y >= 0) & (x <= cam.width - 1) & (y <= cam.height - 1)
+            idx, x, y = idx[inside], x[inside], y[inside]
+            z = pc[idx, 2]
+            xi, yi = np.rint(x).astype(np.int64), np.rint(y).astype(np.int64)
+            c = cos[idx]
+            tan = np.sqrt(np.maximum(1.0 - c * c, 0.0)) / c
+            slack = (z / cam.fx) * (options.depth_slack_px + tan)
+            visible = z <= dm.depth[yi, xi] + slack
+            idx, x, y, xi, yi, c = idx[visible], x[visible], y[visible], xi[visible], yi[visible], c[visible]
+            edge = np.clip(dm.edge_distance[yi, xi] / options.edge_px, 0.0, 1.0)
+            border = np.minimum.reduce([x, y, cam.width - 1 - x, cam.height - 1 - y])
+            w = (c ** options.angle_power) * edge * np.clip(border / options.border_px, 0.0, 1.0)
+            color = _bilinear(view.albedo, x, y)
+            good = (w > 0) & np.all(np.isfinite(color), axis=1)
+            target = idx[good] + start
+            acc[target] += (color[good] * w[good, None]).astype(np.float32)
+            wsum[target] += w[good].astype(np.float32)
+            count[target] += 1
+    with np.errstate(invalid="ignore", divide="ignore"):
+        color = np.where(wsum[:, None] > 0, acc / wsum[:, None], np.nan).astype(np.float32)
+    return Blend(color, wsum, count)
+
+
+# --- the whole bake -----------------------------------------------------------------------------
+
+
+def check_texture_memory(size: int, *, available: int | None = None) -> None:
+    """Raise when baking a ``size`` × ``size`` atlas would not fit in memory."""
+    if size < 16 or size > 16384:
+        raise SlscanError(f"texture size {size}: expected 16 to 16384 texels")
+    need = size * size * BYTES_PER_TEXEL
+    if available is None:
+        available = _available_memory()
+    if available and need > available:
+        raise SlscanError(
+            f"texture size {size}: baking needs about {need / 2**30:.1f} GiB of memory, "
+            f"{available / 2**30:.1f} GiB are available; choose a smaller --size"
+        )
+
+
+def _available_memory() -> int:
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
+
+
+def _fill_vertices(vertices: np.ndarray, color: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unseen vertices (NaN) take the colour of the nearest seen one."""
+    from scipy.spatial import cKDTree
+
+    seen = np.all(np.isfinite(color), axis=1)
+    out = color.copy()
+    if not seen.any():
+        out[:] = 0.5
+        return out, seen
+    if not seen.all():
+        _, nearest = cKDTree(vertices[seen]).query(vertices[~seen])
+        out[~seen] = color[seen][nearest]
+    return out, seen
+
+
+def pad_charts(image: np.ndarray, covered: np.ndarray, iterations: int) -> tuple[np.ndarray, np.ndarray]:
+    """Grow the charts' colours ``iterations`` texels into the uncovered gutter (each new
+    texel takes the mean of its covered 8-neighbours)."""
+    import cv2
+
+    image = image.copy()
+    mask = covered.astype(np.float32)
+    for _ in range(iterations):
+        weight = cv2.boxFilter(mask, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
+        grow = (weight > 0) & (mask == 0)
+        if not grow.any():
+            break
+        total = cv2.boxFilter(image * mask[..., None], -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
+        image[grow] = total[grow] / weight[grow][:, None]
+        mask[grow] = 1.0
+    return image, mask > 0
+
+
+def bake(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    atlas,
+    views: Sequence[TextureView],
+    options: BakeOptions | None = None,
+    *,
+    progress: Callable[[str], None] | None = None,
+) -> BakedTexture:
+    """Bake ``views`` into ``atlas`` (a :class:`slscan.texture.atlas.Atlas` of the mesh
+    ``vertices``, ``faces``: same faces in the same order) and onto the vertices."""
+    import time
+
+    from slscan.meshes import vertex_normals
+
+    options = options or BakeOptions()
+    progress = progress or (lambda label: None)
+    vertices = np.asarray(vertices, np.float64)
+    faces = np.asarray(faces, np.int64)
+    if len(faces) == 0:
+        raise SlscanError("bake: the model has no faces")
+    if not views:
+        raise SlscanError("bake: no views to take colour from")
+    if len(atlas.faces) != len(faces):
+        raise SlscanError(f"bake: the atlas has {len(atlas.faces)} faces, the model {len(faces)}")
+    size = int(atlas.size)
+    check_texture_memory(size)
+    seconds = {}
+    t0 = time.perf_counter()
+    normals = vertex_normals(vertices, faces).astype(np.float32)
+    scene = _raycasting_scene(vertices, faces)
+    depths = []
+    for view in views:
+        depths.append(depth_map(scene, view, options))
+        progress(f"depth {view.name}")
+    seconds["depth_maps"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    vblend = blend_views(vertices.astype(np.float32), normals, views, depths, options)
+    vertex_colors, vertex_seen = _fill_vertices(vertices, vblend.color)
+    seconds["vertices"] = time.perf_counter() - t0
+    progress("vertex colours")
+
+    t0 = time.perf_counter()
+    uv_px = np.asarray(atlas.uvs, np.float64) * size - 0.5
+    texel, face, bary = rasterise_uv(uv_px, atlas.faces, size)
+    seconds["rasterise"] = time.perf_counter() - t0
+    progress("rasterised")
+
+    t0 = time.perf_counter()
+    corner = faces[face]  # the model's vertices of each texel's face
+    points = np.einsum("kj,kjc->kc", bary, vertices[corner].astype(np.float32))
+    tnormals = np.einsum("kj,kjc->kc", bary, normals[corner])
+    tnormals /= np.maximum(np.linalg.norm(tnormals, axis=1, keepdims=True), 1e-12)
+    tblend = blend_views(points, tnormals, views, depths, options)
+    del points, tnormals
+    seconds["blend"] = time.perf_counter() - t0
+    progress("blended")
+
+    t0 = time.perf_counter()
+    # texels no view sees take the per-vertex colours; weakly seen ones (grazing, near an
+    # edge) are pulled towards them: a prior of weight ``prior_weight``
+    fill = np.einsum("kj,kjc->kc", bary, vertex_colors[corner])
+    unseen = ~np.all(np.isfinite(tblend.color), axis=1)
+    w = tblend.weight[:, None]
+    seen_color = np.nan_to_num(tblend.color)
+    color = ((seen_color * w + fill * options.prior_weight) / (w + options.prior_weight)).astype(np.float32)
+    color[unseen] = fill[unseen]
+    image = np.zeros((size * size, 3), np.float32)
+    image[texel] = color
+    covered = np.zeros(size * size, bool)
+    covered[texel] = True
+    observed = np.zeros(size * size, bool)
+    observed[texel[~unseen]] = True
+    view_count = np.zeros(size * size, np.uint8)
+    view_count[texel] = tblend.views
+    image = image.reshape(size, size, 3)
+    covered = covered.reshape(size, size)
+    padded, filled = pad_charts(image, covered, options.padding)
+    if covered.any():
+        padded[~filled] = image[covered].mean(axis=0)
+    seconds["fill_pad"] = time.perf_counter() - t0
+    progress("padded")
+    return BakedTexture(
+        padded, covered, observed.reshape(size, size), view_count.reshape(size, size),
+        vertex_colors, vertex_seen, seconds,
+    )

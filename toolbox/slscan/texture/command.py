@@ -1,0 +1,128 @@
+"""``slscan texture``: a model and its registered views → a textured model (glb, OBJ, PLY, .mlp)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from slscan.progress import ProgressBar, console
+
+TEXTURE_EPILOG = """\
+examples:
+  slscan texture demo-run/simplify/mesh.ply --views demo-run/albedo --poses demo-run/register --out textured
+  slscan texture model.ply --views albedo --out textured --size 4096 --save texture.rrd
+
+--views is the folder `slscan albedo` wrote (un-shaded images + albedo.json, which names
+the capture session for the camera model); --poses the registration (`slscan register`'s
+folder, its registration.json or aligned.mlp); without it the session's recorded poses
+are used. Outputs in --out: model.glb (glTF, metres, Y up), model.obj/.mtl +
+model_albedo.png (mm), model_vertex_colors.ply, model.mlp (MeshLab: the model and the
+views as registered rasters), views/VIEW.png, view_count.png, texture.json, and
+preview.png when Blender is found (bash .ci/setup installs it in .venv-blender).
+"""
+
+
+def _cmd_texture(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from slscan.texture.pipeline import TextureConfig, texture_model
+    from slscan.viewer.log_texture import texture_blueprint
+    from slscan.viewer.recording import recording_from_args
+
+    config = TextureConfig(size=args.size, preview=not args.no_preview)
+    if args.padding is not None:
+        config = replace(config, bake=replace(config.bake, padding=args.padding))
+    with (recording_from_args(args, recording_name=f"texture {args.model.name}", blueprint=texture_blueprint()) as rec,
+          ProgressBar(16, "texturing", args.quiet) as bar):
+        result = texture_model(args.model, args.views, args.out, poses=args.poses, session=args.session,
+                               config=config, overwrite=args.overwrite, rec=rec, progress=bar.step)
+    m = result.metrics
+    console().print(
+        f"[green]textured[/] {result.faces:,} faces: atlas {result.size}x{result.size}, {result.charts:,} charts, "
+        f"utilisation {m['utilisation']:.2f}, {m['observed_share']:.1%} of texels seen, seam error "
+        f"{m['seam_error_mean']:.2f} levels in {result.seconds.get('total', 0):.1f} s -> {result.out / 'model.glb'}",
+        highlight=False,
+    )
+    return 0
+
+
+def add_command(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``texture`` to the ``slscan`` subcommands."""
+    from slscan.viewer.recording import add_recording_arguments
+
+    p = subparsers.add_parser(
+        "texture", help="bake the views' un-shaded colour into a texture atlas; write glb/OBJ/PLY/.mlp",
+        description="Texture a model from its registered views: parametrise it into an atlas (xatlas "
+                    "on pre-segmented patches), bake every view's un-shaded colour into it with "
+                    "visibility from each view's depth and weights for viewing angle, depth "
+                    "discontinuities and image borders, fill unseen texels from the per-vertex "
+                    "colours and pad across seams. Writes the model as glTF binary, OBJ and "
+                    "vertex-coloured PLY, and a MeshLab project with the views as rasters.",
+        epilog=TEXTURE_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("model", type=Path, help="the model (PLY/OBJ; e.g. slscan simplify's output)")
+    p.add_argument("--views", required=True, type=Path, metavar="DIR", help="slscan albedo's output folder")
+    p.add_argument("--poses", type=Path, metavar="REGISTRATION",
+                   help="registration.json, aligned.mlp or their folder (default: recorded poses)")
+    p.add_argument("--session", type=Path, help="capture session (default: the one albedo.json names)")
+    p.add_argument("--out", required=True, type=Path, help="folder to write")
+    p.add_argument("--size", type=int, default=0, help="atlas size in texels (default: from the face count)")
+    p.add_argument("--padding", type=int, default=None, help="texels of padding around charts (default 4)")
+    p.add_argument("--no-preview", action="store_true", help="do not render preview.png with Blender")
+    p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_recording_arguments(p)
+    p.set_defaults(func=_cmd_texture)
+
+
+def demo_step(out: Path, *, scale: float = 1.0, rec=None, overwrite: bool = False, quiet: bool = False) -> Path:
+    """The demo's model step, after ``OUT/range_maps`` and ``OUT/albedo``: register the range
+    maps (from the turntable poses), fuse them, simplify, texture. Writes ``OUT/aligned/``,
+    ``OUT/fused.ply``, ``OUT/model.ply`` and ``OUT/textured/``; returns the ``.glb``."""
+    import time
+
+    import numpy as np
+
+    from slscan.fsio import write_json
+    from slscan.fuse import FuseConfig, fuse_scans, write_mesh
+    from slscan.register.command import load_scans
+    from slscan.register.meshlab import write_scan_project
+    from slscan.register.multiview import register_scans
+    from slscan.simplify import simplify_file
+    from slscan.texture.pipeline import texture_model
+    from slscan.viewer import log_register as rlog
+
+    out = Path(out)
+    con = console()
+    t0 = time.perf_counter()
+    scans, poses = load_scans(out / "range_maps")
+    if len(scans) > 1:
+        with ProgressBar(len(scans) * (len(scans) - 1) // 2 + 1, "registering", quiet) as bar:
+            result = register_scans(scans, initial_poses=poses, progress=bar.step)
+        poses = result.poses
+        rlog.log_scan_poses(rec, poses, stage="registered")
+        if result.left_out:
+            con.print(f"[yellow]left out[/] {', '.join(result.left_out)}: they match no other view", highlight=False)
+    else:
+        poses = {scans[0].name: np.eye(4)}
+    aligned = [s for s in scans if s.name in poses]
+    write_scan_project(out / "aligned", aligned, poses, overwrite=overwrite)
+    write_json(out / "aligned" / "registration.json", {"poses": {k: v.tolist() for k, v in poses.items()}})
+    voxel = 0.5 / min(1.0, scale)  # about the camera's sampling at the working distance
+    with ProgressBar(len(aligned), "fusing", quiet) as bar:
+        fused = fuse_scans(aligned, poses, config=FuseConfig(voxel_size=voxel), progress=bar.step)
+    write_mesh(fused.mesh, out / "fused.ply")
+    rlog.log_fused_mesh(rec, fused.mesh)
+    model = simplify_file(out / "fused.ply", out / "model.ply", min(len(fused.mesh.faces), 200_000))
+    rlog.log_simplified_mesh(rec, model)
+    con.print(f"[green]wrote[/] {out / 'model.ply'}: {len(aligned)} range maps registered, fused at {voxel:g} mm "
+              f"({len(fused.mesh.faces):,} faces), simplified to {len(model.faces):,} faces "
+              f"in {time.perf_counter() - t0:.1f} s", highlight=False)
+    with ProgressBar(16, "texturing", quiet) as bar:
+        result = texture_model(out / "model.ply", out / "albedo", out / "textured", poses=poses,
+                               session=out / "capture", overwrite=overwrite, rec=rec, progress=bar.step)
+    glb = result.out / "model.glb"
+    con.print(f"[green]wrote[/] {glb}: atlas {result.size}x{result.size} with {result.charts:,} charts, "
+              f"{result.metrics['observed_share']:.0%} of texels seen by a view "
+              f"({result.seconds.get('total', 0):.1f} s)", highlight=False)
+    return glb

@@ -1,0 +1,188 @@
+"""Write the textured model where other programs open it.
+
+- ``model.glb``: glTF 2.0 binary, the atlas mesh with a PBR material whose base colour is
+  the baked texture (sRGB PNG, embedded); positions in metres, Y up (glTF's conventions:
+  ``gltf_from_world`` in ``texture.json`` says how the slscan world frame, mm, maps in).
+- ``model.obj`` + ``model.mtl`` + ``model_albedo.png``: the same in the slscan frame (mm).
+- ``model_vertex_colors.ply``: the model (not split at seams) with per-vertex sRGB colour.
+- ``views/VIEW.png``: each view's un-shaded image, sRGB, resampled to a pure pinhole
+  camera with the same fx, fy and the principal point at the image centre (MeshLab
+  rasters and Blender cameras have no lens distortion; MeshLab mishandles off-centre
+  principal points).
+
+glTF and OBJ are written with trimesh (well kept, writes both with textures; chosen over
+hand-written glTF so the binary layout, padding and PNG embedding follow its tested code).
+"""
+
+from __future__ import annotations
+
+import io
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from slscan.errors import SlscanError
+from slscan.fsio import atomic_output_file, write_png
+from slscan.texture.views import TextureView
+
+GLTF_FROM_WORLD = np.diag([0.001, -0.001, -0.001, 1.0])
+"""slscan world (mm, the reference camera's axes: x right, y down, z forward) → glTF
+(metres, y up): the reference camera then looks down glTF's −z, as glTF cameras do."""
+
+
+def _textured_trimesh(vertices: np.ndarray, faces: np.ndarray, uvs: np.ndarray, texture: np.ndarray,
+                      normals: np.ndarray | None = None):
+    import PIL.Image
+    import trimesh
+    from trimesh.visual.material import PBRMaterial
+
+    material = PBRMaterial(
+        name="albedo", baseColorTexture=PIL.Image.fromarray(texture), metallicFactor=0.0,
+        roughnessFactor=1.0,
+    )
+    uv = np.asarray(uvs, np.float64).copy()
+    uv[:, 1] = 1.0 - uv[:, 1]  # trimesh keeps OBJ's convention: v up from the bottom row
+    return trimesh.Trimesh(
+        vertices=vertices, faces=faces, vertex_normals=normals,
+        visual=trimesh.visual.TextureVisuals(uv=uv, material=material), process=False,
+    )
+
+
+def _check_texture(texture: np.ndarray) -> None:
+    if texture.dtype != np.uint8 or texture.ndim != 3 or texture.shape[2] != 3:
+        raise SlscanError(f"texture must be an 8-bit RGB image, got {texture.dtype} {texture.shape}")
+
+
+def write_glb(path: str | os.PathLike, atlas, texture: np.ndarray, normals: np.ndarray | None = None,
+              *, gltf_from_world: np.ndarray = GLTF_FROM_WORLD) -> Path:
+    """Write the atlas mesh with its 8-bit sRGB ``texture`` as glTF binary, atomically.
+
+    normals : (m, 3) per atlas vertex (slscan frame), or None
+    """
+    _check_texture(texture)
+    m = np.asarray(gltf_from_world, float)
+    vertices = np.asarray(atlas.vertices, np.float64) @ m[:3, :3].T + m[:3, 3]
+    if normals is not None:
+        rot = m[:3, :3] / np.cbrt(abs(np.linalg.det(m[:3, :3])))
+        normals = np.asarray(normals, np.float64) @ rot.T
+    mesh = _textured_trimesh(vertices, atlas.faces, atlas.uvs, texture, normals)
+    data = mesh.export(file_type="glb")
+    path = Path(path)
+    with atomic_output_file(path) as tmp:
+        tmp.write_bytes(data)
+    return path
+
+
+def write_obj(path: str | os.PathLike, atlas, texture: np.ndarray, normals: np.ndarray | None = None) -> Path:
+    """Write ``NAME.obj``, ``NAME.mtl`` and ``NAME_albedo.png`` (slscan frame, mm), atomically
+    file by file (the PNG and MTL first, so an OBJ never names missing files)."""
+    from trimesh.exchange.obj import export_obj
+
+    _check_texture(texture)
+    path = Path(path)
+    stem = path.stem
+    mesh = _textured_trimesh(np.asarray(atlas.vertices, np.float64), atlas.faces, atlas.uvs, texture, normals)
+    text, files = export_obj(mesh, include_normals=normals is not None, include_texture=True,
+                             return_texture=True, mtl_name=f"{stem}.mtl")
+    image_name = f"{stem}_albedo.png"
+    mtl = next((v for k, v in files.items() if k.endswith(".mtl")), None)
+    if mtl is None:
+        raise SlscanError(f"{path}: trimesh wrote no material file")
+    old_image = next(k for k in files if not k.endswith(".mtl"))
+    mtl = mtl.decode().replace(old_image, image_name).encode()
+    write_png(path.parent / image_name, texture)
+    with atomic_output_file(path.parent / f"{stem}.mtl") as tmp:
+        tmp.write_bytes(mtl)
+    with atomic_output_file(path) as tmp:
+        tmp.write_text(text)
+    return path
+
+
+def write_vertex_color_ply(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,
+                           colors_srgb: np.ndarray, normals: np.ndarray | None = None) -> Path:
+    """The model with per-vertex 8-bit sRGB colour, binary PLY (the fallback for programs
+    without textures)."""
+    from slscan.fuse import Mesh, write_mesh
+
+    return write_mesh(Mesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64),
+                           None if normals is None else np.asarray(normals, np.float32),
+                           np.asarray(colors_srgb, np.uint8)), path)
+
+
+def centred_camera(view: TextureView) -> tuple[float, float, float, float]:
+    """``fx, fy, cx, cy`` of the view's exported image: the same focal lengths, the
+    principal point at the image centre. MeshLab mirrors an off-centre principal point
+    in x when it renders a raster's depth (vcglib ``Camera::GetFrustum``), which blacks
+    out or shifts projected colour; a centred one is exact everywhere."""
+    cam = view.camera
+    return cam.fx, cam.fy, (cam.width - 1) / 2.0, (cam.height - 1) / 2.0
+
+
+def undistorted_view_image(view: TextureView) -> np.ndarray:
+    """The view's un-shaded image as 8-bit sRGB, resampled (bilinear) to a distortion-free
+    pinhole camera with :func:`centred_camera`'s intrinsics (black where the albedo is
+    unknown or outside the original image)."""
+    import cv2
+
+    from slscan.albedo.unshade import srgb8
+
+    image = srgb8(view.albedo)
+    cam = view.camera
+    fx, fy, cx, cy = centred_camera(view)
+    new_k = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    if not np.any(cam.dist_array) and np.allclose(new_k, cam.K):
+        return image
+    map_x, map_y = cv2.initUndistortRectifyMap(cam.K, cam.dist_array, None, new_k, (cam.width, cam.height),
+                                               cv2.CV_32FC1)
+    return cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def view_entries(views: Sequence[TextureView], folder: str = "views") -> list[dict]:
+    """The manifest's description of each view: the pinhole intrinsics of its exported
+    (undistorted, centred) image and its pose."""
+    entries = []
+    for v in views:
+        fx, fy, cx, cy = centred_camera(v)
+        entries.append({
+            "name": v.name, "image": f"{folder}/{v.name}.png", "width": v.camera.width,
+            "height": v.camera.height, "fx": fx, "fy": fy, "cx": cx, "cy": cy,
+            "world_from_camera": np.asarray(v.world_from_camera, float).tolist(), "source": v.image_file,
+        })
+    return entries
+
+
+def read_obj_atlas(path: str | os.PathLike) -> tuple[dict, np.ndarray]:
+    """An OBJ written by :func:`write_obj` read back: ``{"vertices", "faces", "uvs"}`` (uvs
+    with the origin at the image's top-left, as in :class:`slscan.texture.atlas.Atlas`) and
+    its 8-bit texture."""
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise SlscanError(f"{path}: textured OBJ not found")
+    mesh = trimesh.load(path, force="mesh", process=False, maintain_order=True)
+    uv = getattr(mesh.visual, "uv", None)
+    tex = getattr(getattr(mesh.visual, "material", None), "image", None)
+    if uv is None or tex is None:
+        raise SlscanError(f"{path}: expected texture coordinates and a texture image")
+    uvs = np.asarray(uv, np.float32).copy()
+    uvs[:, 1] = 1.0 - uvs[:, 1]
+    return ({"vertices": np.asarray(mesh.vertices), "faces": np.asarray(mesh.faces), "uvs": uvs},
+            np.asarray(tex.convert("RGB"), np.uint8))
+
+
+def glb_summary(path: str | os.PathLike) -> dict:
+    """What a .glb holds, read back with trimesh: vertices, faces, texture size (for checks)."""
+    import trimesh
+
+    data = Path(path).read_bytes()
+    mesh = trimesh.load(io.BytesIO(data), file_type="glb", force="mesh", process=False)
+    material = getattr(mesh.visual, "material", None)
+    tex = getattr(material, "baseColorTexture", None)
+    return {
+        "vertices": len(mesh.vertices), "faces": len(mesh.faces),
+        "texture_size": None if tex is None else list(tex.size),
+        "has_uv": getattr(mesh.visual, "uv", None) is not None,
+    }

@@ -1,0 +1,201 @@
+"""The texture stage end to end: model + registered views → textured model in open formats.
+
+:func:`texture_model` parametrises the model (:mod:`slscan.texture.atlas`), bakes the
+views' un-shaded colour into the atlas and onto the vertices (:mod:`slscan.texture.bake`)
+and writes the output folder atomically:
+
+==============================  ===============================================================
+``model.glb``                   glTF 2.0 binary with the baked texture (metres, Y up)
+``model.obj/.mtl``, ``model_albedo.png``  the same as OBJ (mm, slscan frame)
+``model_vertex_colors.ply``     the model with per-vertex colour (the fallback)
+``model.mlp``                   MeshLab project: the OBJ and every view as a registered raster
+``views/VIEW.png``              each view's un-shaded image (sRGB, undistorted)
+``view_count.png``              views blended per texel (8-bit; 0: filled from the vertices)
+``preview.png``                 Cycles render of the model (when Blender is found)
+``texture.json``                manifest: files, views (intrinsics, poses), atlas, metrics
+==============================  ===============================================================
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from slscan import __version__
+from slscan.errors import SlscanError
+from slscan.texture.bake import BakeOptions
+
+log = logging.getLogger(__name__)
+
+TEXTURE_FORMAT = "slscan-texture"
+TEXTURE_VERSION = 1
+
+
+@dataclass(frozen=True)
+class TextureConfig:
+    """Options of the texture stage."""
+
+    size: int = 0
+    """Atlas width = height in texels; 0: from the face count (see ``texels_per_face``)."""
+    texels_per_face: float = 8.0
+    """With ``size = 0``: texels per face the atlas aims at (rounded up to a power of two,
+    512 to 8192)."""
+    bake: BakeOptions = field(default_factory=BakeOptions)
+    preview: bool = True
+    """Render ``preview.png`` with Blender's Cycles (CPU) when Blender is found."""
+    preview_size: tuple[int, int] = (640, 480)
+    preview_samples: int = 16
+
+
+@dataclass(frozen=True)
+class TextureResult:
+    out: Path
+    faces: int
+    charts: int
+    size: int
+    metrics: dict
+    seconds: dict
+
+
+def auto_size(faces: int, texels_per_face: float = 8.0, utilisation: float = 0.7) -> int:
+    """Power-of-two atlas size giving about ``texels_per_face`` texels to each face."""
+    side = math.sqrt(max(faces, 1) * texels_per_face / utilisation)
+    return int(min(8192, max(512, 2 ** math.ceil(math.log2(side)))))
+
+
+def texture_model(
+    model: str | os.PathLike,
+    albedo_dir: str | os.PathLike,
+    out: str | os.PathLike,
+    *,
+    poses=None,
+    session: str | os.PathLike | None = None,
+    config: TextureConfig | None = None,
+    overwrite: bool = False,
+    rec=None,
+    progress: Callable[[str], None] | None = None,
+) -> TextureResult:
+    """Texture ``model`` (PLY/OBJ mesh, world frame) from the views of ``albedo_dir``.
+
+    poses : the registration (``registration.json``, ``aligned.mlp``, their folder, or a
+        dict name → world_from_camera); see :func:`slscan.texture.views.load_views`
+    session : the capture session, when not the one ``albedo.json`` names
+    """
+    from slscan.albedo.unshade import srgb8
+    from slscan.fsio import atomic_output_dir, write_json, write_png
+    from slscan.fuse import read_mesh
+    from slscan.meshes import vertex_normals
+    from slscan.register.meshlab import Raster, write_mlp
+    from slscan.texture import export
+    from slscan.texture.atlas import AtlasOptions, build_atlas
+    from slscan.texture.bake import bake, check_texture_memory
+    from slscan.texture.metrics import seam_error
+    from slscan.texture.views import load_views
+    from slscan.viewer.log_texture import log_texture_views, log_textured_model
+
+    config = config or TextureConfig()
+    progress = progress or (lambda label: None)
+    out = Path(out)
+    if out.exists() and not overwrite:
+        raise SlscanError(f"{out}: already exists (pass --overwrite to replace it)")
+    t_start = time.perf_counter()
+    mesh = read_mesh(model)
+    if len(mesh.faces) == 0:
+        raise SlscanError(f"{model}: the model has no faces")
+    size = config.size or auto_size(len(mesh.faces), config.texels_per_face)
+    check_texture_memory(size)
+    views = load_views(albedo_dir, poses, session=session)
+    progress(f"{len(views)} views")
+
+    atlas = build_atlas(mesh.vertices, mesh.faces, AtlasOptions(size=size, padding=config.bake.padding))
+    progress(f"atlas: {atlas.n_charts} charts")
+    baked = bake(mesh.vertices, mesh.faces, atlas, views, config.bake, progress=progress)
+    texture = srgb8(baked.linear)
+    normals = vertex_normals(mesh.vertices, mesh.faces).astype(np.float32)
+    seams = seam_error(texture, mesh.faces, atlas)
+    covered = int(baked.covered.sum())
+    metrics = {
+        "charts": atlas.n_charts,
+        "utilisation": round(float(atlas.utilisation), 4),
+        "texels_covered": covered,
+        "observed_share": round(float(baked.observed.sum() / max(covered, 1)), 4),
+        "mean_views_per_texel": round(float(baked.view_count[baked.covered].mean()) if covered else 0.0, 3),
+        "vertices_observed_share": round(float(baked.vertex_observed.mean()), 4),
+        "seam_edges": seams.edges,
+        "seam_error_mean": round(seams.mean, 3),
+        "seam_error_p95": round(seams.p95, 3),
+    }
+    seconds = {"atlas": round(float(atlas.seconds.get("total", 0.0)), 2),
+               **{k: round(float(v), 2) for k, v in baked.seconds.items()}}
+    progress("baked")
+
+    with atomic_output_dir(out, overwrite=overwrite) as tmp:
+        t0 = time.perf_counter()
+        atlas_normals = normals[atlas.source_vertex]
+        export.write_glb(tmp / "model.glb", atlas, texture, atlas_normals)
+        export.write_obj(tmp / "model.obj", atlas, texture, atlas_normals)
+        export.write_vertex_color_ply(tmp / "model_vertex_colors.ply", mesh.vertices, mesh.faces,
+                                      srgb8(baked.vertex_colors), normals)
+        write_png(tmp / "view_count.png", baked.view_count)
+        images = []
+        (tmp / "views").mkdir()
+        for view in views:
+            image = export.undistorted_view_image(view)
+            write_png(tmp / "views" / f"{view.name}.png", image)
+            images.append(image)
+        entries = export.view_entries(views)
+        rasters = [Raster(e["name"], e["image"], e["width"], e["height"], e["fx"], e["fy"], e["cx"], e["cy"],
+                          np.asarray(e["world_from_camera"])) for e in entries]
+        write_mlp(tmp / "model.mlp", [(tmp / "model.obj", np.eye(4))], rasters=rasters)
+        seconds["export"] = round(time.perf_counter() - t0, 2)
+        progress("exported")
+        manifest = {
+            "format": TEXTURE_FORMAT, "version": TEXTURE_VERSION, "written_by": f"slscan {__version__}",
+            "units": "mm",
+            "source": {"model": str(Path(model).resolve()), "albedo": str(Path(albedo_dir).resolve())},
+            "model": {"glb": "model.glb", "obj": "model.obj", "ply": "model_vertex_colors.ply",
+                      "texture": "model_albedo.png", "mlp": "model.mlp", "view_count": "view_count.png",
+                      "faces": len(mesh.faces), "vertices": len(mesh.vertices)},
+            "gltf_from_world": export.GLTF_FROM_WORLD.tolist(),
+            "atlas": {"size": atlas.size, "charts": atlas.n_charts, "utilisation": atlas.utilisation,
+                      "vertices": len(atlas.vertices)},
+            "bake": asdict(config.bake),
+            "views": entries,
+            "metrics": metrics,
+            "seconds": seconds,
+        }
+        write_json(tmp / "texture.json", manifest)
+        if config.preview:
+            _preview(tmp, config, manifest, seconds, progress)
+        seconds["total"] = round(time.perf_counter() - t_start, 2)
+        manifest["seconds"] = seconds
+        write_json(tmp / "texture.json", manifest)
+    log_texture_views(rec, entries, images)
+    log_textured_model(rec, atlas, texture, atlas_normals, baked.view_count, metrics)
+    return TextureResult(out, len(mesh.faces), atlas.n_charts, atlas.size, metrics, seconds)
+
+
+def _preview(folder: Path, config: TextureConfig, manifest: dict, seconds: dict, progress) -> None:
+    """Render ``preview.png`` with Blender when one is found; a warning when it fails."""
+    from slscan.texture.blender import find_blender, render_preview
+
+    if find_blender() is None:
+        log.info("no Blender found: no preview.png (run `bash .ci/setup` to install bpy in .venv-blender)")
+        return
+    t0 = time.perf_counter()
+    try:
+        render_preview(folder, folder / "preview.png", size=tuple(config.preview_size),
+                       samples=config.preview_samples)
+    except SlscanError as exc:
+        log.warning("Blender preview failed: %s", exc)
+        return
+    manifest["preview"] = "preview.png"
+    seconds["preview"] = round(time.perf_counter() - t0, 2)
+    progress("preview")

@@ -1,0 +1,112 @@
+"""Loggers for the texture stage: the textured model, the atlas and how many views fed each texel.
+
+Entity tree (world frame of the aligned set, mm)::
+
+    world/model/textured          Mesh3D with texcoords and the baked albedo texture   [stage = textured]
+    world/views/<name>            Transform3D world_from_camera + Pinhole of each view (static)
+    world/views/<name>/albedo     the view's un-shaded image (sRGB)                      (static)
+    texture/atlas                 the baked atlas (sRGB image)                           [stage = textured]
+    texture/view_count            views blended per texel (0 = filled from vertices)      [stage = textured]
+    plot/texture/<metric>         coverage, observed share, seam error, seconds           [stage = textured]
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from slscan.viewer.log_register import MODEL_PATH, STAGES, _set_stage
+
+TEXTURED_STAGE = "textured"
+STAGES.setdefault(TEXTURED_STAGE, len(STAGES))
+VIEWS_PATH = "world/views"
+ATLAS_PATH = "texture/atlas"
+VIEW_COUNT_PATH = "texture/view_count"
+MAX_LOGGED_FACES = 2_000_000
+MAX_LOGGED_TEXTURE = 4096
+
+
+def log_texture_views(rec: rr.RecordingStream | None, entries: Sequence[Mapping], images: Sequence[np.ndarray]) -> None:
+    """Each view as a camera at its pose with its exported (undistorted, sRGB) un-shaded
+    image; ``entries`` as in ``texture.json`` (name, width, height, fx, fy, cx, cy,
+    world_from_camera)."""
+    if rec is None:
+        return
+    for entry, image in zip(entries, images):
+        path = f"{VIEWS_PATH}/{entry['name']}"
+        m = np.asarray(entry["world_from_camera"], float)
+        rec.log(path, rr.Transform3D(translation=m[:3, 3], mat3x3=m[:3, :3]), static=True)
+        rec.log(path, rr.Pinhole(focal_length=[entry["fx"], entry["fy"]],
+                                 principal_point=[entry["cx"] + 0.5, entry["cy"] + 0.5],
+                                 resolution=[entry["width"], entry["height"]], image_plane_distance=50.0),
+                static=True)
+        rec.log(f"{path}/albedo", rr.Image(image).compress(jpeg_quality=90), static=True)
+
+
+def log_texture_result(rec: rr.RecordingStream | None, folder) -> None:
+    """Log a texture-stage output folder from disk (``texture.json``, the OBJ, the views)."""
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    from slscan.fsio import read_json, read_png
+    from slscan.texture.export import read_obj_atlas
+
+    if rec is None:
+        return
+    folder = Path(folder)
+    manifest = read_json(folder / "texture.json", "texture manifest")
+    atlas, texture = read_obj_atlas(folder / manifest["model"]["obj"])
+    count = read_png(folder / manifest["model"]["view_count"])
+    entries = manifest.get("views", [])
+    log_texture_views(rec, entries, [read_png(folder / e["image"]) for e in entries])
+    log_textured_model(rec, SimpleNamespace(**atlas), texture, None, count, manifest.get("metrics", {}))
+
+
+def log_textured_model(rec: rr.RecordingStream | None, atlas, texture: np.ndarray, normals: np.ndarray | None,
+                       view_count: np.ndarray, metrics: Mapping[str, float]) -> None:
+    """The textured mesh, the atlas image, the per-texel view count and the metrics."""
+    if rec is None:
+        return
+    _set_stage(rec, TEXTURED_STAGE)
+    faces = np.asarray(atlas.faces)
+    if len(faces) > MAX_LOGGED_FACES:
+        faces = faces[:: int(np.ceil(len(faces) / MAX_LOGGED_FACES))]
+    shown = texture
+    if texture.shape[0] > MAX_LOGGED_TEXTURE:
+        step = int(np.ceil(texture.shape[0] / MAX_LOGGED_TEXTURE))
+        shown = texture[::step, ::step]
+    # Rerun's texcoords put (0, 0) at the image's top-left corner, as glTF and our atlas do.
+    rec.log(f"{MODEL_PATH}/textured", rr.Mesh3D(
+        vertex_positions=np.asarray(atlas.vertices, np.float32),
+        triangle_indices=faces.astype(np.uint32),
+        vertex_normals=None if normals is None else np.asarray(normals, np.float32),
+        vertex_texcoords=np.asarray(atlas.uvs, np.float32),
+        albedo_texture=shown,
+    ))
+    rec.log(ATLAS_PATH, rr.Image(shown))
+    rec.log(VIEW_COUNT_PATH, rr.SegmentationImage(view_count))
+    for name, value in metrics.items():
+        if value is not None and np.isfinite(value):
+            rec.log(f"plot/texture/{name}", rr.Scalars(float(value)))
+
+
+def texture_blueprint() -> rrb.Blueprint:
+    """Texture stage: the textured model among the view cameras; the atlas and the view
+    count beside it; the metrics below."""
+    from slscan.viewer.layouts import _blueprint
+
+    model = rrb.Spatial3DView(
+        origin="world", contents=["+ $origin/model/textured", "+ $origin/views/**"], name="Textured model"
+    )
+    images = rrb.Tabs(
+        rrb.Spatial2DView(origin=ATLAS_PATH, name="Atlas"),
+        rrb.Spatial2DView(origin=VIEW_COUNT_PATH, name="Views per texel"),
+        name="Texture",
+    )
+    metrics = rrb.TimeSeriesView(origin="plot/texture", name="Texture metrics")
+    return _blueprint(rrb.Horizontal(
+        model, rrb.Vertical(images, metrics, row_shares=[3, 1]), column_shares=[3, 2], name="Texture",
+    ))
