@@ -19,15 +19,20 @@ def test_help_lists_the_commands(capsys):
         main(["--help"])
     assert exc.value.code == 0
     out = capsys.readouterr().out
-    for command in ("demo", "capture", "decode", "calibrate", "albedo", "register", "fuse", "simplify", "run",
+    for command in ("demo", "capture", "decode", "calibrate", "albedo", "register", "fuse", "simplify", "texture", "run",
                     "regress", "view", "patterns", "import", "info", "layouts"):
         assert command in out
 
 
-def test_demo_at_reduced_size_reaches_a_range_map(tmp_path, capsys):
+def test_demo_at_reduced_size_ends_in_a_textured_model(tmp_path, capsys):
+    from slscan.texture.export import glb_summary
+
     out, rrd = tmp_path / "demo", tmp_path / "demo.rrd"
     assert main(["demo", "--out", str(out), "--scale", "0.25", "--quiet", "--save", str(rrd)]) == 0
+    glb = glb_summary(out / "textured" / "model.glb")
+    assert glb["faces"] > 10_000 and glb["has_uv"] and glb["texture_size"] is not None
     session = load_session(out / "capture")
+    assert len(session.views) == 8
     view = session.views[0]
     assert len(view.pattern_images()) == 2 + 7 and len(view.lit_images()) == 6
     assert rrd.stat().st_size > 10_000

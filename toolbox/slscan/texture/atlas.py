@@ -109,7 +109,10 @@ class AtlasOptions:
     smooth_passes: int = 6
     """Face → vertex → face normal averaging passes before labelling ("patches")."""
     min_patch_faces: int = 20
-    """Patches with fewer faces are merged into a neighbour ("patches")."""
+    """Patches with fewer faces join a neighbour whose direction they face ("patches")."""
+    fold_texels: float = 64.0
+    """Patches of less area (in texels at about the final resolution) that could join no
+    neighbour that way are absorbed into one anyway, their faces folded ("patches")."""
     fill: float = 0.68
     """Share of the page the charts, grown by half the padding and a texel all round, are
     first sized to fill (xatlas packs them to about 0.7 before some spill over)."""
@@ -144,6 +147,8 @@ class AtlasOptions:
             raise SlscanError(
                 "atlas smooth_passes must be >= 0, min_patch_faces and max_pack_attempts >= 1"
             )
+        if self.fold_texels < 0:
+            raise SlscanError(f"atlas fold_texels {self.fold_texels}: expected >= 0")
 
 
 @dataclass(frozen=True, eq=False)
@@ -334,26 +339,36 @@ def _label_faces(
 def _merge_small(
     label: np.ndarray,
     cos: np.ndarray,
+    texels: np.ndarray,
     fa: np.ndarray,
     fb: np.ndarray,
     min_faces: int,
+    min_texels: float,
     min_cos: float | None,
     max_rounds: int = 30,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Relabel patches of fewer than ``min_faces`` faces with the label of a larger
-    neighbour (most shared edges first); with ``min_cos``, only neighbours whose direction
-    all their faces face by more than it. Returns (label, patch)."""
+    """Give small patches the label of a larger neighbour (the one sharing most edges).
+
+    With ``min_cos``, patches of fewer than ``min_faces`` faces or ``min_texels`` texels
+    (``texels``: (n,) texel area of each face) take only the label of a neighbour whose
+    direction all their faces face by more than ``min_cos``; without, patches of fewer
+    than ``min_texels`` texels take the label of any. Returns (label, patch).
+    """
     n = len(label)
     for _ in range(max_rounds):
         patch = _components(n, fa, fb, label)
         n_patch = int(patch.max()) + 1
         size = np.bincount(patch, minlength=n_patch)
+        area = np.bincount(patch, texels, n_patch)
+        small = area < min_texels
+        if min_cos is not None:
+            small |= size < min_faces
         plabel = np.zeros(n_patch, np.int64)
         plabel[patch] = label
         cross = label[fa] != label[fb]
         a = np.r_[patch[fa[cross]], patch[fb[cross]]]
         b = np.r_[patch[fb[cross]], patch[fa[cross]]]
-        ok = (size[a] < min_faces) & ((size[b] > size[a]) | ((size[b] == size[a]) & (b < a)))
+        ok = small[a] & ((size[b] > size[a]) | ((size[b] == size[a]) & (b < a)))
         if min_cos is not None and ok.any():
             order, starts = _group_starts(patch, n_patch)
             worst = np.minimum.reduceat(cos[order], starts[:-1], axis=0)  # (n_patch, K)
@@ -392,8 +407,12 @@ def _segment(
 ) -> _Patches:
     """Patches of faces (steps 1-4 of the module docstring)."""
     label, dirs, cos = _label_faces(v, f, cross, normals, options)
-    label, _ = _merge_small(label, cos, fa, fb, options.min_patch_faces, options.min_cos)
-    label, patch = _merge_small(label, cos, fa, fb, options.min_patch_faces, None)
+    # texel area of each face at about the final resolution (padding aside)
+    area = 0.5 * np.linalg.norm(cross, axis=1)
+    texels = area * (options.fill * options.size**2 / max(float(area.sum()), 1e-300))
+    merge = (texels, fa, fb, options.min_patch_faces, options.fold_texels)
+    label, _ = _merge_small(label, cos, *merge, min_cos=options.min_cos)
+    label, patch = _merge_small(label, cos, *merge, min_cos=None)
     n_patch = int(patch.max()) + 1
     plabel = np.zeros(n_patch, np.int64)
     plabel[patch] = label
@@ -649,9 +668,10 @@ def _pack_patches(
 
 def _shrink(atlas) -> float:
     """Factor on the texels per mm that should bring a packing spilling onto more pages back
-    to one: the first page's share of all the charts' texels, square-rooted, less 3 %."""
+    to one: the first page's share of all the charts' texels, square-rooted, less 1 %."""
     used = [atlas.get_utilization(i) for i in range(atlas.atlas_count)]
-    return 0.97 * math.sqrt(used[0] / sum(used))
+    log.debug("atlas: pages used %s", ", ".join(f"{u:.3f}" for u in used))
+    return 0.99 * math.sqrt(used[0] / sum(used))
 
 
 def _fit_affine(src: np.ndarray, dst: np.ndarray, group: np.ndarray, n_groups: int):
@@ -848,6 +868,14 @@ def _build_xatlas(v: np.ndarray, f: np.ndarray, options: AtlasOptions, done) -> 
         atlas.add_mesh(v.astype(np.float32), f.astype(np.uint32))
         atlas.generate(chart_options, _pack_options(options, texels_per_mm))
         side = max(atlas.width, atlas.height)
+        log.debug(
+            "atlas: xatlas at %.3f texels/mm: %d charts, %d pages of %d x %d",
+            atlas.texels_per_unit,
+            atlas.chart_count,
+            atlas.atlas_count,
+            atlas.width,
+            atlas.height,
+        )
         if atlas.atlas_count == 1 and side <= options.size:
             break
         texels_per_mm = 0.95 * atlas.texels_per_unit * min(1.0, options.size / side)

@@ -2,11 +2,11 @@
 
 Entity tree (world frame of the aligned set, mm)::
 
-    world/model/textured          Mesh3D with texcoords and the baked albedo texture   [stage = textured]
+    world/model/textured          Mesh3D with texcoords and the baked albedo texture   (static)
     world/views/<name>            Transform3D world_from_camera + Pinhole of each view (static)
     world/views/<name>/albedo     the view's un-shaded image (sRGB)                      (static)
-    texture/atlas                 the baked atlas (sRGB image)                           [stage = textured]
-    texture/view_count            views blended per texel (0 = filled from vertices)      [stage = textured]
+    texture/atlas                 the baked atlas (sRGB image)                           (static)
+    texture/view_count            views blended per texel (0 = filled from vertices)      (static)
     plot/texture/<metric>         coverage, observed share, seam error, seconds           [stage = textured]
 """
 
@@ -85,21 +85,24 @@ def log_textured_model(rec: rr.RecordingStream | None, atlas, texture: np.ndarra
         vertex_normals=None if normals is None else np.asarray(normals, np.float32),
         vertex_texcoords=np.asarray(atlas.uvs, np.float32),
         albedo_texture=shown,
-    ))
-    rec.log(ATLAS_PATH, rr.Image(shown))
-    rec.log(VIEW_COUNT_PATH, rr.SegmentationImage(view_count))
+    ), static=True)  # the stage's one result: shown whatever timeline the viewer is on
+    rec.log(ATLAS_PATH, rr.Image(shown), static=True)
+    rec.log(VIEW_COUNT_PATH, rr.SegmentationImage(view_count), static=True)
     for name, value in metrics.items():
         if value is not None and np.isfinite(value):
             rec.log(f"plot/texture/{name}", rr.Scalars(float(value)))
 
 
 def texture_blueprint() -> rrb.Blueprint:
-    """Texture stage: the textured model among the view cameras; the atlas and the view
-    count beside it; the metrics below."""
-    from slscan.viewer.layouts import _blueprint
+    """Texture stage: the textured model (and, in a second tab, among the view cameras);
+    the atlas and the per-texel view count beside it; the metrics below."""
+    from slscan.viewer.recording import STAGE_TIMELINE
 
-    model = rrb.Spatial3DView(
-        origin="world", contents=["+ $origin/model/textured", "+ $origin/views/**"], name="Textured model"
+    model = rrb.Tabs(
+        rrb.Spatial3DView(origin="world", contents=["+ $origin/model/textured"], name="Textured model"),
+        rrb.Spatial3DView(origin="world", contents=["+ $origin/model/textured", "+ $origin/views/**"],
+                          name="Model and views"),
+        name="Model",
     )
     images = rrb.Tabs(
         rrb.Spatial2DView(origin=ATLAS_PATH, name="Atlas"),
@@ -107,6 +110,10 @@ def texture_blueprint() -> rrb.Blueprint:
         name="Texture",
     )
     metrics = rrb.TimeSeriesView(origin="plot/texture", name="Texture metrics")
-    return _blueprint(rrb.Horizontal(
-        model, rrb.Vertical(images, metrics, row_shares=[3, 1]), column_shares=[3, 2], name="Texture",
-    ))
+    return rrb.Blueprint(
+        rrb.Horizontal(model, rrb.Vertical(images, metrics, row_shares=[3, 1]), column_shares=[3, 2],
+                       name="Texture"),
+        rrb.TimePanel(expanded=True, timeline=STAGE_TIMELINE),
+        rrb.SelectionPanel(expanded=False),
+        collapse_panels=False,
+    )
