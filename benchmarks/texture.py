@@ -40,6 +40,8 @@ def run_stages(work: Path, scale: float, views: int, stages: list[str], extra: d
     data = tomllib.loads((ROOT / "recipes" / "demo.toml").read_text())
     data["recipe"]["stages"] = stages
     data["recipe"].pop("reduced", None)
+    for name in [k for k in data if k != "recipe" and k not in stages]:
+        del data[name]
     levels = 9 if scale >= 1 else 8
     data["capture"].update(camera_scale=scale, projector_scale=max(scale, 0.5), views=views, levels=levels)
     for table, values in extra.items():

