@@ -4,53 +4,71 @@ Two methods:
 
 - ``"patches"`` (the default, for scanned models up to a few million faces): our own
   segmentation into height-field patches, each flattened by an orthographic projection,
-  packed by xatlas (``add_uv_mesh``: xatlas only packs, it does not cut);
+  and xatlas only to pack them (``add_uv_mesh``: it does not cut or flatten);
 - ``"xatlas"``: xatlas cuts, flattens (LSCM) and packs the whole mesh itself.
 
-Why not plain xatlas
+Why not xatlas alone
 --------------------
-xatlas grows charts by a cost (normal deviation, roundness, straightness) and splits a
-chart again wherever its flattening folds. A fused scan is rough at the scale of its
-faces, and fast quadric simplification leaves some faces folded against their
-neighbours, so xatlas makes a great many tiny charts and is slow: on the fused Stanford
-bunny simplified to 1M faces its defaults take over 15 minutes; on a 100k-face version
-of it they take 38 s for 7,300 charts, half of them of one or two faces (numbers from
-``benchmarks/atlas.py`` on a 2-core machine; see it for the current table).
+xatlas grows charts by a cost (normal deviation, roundness, straightness) and splits
+again any chart whose flattening folds. A fused scan is rough at the scale of its faces,
+and fast quadric simplification leaves some faces folded against their neighbours, so
+xatlas makes a great many tiny charts, slowly. On the fused Stanford bunny (1,694
+connected components, open boundaries), on 2 cores (``benchmarks/atlas.py``):
+
+============================== ========= ======== ============ =========
+method                         faces     charts   utilisation  seconds
+============================== ========= ======== ============ =========
+xatlas defaults                100,000   7,307    0.63         32
+patches                        100,000   1,707    0.62         3.6
+xatlas, max_iterations=0       999,902   —        —            > 300
+patches                        999,902   2,232    0.63         15
+============================== ========= ======== ============ =========
+
+(xatlas's defaults take over 15 minutes on the 1M faces; its pages came out larger than
+the 4096² asked for, "patches" fill exactly one. Charts are at least the 1,694
+components; the rest are patches.)
 
 The patch segmentation
 ----------------------
 1. **Directions.** Each face is labelled with the nearest of a fixed set of directions
-   (``directions``: the 6 axes, plus the 8 cube diagonals for 14, plus the 12 edge
-   diagonals for 26), by its normal smoothed over its neighbourhood
-   (``smooth_passes``), so that noise does not scatter labels. A face whose own normal
+   (``directions``: the 6 axes; or with the 8 cube diagonals, 14; or with the 12 edge
+   diagonals too, 26), by its normal averaged over its neighbourhood
+   (``smooth_passes``), so that noise does not scatter the labels. A face whose own normal
    is more than ``acos(min_cos)`` from its label's direction takes the direction nearest
    its own normal instead.
-2. **Patches.** Connected faces (across edges shared by exactly two faces) with the same
-   label form a patch. Every face of a patch faces its direction, so the orthographic
-   projection along it is locally one-to-one (a height field), with area scaled by
-   cos(angle) >= ``min_cos``.
-3. **Merging.** Patches of fewer than ``min_patch_faces`` faces join a neighbouring patch
-   whose direction all their faces also face (repeated while any can). Those that still
-   cannot are left by rough spots and folds: they are *absorbed* into the neighbour with
-   which they share most edges, although some of their faces are then oblique or flipped
-   in its projection. Such "folded" faces overlap their own chart, over their own small
-   area (a fold lies on top of its neighbours, so what they would show is the same), and
-   never another chart. On the 1M-face bunny this keeps about 0.5 % of the area from
-   becoming thousands of charts of one or two faces. Small connected components with no
-   neighbour stay charts of their own, so there are at least as many charts as components.
+2. **Patches.** Faces with the same label connected across edges shared by exactly two
+   faces form a patch. Every face of a patch faces its direction, so the orthographic
+   projection along it is locally one-to-one (a height field) and scales its area by its
+   cosine to the direction, at least ``min_cos``.
+3. **Merging.** A patch of fewer than ``min_patch_faces`` faces or ``fold_texels`` texels
+   joins the neighbouring patch it shares most edges with, among those whose direction
+   all its faces face by more than ``min_cos`` (repeated while any can). Patches of fewer
+   than ``fold_texels`` texels left after that come from rough spots and folds: they are
+   *absorbed* into the neighbour they share most edges with anyway, although some of
+   their faces are then oblique or flipped in its projection ("folded"). A folded face
+   overlaps its own chart, over its own small area (it lies on top of its neighbours, so
+   what they show is the same), never another chart. On the 1M-face bunny 2.7 % of the
+   faces, 0.6 % of the area, are folded instead of making thousands of charts of one or
+   two faces, and 0.5 % of the texels covered are covered twice within their chart.
+   Components with no neighbour stay charts of their own.
 4. **Projection.** A patch is projected along its area-weighted mean normal when all its
-   (not folded) faces face it by at least ``min_cos``, else along its label's direction.
-5. **Overlap check.** Patches are rasterised at about the atlas's texel size; one whose
-   projection overlaps itself (an overhang that faces the same way) is cut in two across
-   its longer side, and the pieces are checked again.
-6. **Packing.** Each patch goes to xatlas as its own UV mesh; the texels per mm are set so
-   that the charts fill one ``size`` x ``size`` page (estimated from the charts' areas and
-   perimeters, reduced and repacked if they spill onto a second page).
+   faces that are not folded face it by more than ``min_cos``, else along its direction.
+5. **Overlap check.** Patches are rasterised at half the atlas's texel size; one whose
+   projection covers a texel twice (an overhang facing the same way; faces within two
+   rings of a fold aside) is split between two faces that overlap, each face going with
+   the nearer of them over the surface; the pieces are checked again.
+6. **Packing.** Each patch goes to xatlas as its own UV mesh (so it stays one chart).
+   The texels per mm are first set for the charts, grown by their padding, to fill
+   ``fill`` of the page, then adjusted by a few packings to the finest that fits one page.
+   xatlas's chart rotation is off: it transposes charts, which would mirror them.
+7. **Assembly.** Where xatlas put each chart is fitted as an affine map of our projection
+   (it moves, rotates and rounds chart sizes to whole texels), and applied to every atlas
+   vertex, including those of faces xatlas leaves out for having zero area.
 
 Every face keeps its index and winding; atlas vertices are (chart, input vertex) pairs, so
-vertices on seams are duplicated. Faces of zero area take the chart of a neighbour (their
-UV triangle is degenerate too); any that have no neighbour in a chart are collapsed onto a
-point of chart 0.
+vertices on seams are duplicated. Zero-area faces take the chart of a neighbour (their UV
+triangle has zero area too); the few with no neighbour in any chart (specks of
+micrometre faces) are collapsed onto a point of chart 0.
 
 References
 ----------
@@ -58,7 +76,7 @@ References
 .. [2] Lévy, Petitjean, Ray, Maillot, "Least squares conformal maps for automatic texture
    atlas generation", SIGGRAPH 2002 (xatlas's flattening).
 .. [3] Sander, Wood, Gortler, Snyder, Hoppe, "Multi-chart geometry images", SGP 2003
-   (charts grown by normal cones, the idea behind the direction labels).
+   (charts grown within normal cones, the idea behind the direction labels).
 """
 
 from __future__ import annotations
@@ -117,7 +135,8 @@ class AtlasOptions:
     """Share of the page the charts, grown by half the padding and a texel all round, are
     first sized to fill (xatlas packs them to about 0.7 before some spill over)."""
     max_pack_attempts: int = 4
-    """Packings tried, each with 7 % fewer texels per mm, before giving up on one page."""
+    """Most packings tried to find the finest scale that fits one page (each takes about
+    3 s for 1M faces); see :func:`_pack_patches`."""
     xatlas_max_cost: float = 2.0
     """xatlas ``ChartOptions.max_cost`` ("xatlas"; its default)."""
     xatlas_max_iterations: int = 1
@@ -125,9 +144,7 @@ class AtlasOptions:
 
     def __post_init__(self) -> None:
         if not MIN_SIZE <= self.size <= MAX_SIZE:
-            raise SlscanError(
-                f"atlas size {self.size}: expected {MIN_SIZE} to {MAX_SIZE} texels"
-            )
+            raise SlscanError(f"atlas size {self.size}: expected {MIN_SIZE} to {MAX_SIZE} texels")
         if not 0 <= self.padding <= self.size // 16:
             raise SlscanError(
                 f"atlas padding {self.padding}: expected 0 to {self.size // 16} texels "
@@ -168,12 +185,14 @@ class Atlas:
     size : page width = height, texels
     utilisation : share of the page covered by charts (their UV area; folded faces,
         which lie on their own chart, not counted)
-    texels_per_mm : texture resolution on the surface ("patches": exact, up to the
-        cos(angle) of each face to its projection; "xatlas": on average)
+    texels_per_mm : the scale charts were packed at: with "patches", a face's UV area is
+        its area × texels_per_mm² × its cosine to its chart's projection axis, up to
+        xatlas's rounding of each chart to whole texels (it also enlarges charts smaller
+        than a few texels); with "xatlas", on average
     n_folded : faces whose UV triangle is flipped or squeezed below ``min_cos`` (see the
         module docstring; 0 with "xatlas")
-    seconds : wall time per phase ("segment", "project", "check", "pack", "assemble" or
-        "xatlas", and "total")
+    seconds : wall time per phase: "segment", "check", "pack", "assemble" ("patches") or
+        "xatlas", "assemble" ("xatlas"); and "total"
     """
 
     vertices: np.ndarray
@@ -628,6 +647,7 @@ def _pack_options(options: AtlasOptions, texels_per_mm: float):
     pack.bilinear = True
     pack.blockAlign = True  # 4×4 blocks: much faster, hardly less dense
     pack.bruteForce = False
+    pack.rotate_charts = False  # it transposes (mirrors) charts
     return pack
 
 
@@ -639,10 +659,19 @@ def _pack_patches(
     texels_per_mm: float,
     options: AtlasOptions,
 ):
-    """Pack each patch, its own xatlas UV mesh, at ``texels_per_mm``, 7 % less per retry
-    while the charts spill onto a second page. Returns (xatlas.Atlas, texels_per_mm)."""
+    """Pack each patch (its own xatlas UV mesh) on one page, as finely as a few packings find.
+
+    Starts at ``texels_per_mm``. A packing that spills onto a second page is redone at the
+    scale its first page's share suggests; one that fits with room to spare (xatlas fills
+    pages to about 0.7) is tried larger; once one fits and a larger one does not, the
+    scale is bisected while packings are left and the two differ by more than 3 %.
+    Returns (xatlas.Atlas, texels_per_mm) of the finest packing that fit.
+    """
     import xatlas
 
+    fit = None  # (texels_per_mm, atlas)
+    too_big = math.inf
+    t = texels_per_mm
     for _ in range(options.max_pack_attempts):
         atlas = xatlas.Atlas()
         for k in range(len(vertex_starts) - 1):
@@ -650,28 +679,33 @@ def _pack_patches(
                 local_uv[vertex_starts[k] : vertex_starts[k + 1]],
                 local_faces[face_starts[k] : face_starts[k + 1]],
             )
-        atlas.generate(xatlas.ChartOptions(), _pack_options(options, texels_per_mm))
+        atlas.generate(xatlas.ChartOptions(), _pack_options(options, t))
+        used = [atlas.get_utilization(i) for i in range(atlas.atlas_count)]
         log.debug(
-            "atlas: packed at %.3f texels/mm: %d pages, xatlas utilisation %.3f",
-            texels_per_mm,
-            atlas.atlas_count,
-            atlas.utilization,
+            "atlas: packed at %.3f texels/mm: pages used %s",
+            t,
+            ", ".join(f"{u:.3f}" for u in used),
         )
         if atlas.atlas_count == 1 and max(atlas.width, atlas.height) <= options.size:
-            return atlas, texels_per_mm
-        texels_per_mm *= _shrink(atlas)
-    raise SlscanError(
-        f"atlas: the charts did not fit one {options.size}² page in "
-        f"{options.max_pack_attempts} packings; raise max_pack_attempts or lower fill"
-    )
-
-
-def _shrink(atlas) -> float:
-    """Factor on the texels per mm that should bring a packing spilling onto more pages back
-    to one: the first page's share of all the charts' texels, square-rooted, less 1 %."""
-    used = [atlas.get_utilization(i) for i in range(atlas.atlas_count)]
-    log.debug("atlas: pages used %s", ", ".join(f"{u:.3f}" for u in used))
-    return 0.99 * math.sqrt(used[0] / sum(used))
+            fit = (t, atlas)
+            if too_big == math.inf:
+                if used[0] > 0.62:
+                    break  # about as full as xatlas gets
+                t *= math.sqrt(0.68 / used[0])
+        else:
+            too_big = t
+            if fit is None:
+                t *= 0.99 * math.sqrt(used[0] / sum(used))
+        if fit is not None and too_big < math.inf:
+            if too_big / fit[0] < 1.03:
+                break
+            t = math.sqrt(fit[0] * too_big)
+    if fit is None:
+        raise SlscanError(
+            f"atlas: the charts did not fit one {options.size}² page in "
+            f"{options.max_pack_attempts} packings; raise max_pack_attempts or lower fill"
+        )
+    return fit[1], fit[0]
 
 
 def _fit_affine(src: np.ndarray, dst: np.ndarray, group: np.ndarray, n_groups: int):
@@ -699,7 +733,7 @@ def _fit_affine(src: np.ndarray, dst: np.ndarray, group: np.ndarray, n_groups: i
 
 
 def _adopt_charts(
-    chart: np.ndarray, patch: np.ndarray, fa: np.ndarray, fb: np.ndarray, n_charts: int
+    chart: np.ndarray, patch: np.ndarray, fa: np.ndarray, fb: np.ndarray
 ) -> np.ndarray:
     """Give faces xatlas left out (zero UV area) the chart of a neighbour in their patch,
     else of any chart of their patch; -1 where their patch has no chart."""
@@ -733,7 +767,9 @@ def _build_patches(v: np.ndarray, f: np.ndarray, options: AtlasOptions, done) ->
     n, nv = len(f), len(v)
     seconds: dict[str, float] = {}
     t0 = t = time.perf_counter()
-    cross, normals, _ = _face_geometry(v, f)
+    cross, normals, area = _face_geometry(v, f)
+    if not area.any():
+        raise SlscanError("atlas: all faces of the mesh have zero area")
     fa, fb, slot = _edge_pairs(f, nv)
     patches = _segment(v, f, cross, normals, fa, fb, options)
     seconds["segment"] = time.perf_counter() - t
@@ -800,7 +836,7 @@ def _build_patches(v: np.ndarray, f: np.ndarray, options: AtlasOptions, done) ->
         log.warning("atlas: chart placements fit to %.3f texels only", residual)
     chart_patch = np.zeros(n_charts, np.int64)
     chart_patch[chart[chart >= 0]] = patch[chart >= 0]
-    chart = _adopt_charts(chart, patch, fa, fb, n_charts)
+    chart = _adopt_charts(chart, patch, fa, fb)
     collapsed = chart < 0
     if collapsed.any():
         log.info("atlas: %d zero-area faces collapsed onto chart 0", int(collapsed.sum()))
@@ -817,7 +853,10 @@ def _build_patches(v: np.ndarray, f: np.ndarray, options: AtlasOptions, done) ->
     vpatch = chart_patch[vchart]
     e1, e2 = _frames(patches.axis)
     local = np.stack(
-        [np.einsum("ij,ij->i", v[source], e1[vpatch]), np.einsum("ij,ij->i", v[source], e2[vpatch])],
+        [
+            np.einsum("ij,ij->i", v[source], e1[vpatch]),
+            np.einsum("ij,ij->i", v[source], e2[vpatch]),
+        ],
         axis=1,
     )
     local -= shift[vpatch] + mean_s[vchart]
@@ -899,7 +938,7 @@ def _build_xatlas(v: np.ndarray, f: np.ndarray, options: AtlasOptions, done) -> 
     for c in range(n_charts):
         chart[np.asarray(atlas.get_mesh_chart(0, c).faces, np.int64)] = c
     fa, fb, _ = _edge_pairs(f, len(v))
-    chart = _adopt_charts(chart, np.zeros(len(f), np.int64), fa, fb, n_charts)
+    chart = _adopt_charts(chart, np.zeros(len(f), np.int64), fa, fb)
     chart[chart < 0] = 0
     source = np.asarray(vmap, np.int64)
     texel = np.asarray(out_uv, np.float64) * [atlas.width, atlas.height]
