@@ -15,18 +15,20 @@ and fast quadric simplification leaves some faces folded against their neighbour
 xatlas makes a great many tiny charts, slowly. On the fused Stanford bunny (1,694
 connected components, open boundaries), on 2 cores (``benchmarks/atlas.py``):
 
-============================== ========= ======== ============ =========
-method                         faces     charts   utilisation  seconds
-============================== ========= ======== ============ =========
-xatlas defaults                100,000   7,307    0.63         32
-patches                        100,000   1,707    0.62         3.6
-xatlas, max_iterations=0       999,902   —        —            > 300
-patches                        999,902   2,232    0.63         15
-============================== ========= ======== ============ =========
+========================================== ======= ====== =========== =======
+method                                     faces   charts utilisation seconds
+========================================== ======= ====== =========== =======
+xatlas defaults                            100k    7,307  0.625       39.6
+xatlas max_iterations=0                    100k    8,328  0.532       10.9
+xatlas max_iterations=0, max_cost=0.5      100k    13,269 0.636       7.6
+patches                                    100k    1,707  0.621       4.9
+xatlas max_iterations=0, either max_cost   1M      —      —           > 300
+patches                                    1M      2,232  0.632       16.2
+========================================== ======= ====== =========== =======
 
-(xatlas's defaults take over 15 minutes on the 1M faces; its pages came out larger than
-the 4096² asked for, "patches" fill exactly one. Charts are at least the 1,694
-components; the rest are patches.)
+xatlas's defaults take over 15 minutes on the 1M faces, and its pages came out larger
+than the 4096² asked for (it picks the texels per mm); "patches" fill exactly one.
+The bunny has 1,694 connected components, so at least as many charts.
 
 The patch segmentation
 ----------------------
