@@ -12,7 +12,7 @@ import pytest
 import slscan.decode.pipeline as pipeline
 from slscan.cli import main
 from slscan.errors import SlscanError
-from slscan.recipe.regress import regress
+from slscan.recipe.regress import collect_metrics, regress
 
 BASELINE = Path(__file__).parents[1] / "data" / "baselines" / "demo"
 
@@ -73,3 +73,9 @@ def test_broken_baselines_are_refused(tmp_path):
         regress(tmp_path / "nowhere")
     with pytest.raises(SlscanError, match="never writes into its baseline"):
         regress(BASELINE, work=BASELINE)
+
+
+def test_texture_metrics_are_collected(tmp_path):
+    (tmp_path / "texture").mkdir()
+    (tmp_path / "texture" / "texture.json").write_text(json.dumps({"metrics": {"charts": 12, "seam_error_mean": 0.9}}))
+    assert collect_metrics(tmp_path) == {"texture/charts": 12.0, "texture/seam_error_mean": 0.9}

@@ -47,7 +47,8 @@ class Check:
 
 
 def collect_metrics(run_dir: Path) -> dict[str, float]:
-    """Comparable numbers of a recipe run: per stage and view."""
+    """Comparable numbers of a recipe run: per decode stage and view, and the texture
+    stage's metrics (charts, utilisation, observed share, seam error)."""
     metrics: dict[str, float] = {}
     for folder in sorted(p for p in run_dir.iterdir() if p.is_dir()):
         if (folder / "range_maps.json").is_file():
@@ -55,6 +56,10 @@ def collect_metrics(run_dir: Path) -> dict[str, float]:
             for entry in summary["views"]:
                 for key, value in entry["metrics"].items():
                     metrics[f"{folder.name}/{entry['view']}/{key}"] = float(value)
+        if (folder / "texture.json").is_file():
+            summary = read_json(folder / "texture.json", "texture manifest")
+            for key, value in summary.get("metrics", {}).items():
+                metrics[f"{folder.name}/{key}"] = float(value)
     return metrics
 
 
