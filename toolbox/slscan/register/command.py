@@ -60,7 +60,10 @@ def _cmd_register(args: argparse.Namespace) -> int:
     if args.no_poses:
         poses = None
     t0 = time.perf_counter()
-    with recording_from_args(args, recording_name=f"register {args.scans.name}") as rec:
+    from slscan.viewer.layouts import register_blueprint
+
+    with recording_from_args(args, recording_name=f"register {args.scans.name}",
+                             blueprint=register_blueprint()) as rec:
         rlog.log_scan_meshes(rec, scans)
         if poses:
             rlog.log_scan_poses(rec, poses, stage="initial")

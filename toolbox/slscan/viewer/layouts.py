@@ -116,8 +116,8 @@ def decode_blueprint() -> rrb.Blueprint:
 
 
 def pipeline_blueprint() -> rrb.Blueprint:
-    """The whole pipeline: one tab per stage layout (capture, decode, albedo, texture)."""
-    stages = [capture_blueprint(), decode_blueprint(), _albedo(), _texture()]
+    """The whole pipeline: one tab per stage layout (capture, decode, albedo, register, texture)."""
+    stages = [capture_blueprint(), decode_blueprint(), _albedo(), register_blueprint(), _texture()]
     return _blueprint(rrb.Tabs(*(b.root_container for b in stages), name="slscan pipeline"))
 
 
@@ -133,6 +133,31 @@ def _albedo() -> rrb.Blueprint:
     return albedo_blueprint()
 
 
+def register_blueprint() -> rrb.Blueprint:
+    """Register, fuse, simplify: the range maps at their poses (scrub the ``stage``
+    timeline from initial to registered), the fused and simplified models, and the pair
+    residuals."""
+    from slscan.viewer.recording import STAGE_TIMELINE
+
+    scans = rrb.Spatial3DView(origin="world", contents=["+ $origin/scans/**"], name="Range maps at their poses")
+    models = rrb.Tabs(
+        rrb.Spatial3DView(origin="world", contents=["+ $origin/model/fused"], name="Fused"),
+        rrb.Spatial3DView(origin="world", contents=["+ $origin/model/simplified"], name="Simplified"),
+        name="Model",
+    )
+    residuals = rrb.Vertical(
+        rrb.TimeSeriesView(origin="plot/register/rmse", name="Pair RMS (mm)"),
+        rrb.TimeSeriesView(origin="plot/register/overlap", name="Pair overlap"),
+    )
+    return rrb.Blueprint(
+        rrb.Horizontal(scans, rrb.Vertical(models, residuals, row_shares=[2, 1]), column_shares=[3, 2],
+                       name="Register"),
+        rrb.TimePanel(expanded=True, timeline=STAGE_TIMELINE),
+        rrb.SelectionPanel(expanded=False),
+        collapse_panels=False,
+    )
+
+
 def _texture() -> rrb.Blueprint:
     from slscan.viewer.log_texture import texture_blueprint
 
@@ -144,6 +169,7 @@ LAYOUTS: dict[str, Callable[[], rrb.Blueprint]] = {
     "calibrate": _calibrate,
     "decode": decode_blueprint,
     "albedo": _albedo,
+    "register": register_blueprint,
     "texture": _texture,
     "pipeline": pipeline_blueprint,
 }
