@@ -8,12 +8,12 @@ that provide what it needs. Each stage writes its whole output folder ``ctx.out`
 from __future__ import annotations
 
 import os
-
-import numpy as np
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from slscan.errors import SlscanError
 
@@ -183,9 +183,7 @@ class SimplifyConfig:
 
 
 def _run_register(ctx: StageContext, config: RegisterConfig) -> dict[str, Any]:
-    from slscan.fsio import write_json
-    from slscan.register.command import load_scans
-    from slscan.register.meshlab import write_scan_project
+    from slscan.register.command import load_scans, save_registration
     from slscan.register.multiview import register_scans
 
     if config.source:
@@ -199,12 +197,7 @@ def _run_register(ctx: StageContext, config: RegisterConfig) -> dict[str, Any]:
     result = register_scans(scans, initial_poses=poses if config.use_poses else None,
                             reference=config.reference or None, progress=ctx.progress,
                             config=MultiviewConfig(pose_tolerance=config.pose_tolerance or None))
-    write_scan_project(ctx.out, [s for s in scans if s.name in result.poses], result.poses, overwrite=True)
-    write_json(ctx.out / "registration.json", {
-        "reference": result.reference, "poses": {k: v.tolist() for k, v in result.poses.items()},
-        "pairs": [{"source": p.source, "target": p.target, "rmse_mm": p.rmse} for p in result.pairs],
-        "left_out": result.left_out,
-    })
+    save_registration(ctx.out, scans, result, overwrite=True)
     rmse = [p.rmse for p in result.pairs]
     return {"aligned": len(result.poses), "left_out": len(result.left_out),
             "median_pair_rmse_mm": round(float(np.median(rmse)), 4) if rmse else None}
@@ -249,8 +242,8 @@ def _registry() -> dict[str, Stage]:
     from slscan.calibrate.pipeline import CalibrationConfig
     from slscan.decode.pipeline import DecodeConfig
     from slscan.fuse import FuseConfig
-    from slscan.virtual.device import VirtualCaptureConfig
     from slscan.texture.pipeline import TextureConfig
+    from slscan.virtual.device import VirtualCaptureConfig
     from slscan.virtual.panels import LightPanelConfig
 
     stages = [

@@ -49,9 +49,26 @@ def load_scans(path: Path) -> tuple[list, dict[str, np.ndarray] | None]:
     return [load_range_scan(p) for p in plys], None
 
 
-def _cmd_register(args: argparse.Namespace) -> int:
+def save_registration(folder: Path, scans, result, *, overwrite: bool = False) -> Path:
+    """Write a registration: the aligned set (each registered scan as PLY + ``aligned.mlp``,
+    atomically) and ``registration.json`` (reference, poses, residual per pair, scans left
+    out). Returns the project's path."""
     from slscan.fsio import write_json
     from slscan.register.meshlab import write_scan_project
+
+    project = write_scan_project(folder, [s for s in scans if s.name in result.poses], result.poses,
+                                 overwrite=overwrite)
+    write_json(folder / "registration.json", {
+        "reference": result.reference,
+        "poses": {k: v.tolist() for k, v in result.poses.items()},
+        "pairs": [{"source": p.source, "target": p.target, "fitness": p.fitness, "rmse_mm": p.rmse}
+                  for p in result.pairs],
+        "left_out": result.left_out,
+    })
+    return project
+
+
+def _cmd_register(args: argparse.Namespace) -> int:
     from slscan.register.multiview import register_scans
     from slscan.viewer import log_register as rlog
     from slscan.viewer.recording import recording_from_args
@@ -73,15 +90,7 @@ def _cmd_register(args: argparse.Namespace) -> int:
         rlog.log_scan_poses(rec, result.poses, stage="registered")
         rlog.log_pair_residuals(rec, result.pairs)
         rlog.log_scans_left_out(rec, result.left_out)
-    project = write_scan_project(args.out, [s for s in scans if s.name in result.poses], result.poses,
-                                 overwrite=args.overwrite)
-    write_json(args.out / "registration.json", {
-        "reference": result.reference,
-        "poses": {k: v.tolist() for k, v in result.poses.items()},
-        "pairs": [{"source": p.source, "target": p.target, "fitness": p.fitness, "rmse_mm": p.rmse}
-                  for p in result.pairs],
-        "left_out": result.left_out,
-    })
+    project = save_registration(args.out, scans, result, overwrite=args.overwrite)
     out = console()
     rmse = [p.rmse for p in result.pairs]
     out.print(f"[green]aligned[/] {len(result.poses)} of {len(scans)} scans in {time.perf_counter() - t0:.1f} s; "

@@ -358,10 +358,13 @@ def bake(
     views: Sequence[TextureView],
     options: BakeOptions | None = None,
     *,
+    normals: np.ndarray | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> BakedTexture:
     """Bake ``views`` into ``atlas`` (a :class:`slscan.texture.atlas.Atlas` of the mesh
-    ``vertices``, ``faces``: same faces in the same order) and onto the vertices."""
+    ``vertices``, ``faces``: same faces in the same order) and onto the vertices.
+
+    normals : (n, 3) unit vertex normals when the caller has them (default: computed)"""
     import time
 
     from slscan.meshes import vertex_normals
@@ -380,7 +383,7 @@ def bake(
     check_texture_memory(size)
     seconds = {}
     t0 = time.perf_counter()
-    normals = vertex_normals(vertices, faces).astype(np.float32)
+    normals = (vertex_normals(vertices, faces) if normals is None else np.asarray(normals)).astype(np.float32)
     scene = _raycasting_scene(vertices, faces)
     depths = []
     for view in views:

@@ -83,11 +83,9 @@ def demo_step(out: Path, *, scale: float = 1.0, rec=None, overwrite: bool = Fals
 
     import numpy as np
 
-    from slscan.fsio import write_json
     from slscan.fuse import FuseConfig, fuse_scans, write_mesh
-    from slscan.register.command import load_scans
-    from slscan.register.meshlab import write_scan_project
-    from slscan.register.multiview import register_scans
+    from slscan.register.command import load_scans, save_registration
+    from slscan.register.multiview import MultiviewResult, register_scans
     from slscan.simplify import simplify_file
     from slscan.texture.pipeline import texture_model
     from slscan.viewer import log_register as rlog
@@ -99,15 +97,14 @@ def demo_step(out: Path, *, scale: float = 1.0, rec=None, overwrite: bool = Fals
     if len(scans) > 1:
         with ProgressBar(len(scans) * (len(scans) - 1) // 2 + 1, "registering", quiet) as bar:
             result = register_scans(scans, initial_poses=poses, progress=bar.step)
-        poses = result.poses
-        rlog.log_scan_poses(rec, poses, stage="registered")
+        rlog.log_scan_poses(rec, result.poses, stage="registered")
         if result.left_out:
             con.print(f"[yellow]left out[/] {', '.join(result.left_out)}: they match no other view", highlight=False)
-    else:
-        poses = {scans[0].name: np.eye(4)}
+    else:  # one view: its camera frame is the world
+        result = MultiviewResult({scans[0].name: np.eye(4)}, (), {}, scans[0].name, {})
+    poses = result.poses
     aligned = [s for s in scans if s.name in poses]
-    write_scan_project(out / "aligned", aligned, poses, overwrite=overwrite)
-    write_json(out / "aligned" / "registration.json", {"poses": {k: v.tolist() for k, v in poses.items()}})
+    save_registration(out / "aligned", scans, result, overwrite=overwrite)
     voxel = 0.5 / min(1.0, scale)  # about the camera's sampling at the working distance
     with ProgressBar(len(aligned), "fusing", quiet) as bar:
         fused = fuse_scans(aligned, poses, config=FuseConfig(voxel_size=voxel), progress=bar.step)

@@ -116,9 +116,9 @@ def texture_model(
 
     atlas = build_atlas(mesh.vertices, mesh.faces, AtlasOptions(size=size, padding=config.bake.padding))
     progress(f"atlas: {atlas.n_charts} charts")
-    baked = bake(mesh.vertices, mesh.faces, atlas, views, config.bake, progress=progress)
-    texture = srgb8(baked.linear)
     normals = vertex_normals(mesh.vertices, mesh.faces).astype(np.float32)
+    baked = bake(mesh.vertices, mesh.faces, atlas, views, config.bake, normals=normals, progress=progress)
+    texture = srgb8(baked.linear)
     seams = seam_error(texture, mesh.faces, atlas)
     covered = int(baked.covered.sum())
     metrics = {

@@ -18,14 +18,13 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from slscan.viewer.log_register import MODEL_PATH, STAGES, _set_stage
+from slscan.viewer.log_register import MAX_LOGGED_FACES, MODEL_PATH, STAGES, _set_stage
 
 TEXTURED_STAGE = "textured"
 STAGES.setdefault(TEXTURED_STAGE, len(STAGES))
 VIEWS_PATH = "world/views"
 ATLAS_PATH = "texture/atlas"
 VIEW_COUNT_PATH = "texture/view_count"
-MAX_LOGGED_FACES = 2_000_000
 MAX_LOGGED_TEXTURE = 4096
 
 
