@@ -42,7 +42,7 @@ from slscan.virtual.scenes import builtin_object, flat_tile
 from slscan.virtual.sensor import Sensor
 
 sys.path.insert(0, str(Path(__file__).parent))
-import stripe_axes  # noqa: E402  (the medial-axis evaluation lives there)
+import stripe_axes
 
 
 class _Warnings(logging.Handler):

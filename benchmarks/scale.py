@@ -32,6 +32,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from measure import cpu_seconds, distances_to_mesh, peak_rss_bytes, surface_samples
 
 HEIGHT_MM = 1700.0
 IMAGE_SHAPE = (1080, 1440)
@@ -127,22 +128,6 @@ def _look_at(eye, target) -> np.ndarray:
 # --- stages (each in its own process) -------------------------------------------------------------
 
 
-def _cpu_seconds() -> float:
-    """User + system CPU time of this process so far (all threads), s."""
-    import resource
-
-    usage = resource.getrusage(resource.RUSAGE_SELF)
-    return usage.ru_utime + usage.ru_stime
-
-
-def _peak_rss_bytes() -> int:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1]) * 1024
-    import resource
-
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-
 
 def stage_fuse(args: argparse.Namespace) -> dict:
     from slscan.fuse import BLOCK_RESOLUTION, FuseConfig, _block_keys, fuse_scans, write_mesh
@@ -179,7 +164,7 @@ def stage_fuse(args: argparse.Namespace) -> dict:
             yield scan
 
     t1 = time.perf_counter()
-    cpu1 = _cpu_seconds()
+    cpu1 = cpu_seconds()
     done = [0]
 
     def progress(name: str) -> None:
@@ -199,7 +184,7 @@ def stage_fuse(args: argparse.Namespace) -> dict:
         progress=progress,
     )
     t_total = time.perf_counter() - t1
-    cpu_total = _cpu_seconds() - cpu1
+    cpu_total = cpu_seconds() - cpu1
     write_mesh(result.mesh, args.work / "fused.ply")
     truth = _distance_to_truth(result.mesh.vertices, result.mesh.faces, vertices, faces)
     return {
@@ -216,7 +201,7 @@ def stage_fuse(args: argparse.Namespace) -> dict:
         "phases": result.seconds,
         "vertices": result.mesh.n_vertices,
         "truth": truth,
-        "peak": _peak_rss_bytes(),
+        "peak": peak_rss_bytes(),
     }
 
 
@@ -226,10 +211,10 @@ def stage_simplify(args: argparse.Namespace) -> dict:
 
     mesh = read_mesh(args.work / "fused.ply")
     t = time.perf_counter()
-    cpu = _cpu_seconds()
+    cpu = cpu_seconds()
     out = simplify_mesh(mesh, args.faces, method=args.method, preserve_boundary=True)
     seconds = time.perf_counter() - t
-    cpu = _cpu_seconds() - cpu
+    cpu = cpu_seconds() - cpu
     write_mesh(out, args.work / "simplified.ply")
     vertices, faces = statue()
     return {
@@ -238,7 +223,7 @@ def stage_simplify(args: argparse.Namespace) -> dict:
         "faces_in": mesh.n_faces,
         "faces": out.n_faces,
         "truth": _distance_to_truth(out.vertices, out.faces, vertices, faces),
-        "peak": _peak_rss_bytes(),
+        "peak": peak_rss_bytes(),
     }
 
 
@@ -246,22 +231,7 @@ def _distance_to_truth(vertices: np.ndarray, faces: np.ndarray, truth_v, truth_f
     """Distance (mm) of a mesh to the statue's true surface: mean and 95th percentile over
     2M points spread uniformly by area on the mesh (vertex statistics would over-count
     the open boundaries' few, extrapolated vertices once a mesh is simplified)."""
-    import open3d as o3d
-    import open3d.core as o3c
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(
-        o3c.Tensor(truth_v.astype(np.float32)), o3c.Tensor(truth_f.astype(np.uint32))
-    )
-    rng = np.random.default_rng(0)
-    a, b, c = (vertices[faces[:, k]] for k in range(3))
-    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-    pick = rng.choice(len(faces), size=2_000_000, p=area / area.sum())
-    u, v = rng.random((2, len(pick)))
-    flip = u + v > 1
-    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
-    points = a[pick] + (b[pick] - a[pick]) * u[:, None] + (c[pick] - a[pick]) * v[:, None]
-    d = scene.compute_distance(o3c.Tensor(points.astype(np.float32))).numpy()
+    d = distances_to_mesh(surface_samples(vertices, faces, 2_000_000), truth_v, truth_f)
     return {"mean": float(d.mean()), "p95": float(np.percentile(d, 95))}
 
 

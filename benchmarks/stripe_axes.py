@@ -17,7 +17,8 @@ gives:
   (adjacent lit pixels of a row between which ``u`` passes a line column)
 - decode s: median wall time of ``decode_hybrid`` for the view, PNG reading included
 
-Scenes: "figurine" (painted, noisy), "tile" (flat, noisy), "tile-clean" (flat, noise-free).
+Scenes: "figurine" (painted, noisy), "tile" (flat, noisy), "tile-clean" (flat, noise-free),
+"figurine-clean" (noise-free: what is left is the image formation on the relief, not noise).
 Absolute times drift on shared machines.
 """
 
@@ -41,6 +42,7 @@ SCENES = {
     "figurine": {"scene": "object"},
     "tile": {"scene": "tile"},
     "tile-clean": {"scene": "tile", "sensor": Sensor(noise=False)},
+    "figurine-clean": {"scene": "object", "sensor": Sensor(noise=False)},
 }
 
 

@@ -10,6 +10,7 @@ from slscan.errors import SlscanError
 from slscan.register.pairwise import (
     PairwiseConfig,
     coarse_align,
+    fit_gauge,
     pose_error,
     refine_icp,
     register_pair,
@@ -120,3 +121,17 @@ def test_pose_error_measures_at_a_point():
     assert rotation == pytest.approx(1.0)
     assert at_origin == pytest.approx(0.0)
     assert at_point == pytest.approx(100.0 * np.radians(1.0), rel=1e-3)
+
+
+def test_fit_gauge_recovers_a_global_motion_exactly():
+    rng = np.random.default_rng(3)
+    truth = {f"s{k}": rigid_transform(rng.normal(size=3), rng.normal(size=3) * 50) for k in range(4)}
+    points = {n: rng.normal(size=(200, 3)) * 30 for n in truth}
+    motion = rigid_transform([0.2, -0.1, 0.3], [5.0, -7.0, 2.0])
+    moved = {n: np.linalg.inv(motion) @ p for n, p in truth.items()}  # same scans, other gauge
+    gauge = fit_gauge(moved, truth, points)
+    np.testing.assert_allclose(gauge, motion, atol=1e-9)
+    for name, pose in truth.items():
+        assert pose_error(gauge @ moved[name], pose) == pytest.approx((0.0, 0.0), abs=1e-6)
+    with pytest.raises(SlscanError, match="no scan"):
+        fit_gauge(moved, {}, points)

@@ -444,6 +444,35 @@ def pose_error(
     return rotation_angle_deg(delta), float(np.linalg.norm(moved))
 
 
+def fit_gauge(
+    poses: dict[str, np.ndarray], reference: dict[str, np.ndarray], points: dict[str, np.ndarray]
+) -> np.ndarray:
+    """The one rigid motion ``G`` that best puts a registration onto reference poses.
+
+    A registration fixes the scans relative to each other; the frame they share is a
+    choice (the gauge, e.g. one scan held still). To compare with reference poses free of
+    that choice, ``G`` minimises Σ‖G·P_i·x − T_i·x‖² over each scan's ``points`` (scan
+    frame, mm) by the closed-form point-to-point fit (open3d's Kabsch/Umeyama without
+    scale); compare ``G @ poses[name]`` with ``reference[name]``.
+    """
+    names = [n for n in poses if n in reference and n in points]
+    if not names:
+        raise SlscanError("fit_gauge: no scan has both a pose and a reference pose")
+    src, dst = [], []
+    for name in names:
+        h = np.c_[np.asarray(points[name], np.float64), np.ones(len(points[name]))]
+        src.append((h @ np.asarray(poses[name], np.float64).T)[:, :3])
+        dst.append((h @ np.asarray(reference[name], np.float64).T)[:, :3])
+    src_pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.vstack(src)))
+    dst_pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.vstack(dst)))
+    pairs = np.repeat(np.arange(len(src_pcd.points), dtype=np.int32)[:, None], 2, axis=1)
+    estimate = o3d.pipelines.registration.TransformationEstimationPointToPoint(False)
+    return np.asarray(
+        estimate.compute_transformation(src_pcd, dst_pcd, o3d.utility.Vector2iVector(pairs)),
+        np.float64,
+    )
+
+
 def rigid_transform(rotation_vector: Sequence[float], translation: Sequence[float]) -> np.ndarray:
     """(4, 4) transform from an axis-angle rotation vector (radians) and a translation (mm)."""
     from scipy.spatial.transform import Rotation

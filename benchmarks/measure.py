@@ -1,0 +1,128 @@
+"""Time and memory measurement shared by the benchmark scripts (not a benchmark itself).
+
+- :func:`cpu_seconds`, :func:`peak_rss_bytes`: this process's CPU time and peak resident
+  memory (``VmHWM``, which sees C++ allocations by open3d and pymeshlab too);
+- :func:`run_measured`: run a command and sample the resident memory of its whole process
+  tree (the command and every worker it starts), so a stage that fans out over worker
+  processes is charged for all of them at once;
+- :func:`surface_samples`, :func:`distances_to_mesh`: surface-to-surface distances.
+"""
+
+from __future__ import annotations
+
+import resource
+import subprocess
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+
+def cpu_seconds() -> float:
+    """User + system CPU time of this process so far (all threads), s."""
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
+def peak_rss_bytes() -> int:
+    """Peak resident memory of this process, bytes."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) * 1024
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def _children() -> dict[int, list[int]]:
+    tree: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            text = stat.read_text()
+        except OSError:
+            continue
+        # "pid (name) state ppid ...": the name may hold spaces and parentheses
+        ppid = int(text[text.rindex(")") + 2:].split()[1])
+        tree.setdefault(ppid, []).append(int(stat.parent.name))
+    return tree
+
+
+def _rss_bytes(pid: int) -> int:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
+
+
+def tree_rss_bytes(root: int) -> int:
+    """Resident memory of process ``root`` and all its descendants now, bytes."""
+    tree, total, todo = _children(), 0, [root]
+    while todo:
+        pid = todo.pop()
+        total += _rss_bytes(pid)
+        todo.extend(tree.get(pid, ()))
+    return total
+
+
+@dataclass
+class Measured:
+    returncode: int
+    seconds: float
+    peak_bytes: int  # largest sampled sum over the process tree
+    stdout: str
+    stderr: str
+
+
+def run_measured(command: list[str], *, interval: float = 0.1, **kwargs) -> Measured:
+    """Run ``command``; its wall time and the peak resident memory of its process tree.
+
+    The tree is sampled every ``interval`` seconds, so a peak shorter than that can be
+    missed; each sample walks /proc (about 1 ms here).
+    """
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kwargs)
+    peak = 0
+    done = threading.Event()
+
+    def sample() -> None:
+        nonlocal peak
+        while not done.is_set():
+            peak = max(peak, tree_rss_bytes(proc.pid))
+            done.wait(interval)
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    stdout, stderr = proc.communicate()
+    done.set()
+    sampler.join()
+    return Measured(proc.returncode, time.perf_counter() - t0, peak, stdout, stderr)
+
+
+def surface_samples(vertices: np.ndarray, faces: np.ndarray, n: int = 500_000, seed: int = 0) -> np.ndarray:
+    """(n, 3) points spread uniformly by area on a triangle mesh (fixed seed).
+
+    Distances taken from such points weigh the surface by area; vertex statistics would
+    over-count open boundaries' few extrapolated vertices once a mesh is simplified.
+    """
+    rng = np.random.default_rng(seed)
+    vertices = np.asarray(vertices, np.float64)
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    pick = rng.choice(len(faces), size=n, p=area / area.sum())
+    u, v = rng.random((2, n))
+    flip = u + v > 1
+    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    return a[pick] + (b[pick] - a[pick]) * u[:, None] + (c[pick] - a[pick]) * v[:, None]
+
+
+def distances_to_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Distance of each point to the nearest point of a triangle mesh (open3d ray-casting scene)."""
+    import open3d as o3d
+    import open3d.core as o3c
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3c.Tensor(np.asarray(vertices, np.float32)), o3c.Tensor(np.asarray(faces, np.uint32)))
+    return scene.compute_distance(o3c.Tensor(np.asarray(points, np.float32))).numpy()
