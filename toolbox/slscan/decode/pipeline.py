@@ -141,9 +141,11 @@ def decode_view(
         res = decode_gray(session, view)
         samples, mask, codes, saturated = res.edges, res.mask, res.column, res.saturated
         code_max = session.projector_size[0]
-    white = session.read_image(view, view.image_for(session.flat_frame_ids()[0]))
     if method == "hybrid":
+        white = res.white
         saturated = saturation(white)
+    else:
+        white = session.read_image(view, view.image_for(session.flat_frame_ids()[0]))
     seconds["decode"] = time.perf_counter() - t
     t = time.perf_counter()
     points = triangulate(samples, rig.camera, planes)

@@ -150,8 +150,9 @@ def board_poses(
 
     The board's centre sits near the point on the camera axis at ``distance`` (default:
     the rig's working distance), turned and tilted by 20-30 degrees about varied axes
-    (:data:`BOARD_POSES`, used in order and repeated with a 90-degree roll when ``n``
-    exceeds them). The first pose faces the camera.
+    (:data:`BOARD_POSES`, used in order; when ``n`` exceeds them they repeat mirrored —
+    turns, tilts and offsets negated — and each further round 10 % further away, so the
+    board stays inside both frusta). The first pose faces the camera.
     """
     if n < 1:
         raise SlscanError(f"need at least one board pose, got {n}")
@@ -160,7 +161,11 @@ def board_poses(
     poses = []
     for k in range(n):
         (turn, tilt, roll), offset = BOARD_POSES[k % len(BOARD_POSES)]
-        roll += 90.0 * (k // len(BOARD_POSES))
+        cycle = k // len(BOARD_POSES)
+        offset = np.asarray(offset, np.float64)
+        if cycle:
+            turn, tilt, roll = (-turn, -tilt, roll) if cycle % 2 else (turn, tilt, roll)
+            offset = np.array([-offset[0], -offset[1], offset[2] + 0.1 * cycle * distance])
         r = (
             rotation_about_axis([0, 1, 0], math.radians(turn))
             @ rotation_about_axis([1, 0, 0], math.radians(tilt))
@@ -168,7 +173,7 @@ def board_poses(
         )
         pose = np.eye(4)
         pose[:3, :3] = r
-        pose[:3, 3] = np.array([0.0, 0.0, distance]) + np.asarray(offset) - r @ centre
+        pose[:3, 3] = np.array([0.0, 0.0, distance]) + offset - r @ centre
         poses.append(pose)
     return poses
 
