@@ -86,3 +86,19 @@ def test_overrides_are_typed_and_checked():
 def test_toml_writer_round_trips():
     data = {"a": {"x": 1, "y": [1.5, 2.0], "s": 'say "hi"', "b": True, "n": {"deep": [[1, 2], [3, 4]]}}}
     assert tomllib.loads(dumps_toml(data)) == data
+
+
+def test_model_stages_stream_to_rerun(shared_data, tmp_path):
+    """register, fuse and simplify in a recipe log what `slscan register/fuse` log."""
+    from rerun.chunk import RrdReader
+
+    from slscan.viewer.recording import open_recording
+
+    bunny = Path(__file__).parents[2] / "recipes" / "bunny.toml"
+    recording = tmp_path / "bunny.rrd"
+    with open_recording(save=recording) as rec:
+        run_recipe(load_recipe(bunny, reduced=True), tmp_path / "run", rec=rec)
+    paths = {c.entity_path for c in RrdReader(recording).stream().to_chunks()}
+    assert {"/world/scans/bun000", "/world/scans/bun000/mesh", "/world/model/fused",
+            "/world/model/simplified"} <= paths, sorted(paths)
+    assert any(p.startswith("/plot/register/rmse/") for p in paths)

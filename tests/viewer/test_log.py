@@ -10,7 +10,7 @@ from rerun.chunk import RrdReader
 from slscan.capture.session import BACKGROUND, LIT, SHADOW, GroundTruth
 from slscan.errors import SlscanError
 from slscan.rig import default_rig
-from slscan.viewer.layouts import LAYOUTS, capture_blueprint, save_layouts
+from slscan.viewer.layouts import LAYOUTS, capture_blueprint, pipeline_blueprint, save_layouts
 from slscan.viewer.log import (
     log_capture,
     log_ground_truth,
@@ -156,6 +156,17 @@ def test_layouts(tmp_path):
     assert [p.name for p in paths] == [f"{name}.rbl" for name in LAYOUTS]
     assert all(p.stat().st_size > 0 for p in paths)
     assert not list(tmp_path.glob(".*partial*"))
+
+
+def test_pipeline_layout_opens_on_the_first_stage_of_the_recipe():
+    tabs = pipeline_blueprint().root_container
+    names = [c.name for c in tabs.contents]
+    assert names == ["Capture", "Decode", "Albedo", "Register", "Texture"]
+    assert tabs.active_tab == 0
+    # a recipe that starts from range maps (the bunny) opens on Register
+    assert names[pipeline_blueprint(["register", "fuse", "simplify"]).root_container.active_tab] == "Register"
+    # stages without a tab of their own are passed over
+    assert names[pipeline_blueprint(["calibrate", "decode"]).root_container.active_tab] == "Decode"
 
 
 def _capture_columns(path) -> set[str]:

@@ -222,7 +222,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     out = args.out or Path(recipe.out or f"{recipe.name}-run")
     t0 = time.perf_counter()
     reporter = _StageReporter(args.quiet)
-    with recording_from_args(args, recording_name=f"recipe {recipe.name}", blueprint=pipeline_blueprint()) as rec:
+    with recording_from_args(args, recording_name=f"recipe {recipe.name}", blueprint=pipeline_blueprint([st.name for st, _ in recipe.steps])) as rec:
         runs = run_recipe(recipe, out, force=args.force, rec=rec, reporter=reporter, executor=executor_from_args(args))
     ran = sum(r.ran for r in runs)
     _console().print(

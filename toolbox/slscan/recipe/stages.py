@@ -193,10 +193,13 @@ def _run_register(ctx: StageContext, config: RegisterConfig) -> dict[str, Any]:
     else:
         raise SlscanError("register: set register.source, or decode range maps in an earlier stage")
     from slscan.register.multiview import MultiviewConfig
+    from slscan.viewer import log_register as rlog
 
-    result = register_scans(scans, initial_poses=poses if config.use_poses else None,
-                            reference=config.reference or None, progress=ctx.progress,
+    poses = poses if config.use_poses else None
+    rlog.log_registration_start(ctx.rec, scans, poses)
+    result = register_scans(scans, initial_poses=poses, reference=config.reference or None, progress=ctx.progress,
                             config=MultiviewConfig(pose_tolerance=config.pose_tolerance or None))
+    rlog.log_registration_result(ctx.rec, result)
     save_registration(ctx.out, scans, result, overwrite=True)
     rmse = [p.rmse for p in result.pairs]
     return {"aligned": len(result.poses), "left_out": len(result.left_out),
@@ -209,9 +212,12 @@ def _run_fuse(ctx: StageContext, config) -> dict[str, Any]:
     from slscan.register.meshlab import load_scan_project
 
     scans, poses = load_scan_project(ctx.inputs["aligned"] / "aligned.mlp")
+    from slscan.viewer.log_register import log_fused_mesh
+
     result = fuse_scans(scans, poses, config=config, progress=ctx.progress)
     with atomic_output_dir(ctx.out, overwrite=True) as tmp:
         write_mesh(result.mesh, tmp / "mesh.ply")
+    log_fused_mesh(ctx.rec, result.mesh)
     return {"faces": len(result.mesh.faces), "vertices": len(result.mesh.vertices)}
 
 
@@ -222,6 +228,9 @@ def _run_simplify(ctx: StageContext, config: SimplifyConfig) -> dict[str, Any]:
     with atomic_output_dir(ctx.out, overwrite=True) as tmp:
         mesh = simplify_file(ctx.inputs["mesh"] / "mesh.ply", tmp / "mesh.ply", config.faces,
                              method=config.method, preserve_boundary=config.preserve_boundary)
+    from slscan.viewer.log_register import log_simplified_mesh
+
+    log_simplified_mesh(ctx.rec, mesh)
     return {"faces": len(mesh.faces)}
 
 

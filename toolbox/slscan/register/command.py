@@ -81,15 +81,11 @@ def _cmd_register(args: argparse.Namespace) -> int:
 
     with recording_from_args(args, recording_name=f"register {args.scans.name}",
                              blueprint=register_blueprint()) as rec:
-        rlog.log_scan_meshes(rec, scans)
-        if poses:
-            rlog.log_scan_poses(rec, poses, stage="initial")
+        rlog.log_registration_start(rec, scans, poses)
         n_pairs = len(scans) * (len(scans) - 1) // 2
         with ProgressBar(n_pairs + 1, "registering", args.quiet) as bar:
             result = register_scans(scans, initial_poses=poses, reference=args.reference, progress=bar.step)
-        rlog.log_scan_poses(rec, result.poses, stage="registered")
-        rlog.log_pair_residuals(rec, result.pairs)
-        rlog.log_scans_left_out(rec, result.left_out)
+        rlog.log_registration_result(rec, result)
     project = save_registration(args.out, scans, result, overwrite=args.overwrite)
     out = console()
     rmse = [p.rmse for p in result.pairs]

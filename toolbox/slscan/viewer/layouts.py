@@ -8,7 +8,7 @@ uses by default.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import rerun.blueprint as rrb
@@ -72,10 +72,10 @@ def capture_blueprint() -> rrb.Blueprint:
     )
 
 
-def _blueprint(root: rrb.Container) -> rrb.Blueprint:
+def _blueprint(root: rrb.Container, timeline: str = VIEW_TIMELINE) -> rrb.Blueprint:
     return rrb.Blueprint(
         root,
-        rrb.TimePanel(expanded=True, timeline=VIEW_TIMELINE),
+        rrb.TimePanel(expanded=True, timeline=timeline),
         rrb.SelectionPanel(expanded=False),
         collapse_panels=False,
     )
@@ -115,10 +115,27 @@ def decode_blueprint() -> rrb.Blueprint:
     )
 
 
-def pipeline_blueprint() -> rrb.Blueprint:
-    """The whole pipeline: one tab per stage layout (capture, decode, albedo, register, texture)."""
-    stages = [capture_blueprint(), decode_blueprint(), _albedo(), register_blueprint(), _texture()]
-    return _blueprint(rrb.Tabs(*(b.root_container for b in stages), name="slscan pipeline"))
+# recipe stage -> the pipeline tab showing it (index into pipeline_blueprint's tabs)
+_PIPELINE_TAB = {"capture": 0, "decode": 1, "lights": 2, "albedo": 2, "register": 3, "fuse": 3,
+                 "simplify": 3, "texture": 4}
+
+
+def pipeline_blueprint(stages: Sequence[str] = ()) -> rrb.Blueprint:
+    """The whole pipeline: one tab per stage layout (capture, decode, albedo, register, texture).
+
+    stages : the recipe's stages, in order; the viewer opens on the tab of the first one
+        that has a tab (e.g. Register for a recipe that starts from range maps), on the
+        ``view`` timeline when per-view stages run, else on the ``stage`` timeline
+    """
+    from slscan.viewer.recording import STAGE_TIMELINE
+
+    tabs = [capture_blueprint(), decode_blueprint(), _albedo(), register_blueprint(), _texture()]
+    active = next((_PIPELINE_TAB[s] for s in stages if s in _PIPELINE_TAB), 0)
+    timeline = VIEW_TIMELINE if active <= _PIPELINE_TAB["albedo"] else STAGE_TIMELINE
+    return _blueprint(
+        rrb.Tabs(*(b.root_container for b in tabs), active_tab=active, name="slscan pipeline"),
+        timeline,
+    )
 
 
 def _calibrate() -> rrb.Blueprint:

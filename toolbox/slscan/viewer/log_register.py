@@ -121,6 +121,23 @@ def log_pair_residuals(
         rec.log(f"plot/register/overlap/{key}", rr.Scalars(float(pair.fitness)))
 
 
+def log_registration_start(
+    rec: rr.RecordingStream | None, scans: Sequence[RangeScan], poses: Mapping[str, np.ndarray] | None
+) -> None:
+    """Before registering: every scan's mesh, and its recorded pose when there is one."""
+    log_scan_meshes(rec, scans)
+    if poses:
+        log_scan_poses(rec, poses, stage="initial")
+
+
+def log_registration_result(rec: rr.RecordingStream | None, result) -> None:
+    """After registering (a :class:`~slscan.register.multiview.MultiviewResult`): the poses,
+    the pair residuals, and the scans left out hidden."""
+    log_scan_poses(rec, result.poses, stage="registered")
+    log_pair_residuals(rec, result.pairs)
+    log_scans_left_out(rec, result.left_out)
+
+
 def log_fused_mesh(rec: rr.RecordingStream | None, mesh: Mesh) -> None:
     """The fused model at ``world/model/fused`` (stage "fused")."""
     if rec is None:

@@ -165,7 +165,7 @@ def add_recording_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("Rerun viewer", "stream what this command does to Rerun")
     group.add_argument(
         "--save", metavar="FILE.rrd", default=None,
-        help="write a Rerun recording; view it with `rerun FILE.rrd viewer_layouts/capture.rbl`",
+        help="write a Rerun recording; view it with `rerun FILE.rrd` (a layout per stage: viewer_layouts/*.rbl)",
     )
     group.add_argument(
         "--spawn", action="store_true",
