@@ -9,26 +9,12 @@ import pytest
 
 from slscan.albedo.unshade import srgb8
 from slscan.errors import SlscanError
-from slscan.rig import PinholeModel
+from slscan.rig import PinholeModel, look_at
 from slscan.texture.bake import BakeOptions, bake, check_texture_memory, pad_charts, rasterise_uv
 from slscan.texture.metrics import psnr, render_into_atlas, seam_edges, seam_error
 from slscan.texture.views import TextureView
 
 CAMERA = PinholeModel(320, 240, 300.0, 310.0, 161.3, 118.7, (-0.05, 0.01, 0.0, 0.0, 0.0))
-
-
-def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> np.ndarray:
-    """world_from_camera (OpenCV axes) of a camera at ``eye`` looking at ``target``."""
-    eye, target = np.asarray(eye, float), np.asarray(target, float)
-    z = target - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    m = np.eye(4)
-    m[:3, :3] = np.stack([x, y, z], axis=1)
-    m[:3, 3] = eye
-    return m
 
 
 def grid_plane(n: int, size: float, z: float, *, bump: float = 0.0):

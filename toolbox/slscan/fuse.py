@@ -340,24 +340,13 @@ class TsdfVolume:
     def __init__(
         self, voxel_size: float, *, truncation: float = 4.0, block_count: int = 10_000
     ) -> None:
-        import open3d as o3d
-        import open3d.core as o3c
-
         if voxel_size <= 0:
             raise SlscanError(f"voxel size must be positive, got {voxel_size} mm")
         if truncation < 1:
             raise SlscanError(f"truncation must be at least 1 voxel, got {truncation}")
         self.voxel_size = float(voxel_size)
         self.truncation = float(truncation)
-        self.grid = o3d.t.geometry.VoxelBlockGrid(
-            attr_names=("tsdf", "weight"),
-            attr_dtypes=(o3c.float32, o3c.float32),
-            attr_channels=((1), (1)),
-            voxel_size=self.voxel_size,
-            block_resolution=BLOCK_RESOLUTION,
-            block_count=max(int(block_count), 1),
-            device=o3c.Device("CPU:0"),
-        )
+        self.grid = self._empty_grid(block_count)
         self.n_scans = 0
 
     @property
