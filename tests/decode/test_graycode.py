@@ -93,6 +93,24 @@ def test_synthetic_known_answer(dtype, channels):
     np.testing.assert_allclose(e.contrast, 0.55 / 1.2, atol=0.01)
 
 
+def test_unlit_border_changes_nothing_but_the_coordinates():
+    # decoding runs on the lit pixels' bounding box: a dark frame only moves the results
+    images, descs, white, black = _synthetic(np.uint8, 3)
+    a = decode_gray_images(images, descs, white, black, noise=0.01)
+    pad = ((6, 3), (11, 4), (0, 0))
+    b = decode_gray_images(
+        {k: np.pad(v, pad) for k, v in images.items()}, descs, np.pad(white, pad), np.pad(black, pad),
+        noise=0.01,
+    )
+    inner = (slice(6, -3), slice(11, -4))
+    for name in ("column", "row", "mask", "contrast", "saturated"):
+        np.testing.assert_array_equal(getattr(b, name)[inner], getattr(a, name))
+    assert (b.column[:6] == -1).all() and not b.mask[:, -4:].any()
+    np.testing.assert_array_equal(b.edges.row, a.edges.row + 6)
+    np.testing.assert_allclose(b.edges.x, a.edges.x + 11, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(b.edges.stripe, a.edges.stripe)
+
+
 def test_columns_only_gives_no_row():
     images, descs, white, black = _synthetic(np.uint8, 1, rows=False)
     res = decode_gray_images(images, descs, white, black)

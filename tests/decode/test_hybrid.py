@@ -274,6 +274,23 @@ def test_arrays_in_any_order_give_the_same_result(tile_session):
     )
 
 
+def test_unlit_border_changes_nothing_but_the_coordinates(tile_session):
+    # the decoder works on the lit pixels' bounding box: a dark frame around the view
+    # only moves the samples
+    white, black, images, descs = _arrays(tile_session)
+    a = decode_hybrid_images(white, black, images, descs)
+    pad = ((17, 5), (23, 9), (0, 0))
+    padded = [np.pad(im, pad) for im in (white, black, *images)]
+    b = decode_hybrid_images(padded[0], padded[1], padded[2:], descs)
+    np.testing.assert_array_equal(b.samples.row, a.samples.row + 17)
+    np.testing.assert_allclose(b.samples.x, a.samples.x + 23, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(b.samples.stripe, a.samples.stripe)
+    np.testing.assert_array_equal(b.codes[17:-5, 23:-9], a.codes)
+    assert (b.codes[:17] == -1).all() and (b.codes[:, -9:] == -1).all()
+    np.testing.assert_array_equal(b.mask[17:-5, 23:-9], a.mask)
+    assert b.mask.sum() == a.mask.sum()
+
+
 # --- errors --------------------------------------------------------------------------------
 
 

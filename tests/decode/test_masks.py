@@ -10,6 +10,7 @@ import pytest
 from slscan.decode.masks import (
     SaturationReport,
     channel_max,
+    lit_bounds,
     noise_sigma,
     saturation,
     saturation_report,
@@ -49,6 +50,16 @@ def _frames(dtype, channels: int, *, contrast: float = 0.3, noise: float = 0.0, 
 def test_shadow_mask_finds_the_lit_block(dtype, channels):
     white, black, lit = _frames(dtype, channels)
     np.testing.assert_array_equal(shadow_mask(white, black), lit)
+
+
+def test_lit_bounds_grow_by_the_margin_and_stay_in_the_image():
+    mask = np.zeros((40, 60), bool)
+    mask[10:30, 20:50] = True
+    mask[12, 15] = True  # one lone pixel widens the box
+    assert lit_bounds(mask, 3) == (slice(7, 33), slice(12, 53))
+    assert lit_bounds(mask, 3, row_step=4) == (slice(4, 33), slice(12, 53))  # starts on a multiple
+    assert lit_bounds(mask, 50) == (slice(0, 40), slice(0, 60))
+    assert lit_bounds(np.zeros((5, 6), bool), 2) == (slice(0, 5), slice(0, 6))
 
 
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16])

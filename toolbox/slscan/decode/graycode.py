@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slscan.capture.session import Session, ViewRecord
-from slscan.decode.masks import full_scale
+from slscan.decode.masks import full_scale, lit_bounds
 from slscan.decode.samples import StripeSamples
 from slscan.errors import SlscanError
 from slscan.patterns import PatternImage
@@ -142,6 +142,8 @@ class _Reader:
         self.shape, self.dtype, self.where = shape, dtype, where
         self.scale = full_scale(np.empty(0, dtype), where)
         self.saturated = np.zeros(shape[:2], bool)
+        self.box = (slice(None), slice(None))  # the part of each image returned
+
 
     def __call__(self, image: np.ndarray, name: str) -> np.ndarray:
         image = np.asarray(image)
@@ -155,8 +157,9 @@ class _Reader:
                 f"{self.where}{name}: pixels are {image.dtype}, expected {self.dtype} "
                 "like the white image"
             )
+        image = image[self.box]
         clipped = image >= self.scale
-        self.saturated |= clipped.any(axis=2) if image.ndim == 3 else clipped
+        self.saturated[self.box] |= clipped.any(axis=2) if image.ndim == 3 else clipped
         grey = image.mean(axis=2, dtype=np.float32) if image.ndim == 3 else image.astype(np.float32)
         return grey * np.float32(1.0 / self.scale)
 
@@ -352,8 +355,12 @@ def decode_gray_images(
     full_scale(white, f"{where}white")
     read = _Reader(white.shape, white.dtype, where)
     w_img, b_img = read(white, "white"), read(black, "black")
-    contrast = w_img - b_img
-    lit = contrast > min_contrast
+    full_contrast = w_img - b_img
+    full_lit = full_contrast > min_contrast
+    # the rest runs on the lit pixels' bounding box: outside it nothing decodes
+    read.box = box = lit_bounds(full_lit, max_edge_gap + 2)
+    y0, x0 = box[0].start, box[1].start
+    w_img, b_img, contrast, lit = w_img[box], b_img[box], full_contrast[box], full_lit[box]
 
     def load(pairs: list[tuple[str, str]]) -> tuple[np.ndarray, np.ndarray]:
         diffs = np.empty((len(pairs),) + contrast.shape, np.float32)
@@ -380,7 +387,17 @@ def decode_gray_images(
         row, row_valid = _decode_axis(row_diffs, height, lit, threshold)
         mask = col_valid & row_valid
         del row_diffs
-    edges = _edges(column, col_valid, lit, col_diffs, w_img, read.saturated, max_edge_gap)
+    edges = _edges(column, col_valid, lit, col_diffs, w_img, read.saturated[box], max_edge_gap)
+    edges = edges.shifted(y0, x0)
+
+    def full(a: np.ndarray | None, fill) -> np.ndarray | None:
+        if a is None:
+            return None
+        out = np.full(full_lit.shape, fill, a.dtype)
+        out[box] = a
+        return out
+
+    column, row, mask = full(column, -1), full(row, -1), full(mask, False)
     log.debug(
         "%sGray code: %.1f%% pixels decoded, %d edges, noise %.4f of full scale",
         where,
@@ -393,7 +410,7 @@ def decode_gray_images(
         row=row,
         mask=mask,
         edges=edges,
-        contrast=contrast,
+        contrast=full_contrast,
         saturated=read.saturated,
         noise=sigma,
     )

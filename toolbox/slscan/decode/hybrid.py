@@ -92,6 +92,7 @@ from slscan.decode.masks import (
     full_scale,
     saturation,
     saturation_report,
+    lit_bounds,
     shadow_mask,
     warn_saturation,
 )
@@ -130,6 +131,7 @@ MIN_CROSSTALK_PIXELS = 50
 MAX_NEIGHBOUR_GAP = 16.0  # camera px; farther samples along a row are not compared
 MAX_LONE_SLOPE = 8.0  # projector px per camera px, for a sample with a single neighbour
 CENTROID_RADIUS = 2.5  # px each side of the centre of mass
+CROP_MARGIN = 8  # px kept around the lit pixels: every window below fits inside
 _EPS = 1e-6
 _ROW_KERNEL = np.array([0.25, 0.5, 0.25], np.float32)
 
@@ -305,6 +307,7 @@ def estimate_crosstalk(
     mask: np.ndarray | None = None,
     saturated: np.ndarray | None = None,
     bit_depth: int | None = None,
+    row_step: int | None = None,
 ) -> np.ndarray:
     """The projector → camera colour crosstalk (3, 3), measured from a view's own captures.
 
@@ -313,6 +316,7 @@ def estimate_crosstalk(
         first three levels
     mask : (h, w) bool lit pixels (default: :func:`~slscan.decode.masks.shadow_mask`)
     saturated : (h, w) bool pixels clipped in any of the images (default: computed)
+    row_step : use every ``row_step``-th row (default: about ``CROSSTALK_ROWS`` rows)
 
     Returns ``M`` (3, 3) float64, camera channel (rows) response to projector primary
     (columns), each column scaled to a unit diagonal (the scale cancels in the
@@ -335,7 +339,7 @@ def estimate_crosstalk(
             [saturation(a, bit_depth=bit_depth) for a in (white, *coarse)]
         )
     # a few hundred rows hold plenty of band pixels
-    step = max(1, white.shape[0] // CROSSTALK_ROWS)
+    step = row_step or max(1, white.shape[0] // CROSSTALK_ROWS)
     black_f = black[::step].astype(np.float32)
     lit = white[::step].astype(np.float32) - black_f
     mask = mask[::step]
@@ -729,8 +733,16 @@ def decode_hybrid_images(
     prefix = f"{where}: " if where else ""
     images, descs, names = _check_inputs(white, black, images, descs, names, prefix)
     white, black = np.asarray(white), np.asarray(black)
-    h, w = white.shape[:2]
-    mask = shadow_mask(white, black, min_contrast=min_contrast, bit_depth=bit_depth)
+    full_shape = white.shape[:2]
+    full_mask = shadow_mask(white, black, min_contrast=min_contrast, bit_depth=bit_depth)
+    # everything below runs on the lit pixels' bounding box (outside it every signal is 0)
+    crosstalk_step = max(1, full_shape[0] // CROSSTALK_ROWS)
+    box = lit_bounds(full_mask, CROP_MARGIN, row_step=crosstalk_step)
+    y0, x0 = box[0].start, box[1].start
+    full_white = white
+    white, black, mask = white[box], black[box], full_mask[box]
+    images = [image[box] for image in images]
+    h, w = mask.shape
     clipped = {
         name: saturation(image, bit_depth=bit_depth)
         for name, image in zip((*flat_names, *names), (white, black, *images))
@@ -743,6 +755,7 @@ def decode_hybrid_images(
             images[:CROSSTALK_LEVELS],
             mask=mask,
             bit_depth=bit_depth,
+            row_step=crosstalk_step,
             saturated=np.logical_or.reduce(
                 [sat_white, *(clipped[n] for n in names[:CROSSTALK_LEVELS])]
             ),
@@ -818,7 +831,7 @@ def decode_hybrid_images(
     order = np.lexsort((x, row))
     samples = StripeSamples(
         row[order], x[order], column[order], stripe[order], contrast[order], saturated[order]
-    )
+    ).shifted(y0, x0)
     consistent = order_consistent(
         samples.row, samples.x, samples.projector_column, tolerance=spacing
     )
@@ -838,12 +851,18 @@ def decode_hybrid_images(
     for j, e_j in enumerate(redness):
         codes |= (e_j < 0.5).astype(np.int64) << (levels - 1 - j)
         readable &= np.abs(e_j - 0.5) >= ambiguity
-    codes = np.where(readable, codes, -1).astype(np.int32)
+    full_codes = np.full(full_shape, -1, np.int32)
+    full_codes[box] = np.where(readable, codes, -1)
 
     report = saturation_report(clipped, mask, line_maps)
     warn_saturation(report, where=where)
     return HybridResult(
-        samples=samples, mask=mask, codes=codes, crosstalk=crosstalk, saturation=report, white=white
+        samples=samples,
+        mask=full_mask,
+        codes=full_codes,
+        crosstalk=crosstalk,
+        saturation=report,
+        white=full_white,
     )
 
 

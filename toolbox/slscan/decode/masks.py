@@ -119,10 +119,42 @@ def shadow_mask(
             f"got {min_contrast}"
         )
     scale = full_scale(white, "white image", bit_depth=bit_depth)
-    diff = white.astype(np.float32) - black.astype(np.float32)
+    if np.issubdtype(white.dtype, np.integer):
+        # in the pixels' own type (5x faster than in floats); negative contrast reads 0,
+        # below any threshold
+        diff = np.maximum(white, black)
+        diff -= black
+    else:
+        diff = white.astype(np.float32) - black.astype(np.float32)
     contrast = channel_max(diff)
     threshold = max(min_contrast * scale, noise_sigmas * np.sqrt(2.0) * noise_sigma(black))
     return contrast > threshold
+
+
+def lit_bounds(mask: np.ndarray, margin: int, *, row_step: int = 1) -> tuple[slice, slice]:
+    """The bounding box of ``mask``'s pixels grown by ``margin`` px, clamped to the image.
+
+    mask : (h, w) bool, e.g. :func:`shadow_mask`
+    margin : px added on every side (windows around a lit pixel stay inside the box)
+    row_step : the first row is a multiple of this (row-subsampled statistics then see
+        the same rows as on the whole image)
+
+    Returns ``(rows, cols)`` slices; the whole image when nothing is lit. Decoders work on
+    this box only: outside the mask every signal is zero anyway, and an object that fills
+    a tenth of the frame costs a tenth of the arithmetic.
+    """
+    mask = np.asarray(mask, bool)
+    h, w = mask.shape
+    rows = np.flatnonzero(mask.any(axis=1))
+    if len(rows) == 0:
+        return slice(0, h), slice(0, w)
+    cols = np.flatnonzero(mask[rows[0] : rows[-1] + 1].any(axis=0))
+    y0 = max(0, int(rows[0]) - margin)
+    y0 -= y0 % max(1, row_step)
+    return (
+        slice(y0, min(h, int(rows[-1]) + margin + 1)),
+        slice(max(0, int(cols[0]) - margin), min(w, int(cols[-1]) + margin + 1)),
+    )
 
 
 def saturation(image: np.ndarray, *, bit_depth: int | None = None) -> np.ndarray:

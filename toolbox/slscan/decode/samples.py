@@ -37,6 +37,11 @@ class StripeSamples:
         return StripeSamples(*(getattr(self, f)[keep] for f in
                                ("row", "x", "projector_column", "stripe", "contrast", "saturated")))
 
+    def shifted(self, rows: int, cols: int) -> StripeSamples:
+        """The same samples with camera positions moved by ``rows`` and ``cols`` px (crop to image)."""
+        return StripeSamples((self.row + rows).astype(np.int32), self.x + cols, self.projector_column,
+                             self.stripe, self.contrast, self.saturated)
+
 
 class LightPlanes(Protocol):
     """Light planes of the projector, from the rig's known calibration or a measured one."""
