@@ -11,7 +11,8 @@ At the paper's geometry with default noise (full size unless --scale), prints:
   (c) figurine: distance of every range-map vertex to the true surface (mean, 95th pct)
       and coverage: the share of camera pixels that see projector-lit surface and are
       covered by a range-map triangle (all lit pixels; and lit pixels more than 2 px from
-      the lit region's border, where a triangle can reach at all);
+      the lit region's border, where a triangle can reach at all), and coverage by how
+      obliquely the camera and the projector see the surface;
   (d) the same at 4x exposure: the saturation warning and what it costs;
   (e) decode + triangulate + mesh time per view next to the time to just load that
       view's PNGs (the I/O floor), measured in the same run.
@@ -65,15 +66,32 @@ def true_surface_distance(points: np.ndarray, scene, pose: np.ndarray) -> np.nda
     return rs.compute_distance(o3d.core.Tensor(points.astype(np.float32))).numpy()
 
 
-def coverage(range_map, camera, lit: np.ndarray) -> tuple[float, float]:
-    """Share of lit pixels covered by range-map triangles: all, and > 2 px inside."""
+def covered_pixels(range_map, camera, shape: tuple[int, int]) -> np.ndarray:
+    """(h, w) bool camera pixels covered by range-map triangles."""
     pix = camera.project_local(range_map.vertices)
     tris = np.round(pix[range_map.faces] * 16).astype(np.int32)  # 4 bits of sub-pixel
-    covered = np.zeros(lit.shape, np.uint8)
+    covered = np.zeros(shape, np.uint8)
     cv2.fillPoly(covered, list(tris), 1, lineType=cv2.LINE_8, shift=4)
-    covered = covered.astype(bool)
+    return covered.astype(bool)
+
+
+def coverage(range_map, camera, lit: np.ndarray) -> tuple[float, float]:
+    """Share of lit pixels covered by range-map triangles: all, and > 2 px inside."""
+    covered = covered_pixels(range_map, camera, lit.shape)
     inner = cv2.erode(lit.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
     return float(covered[lit].mean()), float(covered[inner].mean())
+
+
+def obliquity(truth, projector_centre: np.ndarray) -> np.ndarray:
+    """(h, w) degrees: the larger of the angles between the true surface normal and the
+    rays to the camera and to the projector (NaN off the object)."""
+    p = truth.point.astype(np.float64)
+    n = truth.normal.astype(np.float64)
+    to_cam = -p / np.linalg.norm(p, axis=-1, keepdims=True)
+    to_proj = np.asarray(projector_centre, np.float64) - p
+    to_proj /= np.linalg.norm(to_proj, axis=-1, keepdims=True)
+    cos = np.minimum(np.abs((n * to_cam).sum(-1)), np.abs((n * to_proj).sum(-1)))
+    return np.degrees(np.arccos(np.clip(cos, 0.0, 1.0)))
 
 
 def plane_errors(points: np.ndarray, scene, pose: np.ndarray) -> tuple[float, float]:
@@ -116,11 +134,16 @@ def main() -> None:
         print("(a) green-line medial axis vs ground truth, figurine")
         print(f"{'estimator':<14}{'samples':>9}{'indexed ok':>12}{'RMS px':>9}{'p95 px':>9}")
         fig = sessions["figurine"]
-        from slscan.decode.hybrid import ESTIMATORS, decode_hybrid
+        from slscan.decode.hybrid import DEFAULT_ESTIMATOR, ESTIMATORS, decode_hybrid
 
         for estimator in ESTIMATORS:
             m = stripe_axes.evaluate(fig, decode_hybrid(fig, fig.views[0], estimator=estimator))
             print(f"{estimator:<14}{m['samples']:>9d}{m['indexed']:>11.2f}%{m['rms']:>9.4f}{m['p95']:>9.4f}")
+            if estimator == DEFAULT_ESTIMATOR:
+                default = m
+        print(f"  {DEFAULT_ESTIMATOR}, by the true surface colour under the sample:")
+        print(f"  {'surface':<13}{'samples':>8}{'RMS px':>9}{'p95 px':>9}{'% of MS':>12}")
+        stripe_axes.print_by_surface(default, indent="  ")
 
         # (b)-(d)
         print("\n(b)-(d) range maps vs ground truth")
@@ -128,6 +151,7 @@ def main() -> None:
                   f"{'mean mm':>9}{'p95 mm':>9}{'coverage':>10}{'interior':>10}{'saturated':>11}")
         print(header)
         timing = {}
+        by_angle = {}
         for name, session in sessions.items():
             session = load_session(session.root)
             view = session.views[0]
@@ -135,14 +159,16 @@ def main() -> None:
             truth = session.load_ground_truth(view)
             for method in ("hybrid", "gray"):
                 warnings.messages.clear()
-                times = []
+                times, parts = [], []
                 for _ in range(args.repeat if "4x" not in name else 1):
                     t = time.perf_counter()
                     result = decode_view(session, view, DecodeConfig(method=method))
                     times.append(time.perf_counter() - t)
+                    parts.append(result.seconds)
                 rm = result.range_map
                 d = true_surface_distance(rm.vertices, scene, view.rig_from_object)
-                cov, inner = coverage(rm, rig.camera, truth.visibility == LIT)
+                lit = truth.visibility == LIT
+                cov, inner = coverage(rm, rig.camera, lit)
                 fit, true_plane = plane_errors(rm.vertices, scene, view.rig_from_object) if name == "tile" else (np.nan, np.nan)
                 sat = result.metrics["saturated_sample_share"]
                 print(f"{name:<22}{method:<8}{len(rm.vertices):>9d}{fit:>11.4f}{true_plane:>12.4f}"
@@ -150,12 +176,27 @@ def main() -> None:
                 for message in dict.fromkeys(warnings.messages):
                     print(f"{'':<22}warning: {message}")
                 if "4x" not in name:
-                    timing[(name, method)] = (statistics.median(times), result.seconds)
+                    timing[(name, method)] = (statistics.median(times),
+                                              {k: statistics.median(p[k] for p in parts) for k in parts[0]})
+                if name == "figurine":
+                    by_angle[method] = (covered_pixels(rm, rig.camera, lit.shape), lit,
+                                        obliquity(truth, session.calibration.projector.center))
+
+        print("\n(c) figurine coverage by obliquity: lit pixels whose surface is within the limit of both")
+        print("    the camera's and the projector's ray (true normals)")
+        print(f"{'limit deg':<10}{'share of lit':>14}" + "".join(f"{m + ' cov.':>13}" for m in by_angle))
+        for limit in (60, 70, 75, 80, 85, 90):
+            within = None
+            row = ""
+            for covered, lit_px, angle in by_angle.values():
+                within = lit_px & (angle <= limit)
+                row += f"{covered[within].mean():>13.3f}"
+            print(f"{limit:<10}{within.sum() / lit_px.sum():>14.3f}{row}")
 
         # (e)
-        print("\n(e) time per view: decode + triangulate + mesh next to loading the view's PNGs")
+        print("\n(e) time per view next to loading the view's PNGs (decode includes reading them)")
         print(f"{'scene':<12}{'method':<8}{'load PNGs s':>12}{'decode s':>10}{'triang. s':>10}{'mesh s':>8}"
-              f"{'total s':>9}{'x load':>8}")
+              f"{'total s':>9}{'dec+tri x load':>16}{'total x load':>14}")
         for (name, method), (total, parts) in timing.items():
             session = sessions[name]
             view = session.views[0]
@@ -169,8 +210,9 @@ def main() -> None:
                     read_png(session.image_path(view, rec))
                 loads.append(time.perf_counter() - t)
             load = statistics.median(loads)
+            dec_tri = parts["decode"] + parts["triangulate"]
             print(f"{name:<12}{method:<8}{load:>12.3f}{parts['decode']:>10.3f}{parts['triangulate']:>10.3f}"
-                  f"{parts['mesh']:>8.3f}{total:>9.3f}{total / load:>8.2f}")
+                  f"{parts['mesh']:>8.3f}{total:>9.3f}{dec_tri / load:>16.2f}{total / load:>14.2f}")
 
 
 if __name__ == "__main__":

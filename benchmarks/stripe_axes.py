@@ -17,6 +17,10 @@ gives:
   (adjacent lit pixels of a row between which ``u`` passes a line column)
 - decode s: median wall time of ``decode_hybrid`` for the view, PNG reading included
 
+then, for the default estimator, the error split by the true surface colour under each
+sample (neutral, saturated red / green / blue paint, dark) with each class's share of the
+mean squared error.
+
 Scenes: "figurine" (painted, noisy), "tile" (flat, noisy), "tile-clean" (flat, noise-free),
 "figurine-clean" (noise-free: what is left is the image formation on the relief, not noise).
 Absolute times drift on shared machines.
@@ -82,7 +86,8 @@ def evaluate(session: Session, result: HybridResult) -> dict[str, float]:
         ua, ub = u[s.row, xi], u[s.row, xi + 1]
         hit = (ua <= s.projector_column) & (s.projector_column < ub) & np.isnan(true_x)
         true_x = np.where(hit, xi + (s.projector_column - ua) / (ub - ua), true_x)
-    err = np.abs(s.x - true_x)[correct & np.isfinite(true_x)]
+    measured = correct & np.isfinite(true_x)
+    err = np.abs(s.x - true_x)[measured]
     lit = truth.visibility == LIT
     return {
         "samples": len(s),
@@ -90,7 +95,37 @@ def evaluate(session: Session, result: HybridResult) -> dict[str, float]:
         "rms": float(np.sqrt(np.mean(err**2))) if len(err) else float("nan"),
         "p95": float(np.percentile(err, 95)) if len(err) else float("nan"),
         "coverage": 100.0 * correct.sum() / max(possible_crossings(u, lit, columns), 1),
+        "by_surface": by_surface(truth.albedo, s.row[measured], s.x[measured], err),
     }
+
+
+def surface_class(albedo: np.ndarray) -> np.ndarray:
+    """(k,) names for true albedos (k, 3): "neutral", "dark", or "<channel> paint" where one
+    channel reflects at least four times the weakest (saturated paint)."""
+    top = albedo.max(axis=1)
+    names = np.array(["red paint", "green paint", "blue paint"])[albedo.argmax(axis=1)].astype(object)
+    names[albedo.min(axis=1) >= 0.25 * top] = "neutral"
+    names[top < 0.1] = "dark"
+    return names
+
+
+def by_surface(albedo: np.ndarray, rows: np.ndarray, x: np.ndarray, err: np.ndarray) -> dict:
+    """Axis error by the surface under the sample: name -> (samples, RMS px, p95 px)."""
+    cols = np.clip(np.round(x).astype(int), 0, albedo.shape[1] - 1)
+    names = surface_class(albedo[rows, cols].astype(np.float64))
+    return {
+        name: (int((names == name).sum()), float(np.sqrt(np.mean(err[names == name] ** 2))),
+               float(np.percentile(err[names == name], 95)))
+        for name in ("neutral", "red paint", "blue paint", "green paint", "dark")
+        if (names == name).any()
+    }
+
+
+def print_by_surface(m: dict, indent: str = "") -> None:
+    """The by-surface rows of :func:`evaluate`'s result, with each class's share of the squared error."""
+    total = sum(n * rms**2 for n, rms, _ in m["by_surface"].values())
+    for name, (n, rms, p95) in m["by_surface"].items():
+        print(f"{indent}{name:<13}{n:>8d}{rms:>9.4f}{p95:>9.4f}{100 * n * rms**2 / total:>12.1f}")
 
 
 def main() -> None:
@@ -123,11 +158,12 @@ def main() -> None:
         f"row smoothing {'on' if args.smooth_rows else 'off'}"
     )
     header = (
-        f"{'scene':<12}{'estimator':<13}{'samples':>9}{'indexed %':>11}{'RMS px':>9}"
+        f"{'scene':<16}{'estimator':<13}{'samples':>9}{'indexed %':>11}{'RMS px':>9}"
         f"{'p95 px':>9}{'coverage %':>12}{'decode s':>10}"
     )
     print(header)
     print("-" * len(header))
+    surfaces = {}
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.scenes:
             config = VirtualCaptureConfig(
@@ -149,10 +185,16 @@ def main() -> None:
                     times.append(time.perf_counter() - t)
                 m = evaluate(session, result)
                 print(
-                    f"{name:<12}{estimator:<13}{m['samples']:>9d}{m['indexed']:>11.2f}"
+                    f"{name:<16}{estimator:<13}{m['samples']:>9d}{m['indexed']:>11.2f}"
                     f"{m['rms']:>9.3f}"
                     f"{m['p95']:>9.3f}{m['coverage']:>12.1f}{statistics.median(times):>10.2f}"
                 )
+                if estimator == DEFAULT_ESTIMATOR:
+                    surfaces[name] = m
+        for name, m in surfaces.items():
+            print(f"\n{name}, {DEFAULT_ESTIMATOR} estimator, by the true surface colour under the sample")
+            print(f"{'surface':<13}{'samples':>8}{'RMS px':>9}{'p95 px':>9}{'% of MS':>12}")
+            print_by_surface(m)
 
 
 if __name__ == "__main__":
