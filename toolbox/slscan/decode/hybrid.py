@@ -3,7 +3,8 @@
 Pipeline for one view (:func:`decode_hybrid_images` on arrays, :func:`decode_hybrid` on a
 capture session):
 
-1. **Shadow mask** from the white and black frames (:func:`slscan.decode.masks.shadow_mask`).
+1. **Shadow mask** from the white and black frames (:func:`slscan.decode.masks.shadow_mask`);
+   the steps after it run on the bounding box of the lit pixels (:func:`~slscan.decode.masks.lit_bounds`).
 2. **Colour crosstalk** (:func:`estimate_crosstalk`): the camera's response to each
    projector primary, a (3, 3) matrix ``M`` (camera channels × primaries, unit diagonal),
    measured from the session itself. Pixels deep inside a red (blue) band of a coarse
