@@ -91,9 +91,9 @@ from slscan.decode.masks import (
     SaturationReport,
     channel_max,
     full_scale,
+    lit_bounds,
     saturation,
     saturation_report,
-    lit_bounds,
     shadow_mask,
     warn_saturation,
 )
