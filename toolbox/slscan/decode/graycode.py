@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slscan.capture.session import Session, ViewRecord
-from slscan.decode.masks import full_scale, lit_bounds
+from slscan.decode.masks import full_scale, lit_bounds, uncrop
 from slscan.decode.samples import StripeSamples
 from slscan.errors import SlscanError
 from slscan.patterns import PatternImage
@@ -389,15 +389,8 @@ def decode_gray_images(
         del row_diffs
     edges = _edges(column, col_valid, lit, col_diffs, w_img, read.saturated[box], max_edge_gap)
     edges = edges.shifted(y0, x0)
-
-    def full(a: np.ndarray | None, fill) -> np.ndarray | None:
-        if a is None:
-            return None
-        out = np.full(full_lit.shape, fill, a.dtype)
-        out[box] = a
-        return out
-
-    column, row, mask = full(column, -1), full(row, -1), full(mask, False)
+    column, mask = uncrop(column, box, full_lit.shape, -1), uncrop(mask, box, full_lit.shape, False)
+    row = None if row is None else uncrop(row, box, full_lit.shape, -1)
     log.debug(
         "%sGray code: %.1f%% pixels decoded, %d edges, noise %.4f of full scale",
         where,

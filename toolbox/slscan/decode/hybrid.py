@@ -95,6 +95,7 @@ from slscan.decode.masks import (
     saturation,
     saturation_report,
     shadow_mask,
+    uncrop,
     warn_saturation,
 )
 from slscan.decode.samples import StripeSamples
@@ -852,15 +853,13 @@ def decode_hybrid_images(
     for j, e_j in enumerate(redness):
         codes |= (e_j < 0.5).astype(np.int64) << (levels - 1 - j)
         readable &= np.abs(e_j - 0.5) >= ambiguity
-    full_codes = np.full(full_shape, -1, np.int32)
-    full_codes[box] = np.where(readable, codes, -1)
 
     report = saturation_report(clipped, mask, line_maps)
     warn_saturation(report, where=where)
     return HybridResult(
         samples=samples,
         mask=full_mask,
-        codes=full_codes,
+        codes=uncrop(np.where(readable, codes, -1).astype(np.int32), box, full_shape, -1),
         crosstalk=crosstalk,
         saturation=report,
         white=full_white,

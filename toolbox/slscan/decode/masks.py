@@ -157,6 +157,13 @@ def lit_bounds(mask: np.ndarray, margin: int, *, row_step: int = 1) -> tuple[sli
     )
 
 
+def uncrop(values: np.ndarray, box: tuple[slice, slice], shape: tuple[int, int], fill) -> np.ndarray:
+    """``values`` computed on ``image[box]`` put back into a ``shape`` image filled with ``fill``."""
+    out = np.full(shape, fill, values.dtype)
+    out[box] = values
+    return out
+
+
 def saturation(image: np.ndarray, *, bit_depth: int | None = None) -> np.ndarray:
     """Pixels (h, w) bool where any channel of ``image`` reached full scale.
 

@@ -864,22 +864,33 @@ def _build_patches(v: np.ndarray, f: np.ndarray, options: AtlasOptions, done) ->
     local -= shift[vpatch] + mean_s[vchart]
     texel = np.einsum("kij,kj->ki", affine[vchart], local) + mean_d[vchart]
     texel[lone] = mean_d[0]
+    return _assembled(
+        v, source, inverse.reshape(-1, 3), texel, chart, n_charts, patches.folded,
+        texels_per_mm, options, seconds, (t0, t), done,
+    )
+
+
+def _assembled(
+    v, source, faces, texel, chart, n_charts, folded, texels_per_mm, options, seconds, starts, done
+) -> Atlas:
+    """The :class:`Atlas` of a finished layout: texel positions (n, 2) of the output
+    vertices ``v[source]`` scaled to UVs; ``starts``: when the build and its assembly began."""
     uvs = np.clip(texel / options.size, 0.0, 1.0).astype(np.float32)
-    faces_out = inverse.reshape(-1, 3).astype(np.int32)
-    seconds["assemble"] = time.perf_counter() - t
-    seconds["total"] = time.perf_counter() - t0
+    faces = faces.astype(np.int32)
+    seconds["assemble"] = time.perf_counter() - starts[1]
+    seconds["total"] = time.perf_counter() - starts[0]
     done("assemble")
     return Atlas(
         vertices=v[source],
-        faces=faces_out,
+        faces=faces,
         uvs=uvs,
         source_vertex=source,
         chart=chart.astype(np.int32),
         n_charts=n_charts,
         size=options.size,
-        utilisation=_utilisation(uvs, faces_out, patches.folded),
+        utilisation=_utilisation(uvs, faces, folded),
         texels_per_mm=texels_per_mm,
-        n_folded=int(patches.folded.sum()),
+        n_folded=int(folded.sum()),
         seconds=seconds,
     )
 
@@ -944,20 +955,7 @@ def _build_xatlas(v: np.ndarray, f: np.ndarray, options: AtlasOptions, done) -> 
     chart[chart < 0] = 0
     source = np.asarray(vmap, np.int64)
     texel = np.asarray(out_uv, np.float64) * [atlas.width, atlas.height]
-    uvs = np.clip(texel / options.size, 0.0, 1.0).astype(np.float32)
-    faces_out = faces_out.astype(np.int32)
-    seconds["assemble"] = time.perf_counter() - t
-    seconds["total"] = time.perf_counter() - t0
-    done("assemble")
-    return Atlas(
-        vertices=v[source],
-        faces=faces_out,
-        uvs=uvs,
-        source_vertex=source,
-        chart=chart.astype(np.int32),
-        n_charts=max(n_charts, 1),
-        size=options.size,
-        utilisation=_utilisation(uvs, faces_out, np.zeros(len(f), bool)),
-        texels_per_mm=float(atlas.texels_per_unit),
-        seconds=seconds,
+    return _assembled(
+        v, source, faces_out, texel, chart, max(n_charts, 1), np.zeros(len(f), bool),
+        float(atlas.texels_per_unit), options, seconds, (t0, t), done,
     )
