@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import subprocess
 import sys
 
@@ -44,6 +46,11 @@ def test_demo_at_reduced_size_ends_in_a_textured_model(tmp_path, capsys):
     assert main(["decode", str(out / "capture"), "--out", str(tmp_path / "again"), "--quiet"]) == 0
     again = read_ply(tmp_path / "again" / "view_000.ply")
     np.testing.assert_array_equal(again.faces, range_map.faces)
+    # trimming the line ends: fewer vertices, and the setting is recorded
+    trimmed = tmp_path / "trimmed"
+    assert main(["decode", str(out / "capture"), "--out", str(trimmed), "--quiet", "--trim-line-ends", "1"]) == 0
+    assert len(read_ply(trimmed / "view_000.ply").vertices) < len(range_map.vertices)
+    assert json.loads((trimmed / "range_maps.json").read_text())["config"]["trim_line_ends"] == 1
     # slscan view logs a result folder (here to a file instead of a viewer)
     for result in (out / "capture", out / "range_maps"):
         rrd = tmp_path / f"{result.name}.rrd"

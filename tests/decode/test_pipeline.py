@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from slscan.capture.session import load_session
-from slscan.decode.pipeline import DecodeConfig, decode_session
+from slscan.decode.pipeline import DecodeConfig, decode_session, decode_view
 from slscan.decode.rangemap import read_ply
 from slscan.errors import SlscanError
 from slscan.rig import transform_points
@@ -49,6 +49,19 @@ def test_range_maps_lie_on_the_true_surface(figurine, tmp_path, method):
     assert np.median(d) < 0.15, np.median(d)
     assert np.mean(d < 1.0) > 0.99
     assert results[0].metrics["samples"] == len(results[0].samples)
+
+
+def test_trimming_line_ends_drops_the_samples_without_two_neighbours(figurine):
+    view = figurine.views[0]
+    full = decode_view(figurine, view, DecodeConfig(method="hybrid"))
+    trimmed = decode_view(figurine, view, DecodeConfig(method="hybrid", trim_line_ends=1))
+    inside = full.samples.subset(full.samples.continuity() == 2)
+    assert 0.8 * len(full.samples) < len(trimmed.samples) == len(inside) < len(full.samples)
+    np.testing.assert_array_equal(trimmed.samples.x, inside.x)
+    assert trimmed.range_map.n_vertices < full.range_map.n_vertices
+    for bad in (-1, 1.5):
+        with pytest.raises(SlscanError, match="trim_line_ends"):
+            DecodeConfig(trim_line_ends=bad)
 
 
 def test_a_session_without_calibration_or_patterns_is_refused(figurine, tmp_path):

@@ -76,7 +76,9 @@ def test_flat_grid_meshes_completely():
     cos_view = -np.einsum(
         "ij,ij->i", expected[None, :], points / np.linalg.norm(points, axis=1, keepdims=True)
     )
-    np.testing.assert_allclose(rm.quality, 0.8 * cos_view, rtol=1e-5)
+    # the first and last rows end every line: half the quality there
+    ends = np.isin(samples.row, [ROWS[0], ROWS[-1]])
+    np.testing.assert_allclose(rm.quality, 0.8 * cos_view * np.where(ends, 0.5, 1.0), rtol=1e-5)
     # colour: the white image bilinear at (x, row); here the value is x itself
     np.testing.assert_array_equal(
         rm.colors, np.repeat(np.rint(samples.x).astype(np.uint8)[:, None], 3, axis=1)
@@ -139,6 +141,66 @@ def test_nan_duplicate_and_saturated_samples():
     assert kept.n_vertices == len(dup) - 1 and kept.n_faces == rm.n_faces
     twins = (kept.row == 16) & (kept.stripe == 18)
     assert twins.sum() == 2 and np.all(kept.quality[twins] == 0)
+
+
+def _without(samples: StripeSamples, *cells: tuple[int, int]) -> StripeSamples:
+    drop = np.zeros(len(samples), bool)
+    for row, stripe in cells:
+        drop |= (samples.row == row) & (samples.stripe == stripe)
+    return samples.subset(~drop)
+
+
+def _at(samples: StripeSamples, values: np.ndarray, row: int, stripe: int):
+    return values[(samples.row == row) & (samples.stripe == stripe)].tolist()
+
+
+def test_line_continuity_and_trimming():
+    grid, _ = _grid()
+    samples = _without(grid, (14, 12), (12, 20), (11, 20))
+    n = samples.continuity()
+    assert n.dtype == np.int8
+    assert _at(samples, n, 13, 12) == [1] and _at(samples, n, 15, 12) == [1]  # around the hole
+    assert _at(samples, n, 10, 20) == [0]  # rows 11 and 12 missing: alone
+    assert _at(samples, n, 13, 20) == [1] and _at(samples, n, 14, 20) == [2]
+    assert np.all(n[samples.row == ROWS[0]] <= 1) and np.all(n[samples.row == ROWS[-1]] <= 1)
+    assert _at(samples, n, 15, 7) == [2]
+    # a feature of the same stripe 3 px away in the next row is another line
+    x = samples.x.copy()
+    x[(samples.row == 16) & (samples.stripe == 7)] += 3.0
+    moved = StripeSamples(samples.row, x, samples.projector_column, samples.stripe,
+                          samples.contrast, samples.saturated)
+    n_moved = moved.continuity()
+    assert _at(moved, n_moved, 15, 7) == [1] and _at(moved, n_moved, 16, 7) == [0]
+    assert _at(moved, n_moved, 17, 7) == [1]
+    # a row crossing one plane twice: the twin 40 px away comes first, the line still goes on
+    fields = ("row", "x", "projector_column", "stripe", "contrast", "saturated")
+    far = grid.subset((grid.row == 15) & (grid.stripe == 9))
+    both = StripeSamples(*(np.concatenate([getattr(far, f), getattr(grid, f)]) for f in fields))
+    both = StripeSamples(both.row, both.x + np.r_[40.0, np.zeros(len(grid))],
+                         both.projector_column, both.stripe, both.contrast, both.saturated)
+    assert _at(both, both.continuity(), 14, 9) == [2]
+
+    once = samples.trim_line_ends(1)
+    assert len(once) == int((n == 2).sum())
+    assert set(once.row.tolist()) == set(ROWS[1:-1].tolist())
+    assert not _at(once, once.x, 13, 12) and not _at(once, once.x, 10, 20)
+    assert _at(once, once.x, 12, 12) and not _at(once, once.x, 13, 20)
+    twice = samples.trim_line_ends(2)
+    assert set(twice.row.tolist()) == set(ROWS[2:-2].tolist()) and not _at(twice, twice.x, 12, 12)
+    assert len(samples.trim_line_ends(0)) == len(samples)
+    assert len(samples.subset(np.zeros(len(samples), bool)).continuity()) == 0
+
+    # quality: 1, 0.5, 0.25 of cos(view) x contrast by continuity
+    _, points = _grid()
+    keep = np.ones(len(grid), bool)
+    for row, stripe in ((14, 12), (12, 20), (11, 20)):
+        keep &= ~((grid.row == row) & (grid.stripe == stripe))
+    rm = _build(samples, points[keep], keep_unreferenced=True)
+    base = _build(grid, points, keep_unreferenced=True)
+    full = {(r, s): q for r, s, q in zip(base.row, base.stripe, base.quality)}
+    for (row, stripe), factor in (((15, 7), 1.0), ((13, 12), 0.5), ((10, 20), 0.25)):
+        q = rm.quality[(rm.row == row) & (rm.stripe == stripe)][0]
+        assert q == pytest.approx(factor * full[(row, stripe)] / (0.5 if row == ROWS[0] else 1.0))
 
 
 def test_bad_inputs():
