@@ -15,7 +15,7 @@ from slscan.rig import transform_points
 from slscan.virtual.device import VirtualCaptureConfig, capture_session
 from slscan.virtual.scenes import builtin_object
 
-SMALL = dict(camera_scale=0.5, projector_scale=0.5, levels=8, lit_images=False)
+SMALL = {"camera_scale": 0.5, "projector_scale": 0.5, "levels": 8, "lit_images": False}
 
 
 def _distance_to_truth(points, pose):

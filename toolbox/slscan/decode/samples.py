@@ -7,7 +7,6 @@ from typing import Protocol
 
 import numpy as np
 
-
 CONTINUITY_PX = 2.0
 """Camera px: a feature in the next row counts as the same line if it is this close in x."""
 
