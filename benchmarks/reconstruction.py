@@ -5,7 +5,9 @@
 At the paper's geometry with default noise (full size unless --scale), prints:
 
   (a) green-line medial-axis error per estimator (px RMS, 95th percentile) — from
-      benchmarks/stripe_axes.py's evaluation, on the figurine;
+      benchmarks/stripe_axes.py's evaluation, on the figurine — with the default
+      estimator's error by surface colour and by line continuity (inside a line, at its
+      ends), and with the line ends trimmed;
   (b) flat tile: mean |distance| of the range map to its fitted plane and to the true
       plane (mm); the paper reports 0.3 mm;
   (c) figurine: distance of every range-map vertex to the true surface (mean, 95th pct)
@@ -13,6 +15,8 @@ At the paper's geometry with default noise (full size unless --scale), prints:
       covered by a range-map triangle (all lit pixels; and lit pixels more than 2 px from
       the lit region's border, where a triangle can reach at all), and coverage by how
       obliquely the camera and the projector see the surface;
+      The figurine is decoded a second time with the line ends trimmed
+      (``--trim-line-ends 1``): what that gains in accuracy and costs in coverage;
   (d) the same at 4x exposure: the saturation warning and what it costs;
   (e) decode + triangulate + mesh time per view next to the time to just load that
       view's PNGs (the I/O floor), measured in the same run.
@@ -132,22 +136,27 @@ def main() -> None:
 
         # (a)
         print("(a) green-line medial axis vs ground truth, figurine")
-        print(f"{'estimator':<14}{'samples':>9}{'indexed ok':>12}{'RMS px':>9}{'p95 px':>9}")
+        print(f"{'estimator':<18}{'samples':>9}{'indexed ok':>12}{'RMS px':>9}{'p95 px':>9}")
         fig = sessions["figurine"]
         from slscan.decode.hybrid import DEFAULT_ESTIMATOR, ESTIMATORS, decode_hybrid
 
         for estimator in ESTIMATORS:
             m = stripe_axes.evaluate(fig, decode_hybrid(fig, fig.views[0], estimator=estimator))
-            print(f"{estimator:<14}{m['samples']:>9d}{m['indexed']:>11.2f}%{m['rms']:>9.4f}{m['p95']:>9.4f}")
+            print(f"{estimator:<18}{m['samples']:>9d}{m['indexed']:>11.2f}%{m['rms']:>9.4f}{m['p95']:>9.4f}")
             if estimator == DEFAULT_ESTIMATOR:
                 default = m
-        print(f"  {DEFAULT_ESTIMATOR}, by the true surface colour under the sample:")
-        print(f"  {'surface':<13}{'samples':>8}{'RMS px':>9}{'p95 px':>9}{'% of MS':>12}")
+        result = decode_hybrid(fig, fig.views[0])
+        trimmed = stripe_axes.evaluate(fig, replace(result, samples=result.samples.trim_line_ends(1)))
+        print(f"{DEFAULT_ESTIMATOR + ', trim 1':<18}{trimmed['samples']:>9d}{trimmed['indexed']:>11.2f}%"
+              f"{trimmed['rms']:>9.4f}{trimmed['p95']:>9.4f}   (line ends dropped: --trim-line-ends 1)")
+        print(f"  {DEFAULT_ESTIMATOR}, by the true surface colour under the sample, and by line continuity:")
+        print(f"  {'surface':<15}{'samples':>8}{'RMS px':>9}{'p95 px':>9}{'% of MS':>10}")
         stripe_axes.print_by_surface(default, indent="  ")
+        stripe_axes.print_by_surface(default, indent="  ", key="by_continuity")
 
         # (b)-(d)
         print("\n(b)-(d) range maps vs ground truth")
-        header = (f"{'scene':<22}{'method':<8}{'vertices':>9}{'plane fit':>11}{'true plane':>12}"
+        header = (f"{'scene':<22}{'method':<14}{'vertices':>9}{'plane fit':>11}{'true plane':>12}"
                   f"{'mean mm':>9}{'p95 mm':>9}{'coverage':>10}{'interior':>10}{'saturated':>11}")
         print(header)
         timing = {}
@@ -157,12 +166,16 @@ def main() -> None:
             view = session.views[0]
             scene = flat_tile() if name == "tile" else builtin_object()
             truth = session.load_ground_truth(view)
-            for method in ("hybrid", "gray"):
+            variants = [("hybrid", 0), ("gray", 0)]
+            if name == "figurine":
+                variants += [("hybrid", 1), ("gray", 1)]
+            for method, trim in variants:
+                label = method if not trim else f"{method} trim {trim}"
                 warnings.messages.clear()
                 times, parts = [], []
-                for _ in range(args.repeat if "4x" not in name else 1):
+                for _ in range(args.repeat if "4x" not in name and not trim else 1):
                     t = time.perf_counter()
-                    result = decode_view(session, view, DecodeConfig(method=method))
+                    result = decode_view(session, view, DecodeConfig(method=method, trim_line_ends=trim))
                     times.append(time.perf_counter() - t)
                     parts.append(result.seconds)
                 rm = result.range_map
@@ -171,14 +184,14 @@ def main() -> None:
                 cov, inner = coverage(rm, rig.camera, lit)
                 fit, true_plane = plane_errors(rm.vertices, scene, view.rig_from_object) if name == "tile" else (np.nan, np.nan)
                 sat = result.metrics["saturated_sample_share"]
-                print(f"{name:<22}{method:<8}{len(rm.vertices):>9d}{fit:>11.4f}{true_plane:>12.4f}"
+                print(f"{name:<22}{label:<14}{len(rm.vertices):>9d}{fit:>11.4f}{true_plane:>12.4f}"
                       f"{d.mean():>9.4f}{np.percentile(d, 95):>9.4f}{cov:>10.3f}{inner:>10.3f}{sat:>11.3f}")
                 for message in dict.fromkeys(warnings.messages):
                     print(f"{'':<22}warning: {message}")
-                if "4x" not in name:
+                if "4x" not in name and not trim:
                     timing[(name, method)] = (statistics.median(times),
                                               {k: statistics.median(p[k] for p in parts) for k in parts[0]})
-                if name == "figurine":
+                if name == "figurine" and not trim:
                     by_angle[method] = (covered_pixels(rm, rig.camera, lit.shape), lit,
                                         obliquity(truth, session.calibration.projector.center))
 

@@ -1,7 +1,7 @@
 """Accuracy, coverage and speed of the hybrid decoder's line estimators on the virtual rig.
 
     .venv/bin/python benchmarks/stripe_axes.py [--scale 1.0] [--scenes figurine tile] [--repeat 3]
-                                               [--no-smooth-rows]
+                                               [--no-smooth-rows] [--trim-line-ends N]
 
 Captures one view per scene (default sensor: shot and read noise, 8 bit) and decodes it
 with every estimator of :mod:`slscan.decode.hybrid`. Per estimator and scene the table
@@ -18,8 +18,11 @@ gives:
 - decode s: median wall time of ``decode_hybrid`` for the view, PNG reading included
 
 then, for the default estimator, the error split by the true surface colour under each
-sample (neutral, saturated red / green / blue paint, dark) with each class's share of the
-mean squared error.
+sample (neutral, saturated red / green / blue paint, dark) and by line continuity (the
+sample's line goes on in both neighbouring rows, in one — a line end — or in neither; see
+``StripeSamples.continuity``), with each class's share of the mean squared error.
+``--trim-line-ends N`` drops N samples at either end of every line first (as
+``slscan decode --trim-line-ends``).
 
 Scenes: "figurine" (painted, noisy), "tile" (flat, noisy), "tile-clean" (flat, noise-free),
 "figurine-clean" (noise-free: what is left is the image formation on the relief, not noise).
@@ -32,6 +35,7 @@ import argparse
 import statistics
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -96,6 +100,13 @@ def evaluate(session: Session, result: HybridResult) -> dict[str, float]:
         "p95": float(np.percentile(err, 95)) if len(err) else float("nan"),
         "coverage": 100.0 * correct.sum() / max(possible_crossings(u, lit, columns), 1),
         "by_surface": by_surface(truth.albedo, s.row[measured], s.x[measured], err),
+        "by_continuity": {
+            label: (int((n == k).sum()), float(np.sqrt(np.mean(err[n == k] ** 2))),
+                    float(np.percentile(err[n == k], 95)))
+            for n in [s.continuity()[measured]]
+            for k, label in ((2, "inside a line"), (1, "line end"), (0, "lone sample"))
+            if (n == k).any()
+        },
     }
 
 
@@ -121,11 +132,12 @@ def by_surface(albedo: np.ndarray, rows: np.ndarray, x: np.ndarray, err: np.ndar
     }
 
 
-def print_by_surface(m: dict, indent: str = "") -> None:
-    """The by-surface rows of :func:`evaluate`'s result, with each class's share of the squared error."""
-    total = sum(n * rms**2 for n, rms, _ in m["by_surface"].values())
-    for name, (n, rms, p95) in m["by_surface"].items():
-        print(f"{indent}{name:<13}{n:>8d}{rms:>9.4f}{p95:>9.4f}{100 * n * rms**2 / total:>12.1f}")
+def print_by_surface(m: dict, indent: str = "", key: str = "by_surface") -> None:
+    """The by-surface (or ``key="by_continuity"``) rows of :func:`evaluate`'s result, with
+    each class's share of the squared error."""
+    total = sum(n * rms**2 for n, rms, _ in m[key].values())
+    for name, (n, rms, p95) in m[key].items():
+        print(f"{indent}{name:<15}{n:>8d}{rms:>9.4f}{p95:>9.4f}{100 * n * rms**2 / total:>10.1f}")
 
 
 def main() -> None:
@@ -149,13 +161,15 @@ def main() -> None:
         default=True,
         help="filter the line signal across rows before finding maxima (the decoder's default)",
     )
+    parser.add_argument("--trim-line-ends", type=int, default=0, metavar="N",
+                        help="drop N samples at either end of every line before measuring")
     args = parser.parse_args()
 
     levels = min(9, int(np.log2(1024 * args.scale)) - 1)
     print(
         f"hybrid pattern, {levels} levels ({2**levels - 1} lines), scale {args.scale}; "
         f"default estimator: {DEFAULT_ESTIMATOR}; "
-        f"row smoothing {'on' if args.smooth_rows else 'off'}"
+        f"row smoothing {'on' if args.smooth_rows else 'off'}; line ends trimmed: {args.trim_line_ends}"
     )
     header = (
         f"{'scene':<16}{'estimator':<13}{'samples':>9}{'indexed %':>11}{'RMS px':>9}"
@@ -183,6 +197,8 @@ def main() -> None:
                         session, view, estimator=estimator, smooth_rows=args.smooth_rows
                     )
                     times.append(time.perf_counter() - t)
+                if args.trim_line_ends:
+                    result = replace(result, samples=result.samples.trim_line_ends(args.trim_line_ends))
                 m = evaluate(session, result)
                 print(
                     f"{name:<16}{estimator:<13}{m['samples']:>9d}{m['indexed']:>11.2f}"
@@ -193,8 +209,10 @@ def main() -> None:
                     surfaces[name] = m
         for name, m in surfaces.items():
             print(f"\n{name}, {DEFAULT_ESTIMATOR} estimator, by the true surface colour under the sample")
-            print(f"{'surface':<13}{'samples':>8}{'RMS px':>9}{'p95 px':>9}{'% of MS':>12}")
+            print(f"{'surface':<15}{'samples':>8}{'RMS px':>9}{'p95 px':>9}{'% of MS':>10}")
             print_by_surface(m)
+            print(f"{'continuity':<15}{'samples':>8}{'RMS px':>9}{'p95 px':>9}{'% of MS':>10}")
+            print_by_surface(m, key="by_continuity")
 
 
 if __name__ == "__main__":

@@ -3,13 +3,11 @@
 from __future__ import annotations
 
 import json
-
 import subprocess
 import sys
 
-import pytest
-
 import numpy as np
+import pytest
 
 from slscan.capture.session import load_session
 from slscan.cli import main
@@ -86,7 +84,7 @@ def test_bad_input_gives_one_line_and_a_non_zero_exit(tmp_path, args, message):
         "property float z\nend_header\n0 0 0\n1 0 0\n0 1 0\n"
     )
     argv = [a.replace("{tmp}", str(tmp_path)) for a in args] + ["--quiet"] * (args[0] not in ("info", "decode"))
-    proc = subprocess.run([sys.executable, "-m", "slscan.cli", *argv], capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, "-m", "slscan.cli", *argv], capture_output=True, text=True, check=False)
     assert proc.returncode == 2, proc.stderr
     err = proc.stderr.strip()
     assert message in err and "Traceback" not in err

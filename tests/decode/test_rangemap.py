@@ -201,6 +201,10 @@ def test_line_continuity_and_trimming():
     for (row, stripe), factor in (((15, 7), 1.0), ((13, 12), 0.5), ((10, 20), 0.25)):
         q = rm.quality[(rm.row == row) & (rm.stripe == stripe)][0]
         assert q == pytest.approx(factor * full[(row, stripe)] / (0.5 if row == ROWS[0] else 1.0))
+    plain = _build(samples, points[keep], keep_unreferenced=True, continuity_weight=(1, 1, 1))
+    assert plain.quality[(plain.row == 13) & (plain.stripe == 12)][0] == pytest.approx(full[(13, 12)])
+    with pytest.raises(SlscanError, match="continuity_weight"):
+        _build(samples, points[keep], continuity_weight=(1, 1))
 
 
 def test_bad_inputs():

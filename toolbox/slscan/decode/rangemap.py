@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -170,6 +171,7 @@ def build_range_map(
     max_view_angle_deg: float = 80.0,
     max_stripe_gap: int = 3,
     keep_unreferenced: bool = False,
+    continuity_weight: Sequence[float] = tuple(CONTINUITY_WEIGHT),
 ) -> RangeMap:
     """Mesh triangulated samples on their (camera row x stripe) grid into a range map.
 
@@ -207,6 +209,9 @@ def build_range_map(
         Keep vertices that no face uses (with the viewing direction as normal and
         quality 0); by default they are removed, so the map is a surface (the samples
         themselves stay available from ``samples``).
+    continuity_weight : 3 floats
+        Quality factor of samples whose line goes on in 0, 1 or 2 of the neighbouring
+        rows (:meth:`StripeSamples.continuity`); ``(1, 1, 1)`` ignores continuity.
 
     Returns
     -------
@@ -257,7 +262,10 @@ def build_range_map(
     view_dir[finite] = points[finite] / np.linalg.norm(points[finite], axis=1, keepdims=True)
     cos_view = np.clip(-np.einsum("ij,ij->i", vertex_normals, view_dir), 0.0, 1.0)
     quality = cos_view * np.clip(np.asarray(samples.contrast, np.float64), 0.0, 1.0)
-    quality *= CONTINUITY_WEIGHT[samples.continuity()]
+    weight = np.asarray(continuity_weight, np.float64)
+    if weight.shape != (3,):
+        raise SlscanError(f"continuity_weight: expected 3 factors (0, 1, 2 neighbours), got {continuity_weight!r}")
+    quality *= weight[samples.continuity()]
     quality[np.asarray(samples.saturated, bool) | ~referenced] = 0.0
 
     new_index = np.full(k, -1, np.int64)
