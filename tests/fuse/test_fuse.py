@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 import pytest
+from synthetic_poses import looking_from
 
 from slscan.errors import SlscanError
 from slscan.fuse import (
@@ -31,16 +32,6 @@ DIRECTIONS = [
     [1, 1, 1],
     [-1, -1, 1],
 ]
-
-
-def looking_from(direction) -> np.ndarray:
-    d = np.asarray(direction, float) / np.linalg.norm(direction)
-    helper = np.array([0.0, 0.0, 1.0]) if abs(d[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    x = np.cross(helper, d)
-    x /= np.linalg.norm(x)
-    pose = np.eye(4)
-    pose[:3, :3] = np.stack([x, np.cross(d, x), d], axis=1)
-    return pose
 
 
 @pytest.fixture(scope="module")

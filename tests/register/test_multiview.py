@@ -6,6 +6,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 from rerun.chunk import RrdReader
+from synthetic_poses import looking_from
 
 from slscan.errors import SlscanError
 from slscan.register.multiview import (
@@ -138,16 +139,6 @@ def test_bunny_registered_from_perturbed_poses(bunny):
 
 
 # --- synthetic ------------------------------------------------------------------------------
-
-
-def looking_from(direction) -> np.ndarray:
-    d = np.asarray(direction, float) / np.linalg.norm(direction)
-    helper = np.array([0.0, 0.0, 1.0]) if abs(d[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    x = np.cross(helper, d)
-    x /= np.linalg.norm(x)
-    pose = np.eye(4)
-    pose[:3, :3] = np.stack([x, np.cross(d, x), d], axis=1)
-    return pose
 
 
 @pytest.fixture(scope="module")

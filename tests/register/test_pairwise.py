@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 import pytest
+from synthetic_poses import looking_from
 
 from slscan.errors import SlscanError
 from slscan.register.pairwise import (
@@ -31,18 +32,6 @@ def bumpy_sphere(radius: float = RADIUS) -> tuple[np.ndarray, np.ndarray]:
         + 0.04 * np.cos(9 * v[:, 1] * v[:, 2])
     )
     return v * radius * (1 + bumps)[:, None], np.asarray(sphere.triangles)
-
-
-def looking_from(direction, distance: float = 0.0) -> np.ndarray:
-    """world_from_scan of a sensor on the side ``direction`` (scan +z points to it)."""
-    d = np.asarray(direction, float) / np.linalg.norm(direction)
-    helper = np.array([0.0, 0.0, 1.0]) if abs(d[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    x = np.cross(helper, d)
-    x /= np.linalg.norm(x)
-    pose = np.eye(4)
-    pose[:3, :3] = np.stack([x, np.cross(d, x), d], axis=1)
-    pose[:3, 3] = d * distance
-    return pose
 
 
 def two_views(noise: float, angle_deg: float = 40.0) -> tuple[RangeScan, RangeScan, np.ndarray]:
