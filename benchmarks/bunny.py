@@ -138,11 +138,11 @@ def stage_simplify(args) -> dict:
 def _compare(vertices: np.ndarray, faces: np.ndarray, data: Path) -> dict:
     """Distances (mm) between a mesh and bun_zipper.ply (scaled to mm), both directions,
     over points spread uniformly by area on the measured surface."""
-    from slscan.register.rangescan import _fan, read_ply_elements
+    from slscan.ply import fan_triangles, read_ply_elements
 
     ply = read_ply_elements(data / "stanford_bunny" / "reconstruction" / "bun_zipper.ply")
     ref_v = np.stack([ply["vertex"][k] for k in "xyz"], 1).astype(np.float64) * 1000.0
-    ref_f = _fan(*ply["face"]["vertex_indices"])
+    ref_f = fan_triangles(*ply["face"]["vertex_indices"])
 
     to_ref = distances_to_mesh(surface_samples(vertices, faces), ref_v, ref_f)
     from_ref = distances_to_mesh(surface_samples(ref_v, ref_f), vertices, faces)

@@ -269,8 +269,25 @@ def test_read_ply_errors(mesh: RangeMap, tmp_path: Path):
     ascii_ply.write_text(
         "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n0\n"
     )
-    with pytest.raises(SlscanError, match="ascii.ply: PLY format 'ascii'"):
+    with pytest.raises(SlscanError, match="ascii.ply: vertices lack property 'y'"):
         read_ply(ascii_ply)
+    # ASCII (as MeshLab may save a range map) reads like binary
+    ascii_ply.write_text(
+        "ply\nformat ascii 1.0\ncomment view v3\nelement vertex 3\nproperty float x\nproperty float y\n"
+        "property float z\nproperty float quality\nelement face 1\nproperty list uchar int vertex_indices\n"
+        "end_header\n0 0 1 0.5\n1 0 1 0.5\n0 1 1 0.5\n3 0 1 2\n"
+    )
+    rm = read_ply(ascii_ply)
+    assert rm.view == "v3" and rm.faces.tolist() == [[0, 1, 2]] and rm.vertices[2].tolist() == [0, 1, 1]
+    assert np.all(rm.quality == 0.5) and np.all(rm.row == -1) and np.all(rm.colors == 255)
+    quad = tmp_path / "quad.ply"
+    quad.write_text(
+        "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
+        "element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+        "0 0 1\n1 0 1\n1 1 1\n0 1 1\n4 0 1 2 3\n"
+    )
+    with pytest.raises(SlscanError, match="quad.ply: element 'face' has non-triangle faces"):
+        read_ply(quad)
     path = write_ply(mesh, tmp_path / "cut.ply")
     path.write_bytes(path.read_bytes()[:-5])
     with pytest.raises(SlscanError, match="cut.ply: file is truncated"):

@@ -27,6 +27,7 @@ import numpy as np
 from slscan.decode.samples import StripeSamples
 from slscan.errors import SlscanError
 from slscan.fsio import atomic_output_file
+from slscan.ply import read_ply_elements
 from slscan.rig import PinholeModel
 
 log = logging.getLogger(__name__)
@@ -53,25 +54,6 @@ PLY_VERTEX_DTYPE = np.dtype(
     ]
 )
 """Vertex record of the range-map PLY files this module writes."""
-
-_PLY_TYPES = {
-    "char": "i1",
-    "int8": "i1",
-    "uchar": "u1",
-    "uint8": "u1",
-    "short": "<i2",
-    "int16": "<i2",
-    "ushort": "<u2",
-    "uint16": "<u2",
-    "int": "<i4",
-    "int32": "<i4",
-    "uint": "<u4",
-    "uint32": "<u4",
-    "float": "<f4",
-    "float32": "<f4",
-    "double": "<f8",
-    "float64": "<f8",
-}
 
 
 @dataclass(frozen=True)
@@ -441,7 +423,7 @@ def _ply_name(dtype: np.dtype) -> str:
 
 
 def read_ply(path: str | os.PathLike) -> RangeMap:
-    """Read a binary little-endian triangle-mesh PLY (as :func:`write_ply` writes).
+    """Read a triangle-mesh PLY (as :func:`write_ply` writes it; ASCII and binary too).
 
     Missing normals, colours, quality, row or stripe properties read as zeros (white for
     colours; -1 for row and stripe).
@@ -449,96 +431,35 @@ def read_ply(path: str | os.PathLike) -> RangeMap:
     Raises
     ------
     SlscanError
-        Not a PLY, not binary little-endian, an unknown property type, non-triangle
-        faces, or a truncated file (naming the file).
+        Not a PLY, an unknown property type, no vertex positions, non-triangle faces, or a
+        truncated file (naming the file).
     """
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise SlscanError(f"{path}: PLY file not found") from None
-    end = data.find(b"end_header")
-    if not data.startswith(b"ply") or end < 0:
-        raise SlscanError(f"{path}: not a PLY file")
-    body_start = data.index(b"\n", end) + 1
-    lines = data[:end].decode("ascii", "replace").splitlines()
-    view = ""
-    elements: list[tuple[str, int, list]] = []
-    fmt = None
-    for line in lines[1:]:
-        parts = line.split()
-        if not parts:
-            continue
-        if parts[0] == "format":
-            fmt = parts[1] if len(parts) > 1 else None
-        elif parts[0] == "comment" and len(parts) > 2 and parts[1] == "view":
-            view = line.split(None, 2)[2].strip()
-        elif parts[0] == "element":
-            elements.append((parts[1], int(parts[2]), []))
-        elif parts[0] == "property":
-            if not elements:
-                raise SlscanError(f"{path}: property before any element")
-            elements[-1][2].append(parts[1:])
-    if fmt != "binary_little_endian":
-        raise SlscanError(f"{path}: PLY format {fmt!r}; expected binary_little_endian")
-    offset = body_start
-    vertex = faces = None
-    for name, count, props in elements:
-        if props and props[0][0] == "list":
-            if len(props) != 1 or len(props[0]) != 4:
-                raise SlscanError(f"{path}: element {name!r}: expected a single list property")
-            _, count_t, index_t, _ = props[0]
-            dt = np.dtype(
-                [("n", _ply_dtype(path, count_t)), ("i", _ply_dtype(path, index_t), (3,))]
-            )
-            arr = _frombuffer(path, data, dt, count, offset)
-            if count and np.any(arr["n"] != 3):
-                raise SlscanError(
-                    f"{path}: element {name!r} has non-triangle faces; expected triangles only"
-                )
-        else:
-            if any(p[0] == "list" for p in props):
-                raise SlscanError(f"{path}: element {name!r} mixes list and scalar properties")
-            dt = np.dtype([(p[1], _ply_dtype(path, p[0])) for p in props])
-            arr = _frombuffer(path, data, dt, count, offset)
-        offset += dt.itemsize * count
-        if name == "vertex":
-            vertex = arr
-        elif name == "face":
-            faces = arr["i"].astype(np.int32) if count else np.zeros((0, 3), np.int32)
+    ply = read_ply_elements(path)
+    vertex = ply.get("vertex")
     if vertex is None:
         raise SlscanError(f"{path}: no vertex element")
-    n = len(vertex)
-    names = vertex.dtype.names
+    for field in "xyz":
+        if field not in vertex:
+            raise SlscanError(f"{path}: vertices lack property {field!r}")
+    n = len(vertex["x"])
+    faces = np.zeros((0, 3), np.int32)
+    if ply.get("face"):
+        counts, indices = next(iter(ply["face"].values()))
+        if len(counts) and np.any(counts != 3):
+            raise SlscanError(f"{path}: element 'face' has non-triangle faces; expected triangles only")
+        faces = np.asarray(indices).astype(np.int32).reshape(-1, 3)
 
     def column(field: str, default: float, dtype) -> np.ndarray:
-        return vertex[field].astype(dtype) if field in names else np.full(n, default, dtype)
+        return np.asarray(vertex[field]).astype(dtype) if field in vertex else np.full(n, default, dtype)
 
-    for field in "xyz":
-        if field not in names:
-            raise SlscanError(f"{path}: vertices lack property {field!r}")
     return RangeMap(
         vertices=np.stack([column(a, 0, np.float64) for a in "xyz"], axis=1),
-        faces=faces if faces is not None else np.zeros((0, 3), np.int32),
+        faces=faces,
         normals=np.stack([column(a, 0, np.float32) for a in ("nx", "ny", "nz")], axis=1),
         colors=np.stack([column(a, 255, np.uint8) for a in ("red", "green", "blue")], axis=1),
         quality=column("quality", 0, np.float32),
         row=column("row", -1, np.int32),
         stripe=column("stripe", -1, np.int32),
-        view=view,
+        view=ply.name,
     )
-
-
-def _ply_dtype(path: Path, name: str) -> str:
-    try:
-        return _PLY_TYPES[name]
-    except KeyError:
-        raise SlscanError(f"{path}: unknown PLY property type {name!r}") from None
-
-
-def _frombuffer(path: Path, data: bytes, dtype: np.dtype, count: int, offset: int) -> np.ndarray:
-    if offset + dtype.itemsize * count > len(data):
-        raise SlscanError(
-            f"{path}: file is truncated (expected {count} records of {dtype.itemsize} bytes)"
-        )
-    return np.frombuffer(data, dtype=dtype, count=count, offset=offset).copy()

@@ -1,0 +1,273 @@
+"""PLY reading shared by the stages: ASCII and binary (either byte order) into numpy arrays.
+
+:func:`read_ply_elements` parses any PLY into ``{element: {property: array}}`` and keeps
+the header comments slscan writes (a range map's view, a range scan's name, view
+direction and grid); the stages build their own types from it
+(:func:`slscan.decode.rangemap.read_ply`, :func:`slscan.register.rangescan.load_range_scan`).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from slscan.errors import SlscanError
+
+PLY_TYPES = {
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
+}
+"""PLY property type names -> numpy type codes (no byte order)."""
+
+
+class PlyData(dict):
+    """Elements of a PLY file: ``{element: {property: array}}``; list properties are
+    ``(counts (k,), flat values)``. ``info`` holds ``obj_info`` key/values."""
+
+    info: dict[str, str]
+    view_direction: np.ndarray | None = None
+    grid_shape: tuple[int, int] | None = None
+    name: str = ""
+    is_slscan_range_map: bool = False
+
+
+def read_ply_elements(path: str | os.PathLike) -> PlyData:
+    """Parse a PLY file (ASCII, binary little- or big-endian) into numpy arrays.
+
+    Raises
+    ------
+    SlscanError
+        Missing, not a PLY, unknown format or type, or truncated (naming the file).
+    """
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise SlscanError(f"{path}: PLY file not found") from None
+    except IsADirectoryError:
+        raise SlscanError(f"{path}: is a folder; expected a PLY file") from None
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise SlscanError(f"{path}: not a PLY file")
+    newline = data.find(b"\n", end)
+    body_start = newline + 1 if newline >= 0 else len(data)
+    out = PlyData()
+    out.info = {}
+    elements: list[tuple[str, int, list[list[str]]]] = []
+    fmt = None
+    for line in data[:end].decode("ascii", "replace").splitlines()[1:]:
+        parts = line.split()
+        if not parts:
+            continue
+        key = parts[0]
+        if key == "format":
+            fmt = parts[1] if len(parts) > 1 else None
+        elif key == "obj_info" and len(parts) >= 3:
+            out.info[parts[1]] = parts[2]
+        elif key == "comment" and len(parts) >= 2:
+            _header_comment(out, parts[1:], line)
+        elif key == "element":
+            if len(parts) != 3 or not parts[2].isdigit():
+                raise SlscanError(f"{path}: malformed PLY header line {line.strip()!r}")
+            elements.append((parts[1], int(parts[2]), []))
+        elif key == "property":
+            if not elements:
+                raise SlscanError(f"{path}: PLY property before any element")
+            elements[-1][2].append(parts[1:])
+    for k in ("num_rows", "num_cols"):
+        if k in out.info:
+            try:
+                out.info[k] = int(out.info[k])
+            except ValueError:
+                pass
+    if fmt == "ascii":
+        _parse_ascii(path, data[body_start:], elements, out)
+    elif fmt in ("binary_little_endian", "binary_big_endian"):
+        _parse_binary(
+            path, data, body_start, elements, out, "<" if fmt == "binary_little_endian" else ">"
+        )
+    else:
+        raise SlscanError(f"{path}: unknown PLY format {fmt!r}")
+    return out
+
+
+def _header_comment(out: PlyData, words: list[str], line: str) -> None:
+    if words[0] == "view_direction" and len(words) == 4:
+        try:
+            d = np.array([float(x) for x in words[1:]])
+        except ValueError:
+            return
+        if np.linalg.norm(d) > 0:
+            out.view_direction = d
+    elif words[0] == "grid" and len(words) == 3 and words[1].isdigit() and words[2].isdigit():
+        out.grid_shape = (int(words[1]), int(words[2]))
+    elif words[0] in ("name", "view") and len(words) >= 2:  # slscan scans; decode range maps
+        out.name = line.split(None, 2)[2].strip()
+    elif " ".join(words[:3]) == "slscan range map":
+        out.is_slscan_range_map = True
+
+
+def _ply_type(path: Path, name: str) -> str:
+    try:
+        return PLY_TYPES[name]
+    except KeyError:
+        raise SlscanError(f"{path}: unknown PLY property type {name!r}") from None
+
+
+def _parse_ascii(path: Path, body: bytes, elements, out: PlyData) -> None:
+    try:
+        tokens = np.array(body.split(), dtype=np.float64)
+    except ValueError:
+        raise SlscanError(
+            f"{path}: the ASCII PLY body holds something that is not a number"
+        ) from None
+    pos = 0
+    for name, count, props in elements:
+        is_list = [p[0] == "list" for p in props]
+        if not any(is_list):
+            size = count * len(props)
+            if pos + size > len(tokens):
+                raise SlscanError(f"{path}: file is truncated in element {name!r}")
+            block = tokens[pos : pos + size].reshape(count, len(props))
+            out[name] = {
+                p[1]: block[:, i].astype(_ply_type(path, p[0])) for i, p in enumerate(props)
+            }
+            pos += size
+            continue
+        if len(props) == 1:
+            first = int(tokens[pos]) if count and pos < len(tokens) else 0
+            stride = first + 1
+            if (
+                count
+                and pos + count * stride <= len(tokens)
+                and np.all(tokens[pos : pos + count * stride : stride] == first)
+            ):
+                block = tokens[pos : pos + count * stride].reshape(count, stride)
+                out[name] = {
+                    props[0][3]: (
+                        np.full(count, first, np.int64),
+                        block[:, 1:].reshape(-1).astype(_ply_type(path, props[0][2])),
+                    )
+                }
+                pos += count * stride
+                continue
+        columns: dict[str, list] = {p[-1]: [] for p in props}
+        counts: dict[str, list] = {p[-1]: [] for p in props if p[0] == "list"}
+        for _ in range(count):
+            for p in props:
+                if pos >= len(tokens):
+                    raise SlscanError(f"{path}: file is truncated in element {name!r}")
+                if p[0] == "list":
+                    k = int(tokens[pos])
+                    counts[p[-1]].append(k)
+                    columns[p[-1]].append(tokens[pos + 1 : pos + 1 + k])
+                    pos += 1 + k
+                else:
+                    columns[p[-1]].append(tokens[pos])
+                    pos += 1
+        element = {}
+        for p in props:
+            if p[0] == "list":
+                values = np.concatenate(columns[p[-1]]) if columns[p[-1]] else np.zeros(0)
+                element[p[-1]] = (
+                    np.array(counts[p[-1]], np.int64),
+                    values.astype(_ply_type(path, p[2])),
+                )
+            else:
+                element[p[-1]] = np.array(columns[p[-1]]).astype(_ply_type(path, p[0]))
+        out[name] = element
+
+
+def _parse_binary(path: Path, data: bytes, offset: int, elements, out: PlyData, order: str) -> None:
+    for name, count, props in elements:
+        if not any(p[0] == "list" for p in props):
+            dt = np.dtype([(p[1], order + _ply_type(path, p[0])) for p in props])
+            if offset + dt.itemsize * count > len(data):
+                raise SlscanError(f"{path}: file is truncated in element {name!r}")
+            arr = np.frombuffer(data, dt, count, offset)
+            out[name] = {p[1]: arr[p[1]].copy() for p in props}
+            offset += dt.itemsize * count
+            continue
+        if len(props) == 1 and count:
+            _, count_t, value_t, pname = props[0]
+            ct, vt = (
+                np.dtype(order + _ply_type(path, count_t)),
+                np.dtype(order + _ply_type(path, value_t)),
+            )
+            if offset + ct.itemsize > len(data):
+                raise SlscanError(f"{path}: file is truncated in element {name!r}")
+            first = int(np.frombuffer(data, ct, 1, offset)[0])
+            dt = np.dtype([("n", ct), ("v", vt, (first,))])
+            if offset + dt.itemsize * count <= len(data):
+                arr = np.frombuffer(data, dt, count, offset)
+                if np.all(arr["n"] == first):
+                    out[name] = {
+                        pname: (np.full(count, first, np.int64), arr["v"].reshape(-1).copy())
+                    }
+                    offset += dt.itemsize * count
+                    continue
+        element: dict = {p[-1]: [] for p in props}
+        counts: dict[str, list] = {p[-1]: [] for p in props if p[0] == "list"}
+        for _ in range(count):
+            for p in props:
+                if p[0] == "list":
+                    ct = np.dtype(order + _ply_type(path, p[1]))
+                    vt = np.dtype(order + _ply_type(path, p[2]))
+                    if offset + ct.itemsize > len(data):
+                        raise SlscanError(f"{path}: file is truncated in element {name!r}")
+                    k = int(np.frombuffer(data, ct, 1, offset)[0])
+                    offset += ct.itemsize
+                    if offset + vt.itemsize * k > len(data):
+                        raise SlscanError(f"{path}: file is truncated in element {name!r}")
+                    element[p[-1]].append(np.frombuffer(data, vt, k, offset))
+                    counts[p[-1]].append(k)
+                    offset += vt.itemsize * k
+                else:
+                    t = np.dtype(order + _ply_type(path, p[0]))
+                    if offset + t.itemsize > len(data):
+                        raise SlscanError(f"{path}: file is truncated in element {name!r}")
+                    element[p[-1]].append(np.frombuffer(data, t, 1, offset)[0])
+                    offset += t.itemsize
+        parsed = {}
+        for p in props:
+            if p[0] == "list":
+                values = element[p[-1]]
+                parsed[p[-1]] = (
+                    np.array(counts[p[-1]], np.int64),
+                    np.concatenate(values) if values else np.zeros(0),
+                )
+            else:
+                parsed[p[-1]] = np.array(element[p[-1]])
+        out[name] = parsed
+
+
+def fan_triangles(counts: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """(m, 3) int64 triangles of polygons given as counts and flat indices (fans)."""
+    counts = np.asarray(counts, np.int64)
+    values = np.asarray(values).astype(np.int64)
+    if len(counts) == 0:
+        return np.zeros((0, 3), np.int64)
+    if np.all(counts == 3):
+        return values.reshape(-1, 3)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    tris = []
+    for k in range(3, int(counts.max()) + 1):
+        sel = starts[counts >= k]
+        tris.append(np.stack([values[sel], values[sel + k - 2], values[sel + k - 1]], 1))
+    return np.concatenate(tris) if tris else np.zeros((0, 3), np.int64)
