@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 from measure import distances_to_mesh, surface_samples
+from stripe_axes import true_crossings
 
 from slscan.capture.session import Session
 from slscan.decode.pipeline import DecodeConfig, decode_view
@@ -39,19 +40,9 @@ CONTINUITY = ((2, "inside a line"), (1, "line end"), (0, "lone sample"))
 
 
 def axis_errors(session: Session, samples: StripeSamples) -> np.ndarray:
-    """(k,) signed camera-x error of each sample against where the true projector column
-    ``u`` (linear between pixel centres) crosses the sample's plane within 3 px; NaN where
-    it does not."""
+    """(k,) signed camera-x error of each sample against the truth (NaN where unknown)."""
     u = session.load_ground_truth(session.views[0]).projector_uv[..., 0].astype(np.float64)
-    w = u.shape[1]
-    true_x = np.full(len(samples), np.nan)
-    start = np.round(samples.x).astype(int) - 3
-    for o in range(7):
-        xi = np.clip(start + o, 0, w - 2)
-        ua, ub = u[samples.row, xi], u[samples.row, xi + 1]
-        hit = (ua <= samples.projector_column) & (samples.projector_column < ub) & np.isnan(true_x)
-        true_x = np.where(hit, xi + (samples.projector_column - ua) / (ub - ua), true_x)
-    return samples.x - true_x
+    return samples.x - true_crossings(u, samples)
 
 
 def main() -> None:
