@@ -1,9 +1,11 @@
-"""PLY reading shared by the stages: ASCII and binary (either byte order) into numpy arrays.
+"""PLY input and output shared by the stages.
 
-:func:`read_ply_elements` parses any PLY into ``{element: {property: array}}`` and keeps
-the header comments slscan writes (a range map's view, a range scan's name, view
-direction and grid); the stages build their own types from it
-(:func:`slscan.decode.rangemap.read_ply`, :func:`slscan.register.rangescan.load_range_scan`).
+:func:`read_ply_elements` parses any PLY (ASCII, binary in either byte order) into
+``{element: {property: array}}`` and keeps the header comments slscan writes (a range
+map's view, a range scan's name, view direction and grid); :func:`write_triangle_ply`
+writes a binary little-endian triangle mesh from a structured vertex array. The stages
+build their own types on these (:mod:`slscan.decode.rangemap`,
+:mod:`slscan.register.rangescan`).
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from slscan.errors import SlscanError
+from slscan.fsio import atomic_output_file
 
 PLY_TYPES = {
     "char": "i1",
@@ -271,3 +274,32 @@ def fan_triangles(counts: np.ndarray, values: np.ndarray) -> np.ndarray:
         sel = starts[counts >= k]
         tris.append(np.stack([values[sel], values[sel + k - 2], values[sel + k - 1]], 1))
     return np.concatenate(tris) if tris else np.zeros((0, 3), np.int64)
+
+
+_PLY_NAMES = {"f4": "float", "u1": "uchar", "i4": "int", "f8": "double"}
+
+
+def write_triangle_ply(
+    path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, comments: list[str]
+) -> Path:
+    """Write a binary little-endian triangle-mesh PLY atomically.
+
+    vertices : (n,) structured array, one field per vertex property (little-endian
+        float32/float64, uint8 or int32)
+    faces : (m, 3) vertex indices, written as ``vertex_indices`` (uchar count, int)
+    comments : header ``comment`` lines, without the keyword
+    """
+    path = Path(path)
+    faces = np.asarray(faces).reshape(-1, 3)
+    records = np.empty(len(faces), np.dtype([("n", "u1"), ("i", "<i4", (3,))]))
+    records["n"] = 3
+    records["i"] = faces
+    header = ["ply", "format binary_little_endian 1.0", *(f"comment {c}" for c in comments)]
+    header.append(f"element vertex {len(vertices)}")
+    header += [f"property {_PLY_NAMES[vertices.dtype[f].str[1:]]} {f}" for f in vertices.dtype.names]
+    header += [f"element face {len(faces)}", "property list uchar int vertex_indices", "end_header"]
+    with atomic_output_file(path) as tmp, open(tmp, "wb") as fh:
+        fh.write(("\n".join(header) + "\n").encode("ascii"))
+        fh.write(vertices.tobytes())
+        fh.write(records.tobytes())
+    return path

@@ -26,13 +26,12 @@ import numpy as np
 
 from slscan.decode.samples import StripeSamples
 from slscan.errors import SlscanError
-from slscan.fsio import atomic_output_file
-from slscan.ply import read_ply_elements
+from slscan.ply import read_ply_elements, write_triangle_ply
 from slscan.rig import PinholeModel
 
 log = logging.getLogger(__name__)
 
-CONTINUITY_WEIGHT = np.array([0.25, 0.5, 1.0])
+CONTINUITY_WEIGHT = (0.25, 0.5, 1.0)
 """Quality factor by :meth:`StripeSamples.continuity` (0, 1 or 2 neighbouring rows): line
 ends are 2-3x less accurate than the line inside them (see there), so fusion trusts them
 less."""
@@ -153,7 +152,7 @@ def build_range_map(
     max_view_angle_deg: float = 80.0,
     max_stripe_gap: int = 3,
     keep_unreferenced: bool = False,
-    continuity_weight: Sequence[float] = tuple(CONTINUITY_WEIGHT),
+    continuity_weight: Sequence[float] = CONTINUITY_WEIGHT,
 ) -> RangeMap:
     """Mesh triangulated samples on their (camera row x stripe) grid into a range map.
 
@@ -388,9 +387,8 @@ def write_ply(
     ``extra`` per-vertex float properties (name -> (n,) array); faces: ``vertex_indices``
     (uchar count, int indices). The view name is stored as a ``comment view NAME`` line.
     """
-    path = Path(path)
     rm = range_map
-    n, m = len(rm.vertices), len(rm.faces)
+    n = len(rm.vertices)
     extra = extra or {}
     verts = np.empty(n, np.dtype(PLY_VERTEX_DTYPE.descr + [(k, "<f4") for k in extra]))
     for name, values in extra.items():
@@ -401,25 +399,9 @@ def write_ply(
     for i, channel in enumerate(("red", "green", "blue")):
         verts[channel] = rm.colors[:, i]
     verts["quality"], verts["row"], verts["stripe"] = rm.quality, rm.row, rm.stripe
-    faces = np.empty(m, np.dtype([("n", "u1"), ("i", "<i4", (3,))]))
-    faces["n"] = 3
-    faces["i"] = rm.faces
     view = " ".join(str(rm.view).split())
-    header = ["ply", "format binary_little_endian 1.0", "comment slscan range map (mm, rig frame)"]
-    if view:
-        header.append(f"comment view {view}")
-    header.append(f"element vertex {n}")
-    header += [f"property {_ply_name(verts.dtype[f])} {f}" for f in verts.dtype.names]
-    header += [f"element face {m}", "property list uchar int vertex_indices", "end_header"]
-    with atomic_output_file(path) as tmp, open(tmp, "wb") as f:
-        f.write(("\n".join(header) + "\n").encode("ascii"))
-        f.write(verts.tobytes())
-        f.write(faces.tobytes())
-    return path
-
-
-def _ply_name(dtype: np.dtype) -> str:
-    return {"f4": "float", "u1": "uchar", "i4": "int", "f8": "double"}[dtype.str[1:]]
+    comments = ["slscan range map (mm, rig frame)"] + ([f"view {view}"] if view else [])
+    return write_triangle_ply(path, verts, rm.faces, comments)
 
 
 def read_ply(path: str | os.PathLike) -> RangeMap:

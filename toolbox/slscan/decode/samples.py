@@ -49,7 +49,7 @@ class StripeSamples:
         silhouette edge, an unreadable band, a lost maximum); the same cause spoils the
         last sample: on the full-size virtual figurine the camera-x error of samples with
         one neighbour is 3.2x (hybrid) and 2.0x (Gray code) that of samples with two
-        (``benchmarks/stripe_axes.py``).
+        (``benchmarks/line_ends.py``).
         """
         n = len(self)
         out = np.zeros(n, np.int8)

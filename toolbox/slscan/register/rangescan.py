@@ -27,9 +27,8 @@ import numpy as np
 from scipy import ndimage
 
 from slscan.errors import SlscanError
-from slscan.fsio import atomic_output_file
 from slscan.meshes import vertex_normals
-from slscan.ply import fan_triangles, read_ply_elements
+from slscan.ply import fan_triangles, read_ply_elements, write_triangle_ply
 
 log = logging.getLogger(__name__)
 
@@ -614,7 +613,6 @@ def write_range_scan(scan: RangeScan, path: str | os.PathLike) -> Path:
     ``vertex_indices``. Header comments carry the name, view direction and grid size, so
     :func:`load_range_scan` reads the scan back whole.
     """
-    path = Path(path)
     n = scan.n_vertices
     fields = [
         ("x", "<f4"),
@@ -638,34 +636,15 @@ def write_range_scan(scan: RangeScan, path: str | os.PathLike) -> Path:
         r, c = np.nonzero(g >= 0)
         verts["row"][g[r, c]] = r
         verts["col"][g[r, c]] = c
-    faces = np.empty(scan.n_faces, np.dtype([("n", "u1"), ("i", "<i4", (3,))]))
-    faces["n"] = 3
-    faces["i"] = scan.faces
     d = scan.view_direction
-    header = [
-        "ply",
-        "format binary_little_endian 1.0",
-        "comment slscan range scan (mm, scan frame)",
-    ]
+    comments = ["slscan range scan (mm, scan frame)"]
     name = " ".join(str(scan.name).split())
     if name:
-        header.append(f"comment name {name}")
-    header.append(f"comment view_direction {d[0]:.9g} {d[1]:.9g} {d[2]:.9g}")
+        comments.append(f"name {name}")
+    comments.append(f"view_direction {d[0]:.9g} {d[1]:.9g} {d[2]:.9g}")
     if scan.grid is not None:
-        header.append(f"comment grid {scan.grid.shape[0]} {scan.grid.shape[1]}")
-    header.append(f"element vertex {n}")
-    names = {"f4": "float", "i4": "int"}
-    header += [f"property {names[verts.dtype[f].str[1:]]} {f}" for f in verts.dtype.names]
-    header += [
-        f"element face {scan.n_faces}",
-        "property list uchar int vertex_indices",
-        "end_header",
-    ]
-    with atomic_output_file(path) as tmp, open(tmp, "wb") as fh:
-        fh.write(("\n".join(header) + "\n").encode("ascii"))
-        fh.write(verts.tobytes())
-        fh.write(faces.tobytes())
-    return path
+        comments.append(f"grid {scan.grid.shape[0]} {scan.grid.shape[1]}")
+    return write_triangle_ply(path, verts, scan.faces, comments)
 
 
 def _unit_scale(units: str, path: Path) -> float:
