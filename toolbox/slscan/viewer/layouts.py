@@ -62,7 +62,7 @@ def capture_blueprint() -> rrb.Blueprint:
         name="Ground truth",
     )
     log = rrb.TextLogView(origin="log", name="Frames")
-    return _blueprint(
+    return stage_blueprint(
         rrb.Horizontal(
             scene,
             rrb.Vertical(frames, truth, log, row_shares=[3, 3, 1]),
@@ -72,7 +72,9 @@ def capture_blueprint() -> rrb.Blueprint:
     )
 
 
-def _blueprint(root: rrb.Container, timeline: str = VIEW_TIMELINE) -> rrb.Blueprint:
+def stage_blueprint(root: rrb.Container, timeline: str = VIEW_TIMELINE) -> rrb.Blueprint:
+    """A stage's layout: ``root`` with the time panel open on ``timeline`` and the
+    selection panel closed."""
     return rrb.Blueprint(
         root,
         rrb.TimePanel(expanded=True, timeline=timeline),
@@ -105,7 +107,7 @@ def decode_blueprint() -> rrb.Blueprint:
         name="Range maps",
     )
     metrics = rrb.TimeSeriesView(origin="plot/decode", name="Per-view metrics")
-    return _blueprint(
+    return stage_blueprint(
         rrb.Horizontal(
             rrb.Vertical(overlay, maps, row_shares=[3, 2]),
             rrb.Vertical(scans, metrics, row_shares=[3, 1]),
@@ -132,7 +134,7 @@ def pipeline_blueprint(stages: Sequence[str] = ()) -> rrb.Blueprint:
     tabs = [capture_blueprint(), decode_blueprint(), _albedo(), register_blueprint(), _texture()]
     active = next((_PIPELINE_TAB[s] for s in stages if s in _PIPELINE_TAB), 0)
     timeline = VIEW_TIMELINE if active <= _PIPELINE_TAB["albedo"] else STAGE_TIMELINE
-    return _blueprint(
+    return stage_blueprint(
         rrb.Tabs(*(b.root_container for b in tabs), active_tab=active, name="slscan pipeline"),
         timeline,
     )
@@ -166,12 +168,10 @@ def register_blueprint() -> rrb.Blueprint:
         rrb.TimeSeriesView(origin="plot/register/rmse", name="Pair RMS (mm)"),
         rrb.TimeSeriesView(origin="plot/register/overlap", name="Pair overlap"),
     )
-    return rrb.Blueprint(
+    return stage_blueprint(
         rrb.Horizontal(scans, rrb.Vertical(models, residuals, row_shares=[2, 1]), column_shares=[3, 2],
                        name="Register"),
-        rrb.TimePanel(expanded=True, timeline=STAGE_TIMELINE),
-        rrb.SelectionPanel(expanded=False),
-        collapse_panels=False,
+        STAGE_TIMELINE,
     )
 
 

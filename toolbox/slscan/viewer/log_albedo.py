@@ -25,6 +25,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from slscan.errors import SlscanError
+from slscan.viewer.layouts import stage_blueprint
 from slscan.viewer.log import (
     JPEG_QUALITY,
     LIGHT_RADIUS_MM,
@@ -36,7 +37,6 @@ from slscan.viewer.log import (
     scan_path,
 )
 from slscan.viewer.log_decode import colormap
-from slscan.viewer.recording import VIEW_TIMELINE
 
 if TYPE_CHECKING:
     from slscan.albedo.lights import LightCalibration
@@ -237,14 +237,11 @@ def albedo_blueprint() -> rrb.Blueprint:
         name="Range maps with albedo",
     )
     metrics = rrb.TimeSeriesView(origin="plot/albedo", name="Per-view metrics")
-    return rrb.Blueprint(
+    return stage_blueprint(
         rrb.Horizontal(
             rrb.Vertical(lit, results, row_shares=[1, 1]),
             rrb.Vertical(scans, metrics, row_shares=[3, 1]),
             column_shares=[1, 1],
             name="Albedo",
         ),
-        rrb.TimePanel(expanded=True, timeline=VIEW_TIMELINE),
-        rrb.SelectionPanel(expanded=False),
-        collapse_panels=False,
     )

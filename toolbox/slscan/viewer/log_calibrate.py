@@ -25,8 +25,8 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from slscan.viewer.layouts import stage_blueprint
 from slscan.viewer.log import _set_view, _to_uint8, log_rig
-from slscan.viewer.recording import VIEW_TIMELINE
 
 if TYPE_CHECKING:
     from slscan.calibrate.camera import CornerDetection
@@ -319,7 +319,7 @@ def calibrate_blueprint() -> rrb.Blueprint:
         name="Light-plane residuals",
     )
     log = rrb.TextLogView(origin="log/calibrate", name="Calibration log")
-    return rrb.Blueprint(
+    return stage_blueprint(
         rrb.Horizontal(
             scene,
             rrb.Vertical(
@@ -331,7 +331,4 @@ def calibrate_blueprint() -> rrb.Blueprint:
             column_shares=[1, 1],
             name="Calibrate",
         ),
-        rrb.TimePanel(expanded=True, timeline=VIEW_TIMELINE),
-        rrb.SelectionPanel(expanded=False),
-        collapse_panels=False,
     )

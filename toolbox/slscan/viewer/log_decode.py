@@ -62,7 +62,7 @@ def log_decode_maps(
     if rec is None:
         return
     _set_view(rec, view_index)
-    rec.log(f"{DECODE_PATH}/mask", _png((mask.astype(np.uint8) * 255)))
+    rec.log(f"{DECODE_PATH}/mask", _png(mask.astype(np.uint8) * 255))
     rec.log(f"{DECODE_PATH}/codes", _png(colormap(codes.astype(np.float64), code_max)))
     if saturated is not None:
         overlay = np.zeros(saturated.shape + (4,), np.uint8)

@@ -95,6 +95,7 @@ def log_textured_model(rec: rr.RecordingStream | None, atlas, texture: np.ndarra
 def texture_blueprint() -> rrb.Blueprint:
     """Texture stage: the textured model (and, in a second tab, among the view cameras);
     the atlas and the per-texel view count beside it; the metrics below."""
+    from slscan.viewer.layouts import stage_blueprint
     from slscan.viewer.recording import STAGE_TIMELINE
 
     model = rrb.Tabs(
@@ -109,10 +110,8 @@ def texture_blueprint() -> rrb.Blueprint:
         name="Texture",
     )
     metrics = rrb.TimeSeriesView(origin="plot/texture", name="Texture metrics")
-    return rrb.Blueprint(
+    return stage_blueprint(
         rrb.Horizontal(model, rrb.Vertical(images, metrics, row_shares=[3, 1]), column_shares=[3, 2],
                        name="Texture"),
-        rrb.TimePanel(expanded=True, timeline=STAGE_TIMELINE),
-        rrb.SelectionPanel(expanded=False),
-        collapse_panels=False,
+        STAGE_TIMELINE,
     )
