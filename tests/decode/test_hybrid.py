@@ -274,6 +274,23 @@ def test_arrays_in_any_order_give_the_same_result(tile_session):
     )
 
 
+def test_images_by_pattern_id_and_prefetched_give_the_same_result(tile_session):
+    # decode_hybrid reads in the background (Session.prefetch_images) and hands the
+    # decoder a mapping of pattern id to image: the same samples as arrays in a list
+    white, black, images, descs = _arrays(tile_session)
+    a = decode_hybrid_images(white, black, images, descs)
+    by_id = {d.id: im for d, im in zip(descs, images)}
+    b = decode_hybrid_images(white, black, by_id, descs[::-1])
+    np.testing.assert_array_equal(a.samples.x, b.samples.x)
+    np.testing.assert_array_equal(a.codes, b.codes)
+    c = decode_hybrid(tile_session, tile_session.views[0])
+    np.testing.assert_array_equal(a.samples.x, c.samples.x)
+    np.testing.assert_array_equal(a.samples.stripe, c.samples.stripe)
+    del by_id[descs[4].id]
+    with pytest.raises(SlscanError, match=f"no image of hybrid pattern.*{descs[4].id}"):
+        decode_hybrid_images(white, black, by_id, descs)
+
+
 def test_unlit_border_changes_nothing_but_the_coordinates(tile_session):
     # the decoder works on the lit pixels' bounding box: a dark frame around the view
     # only moves the samples
@@ -320,6 +337,8 @@ def test_mismatched_images_are_errors(tile_session):
     bad[4] = images[4].astype(np.uint16)
     with pytest.raises(SlscanError, match="hybrid-05: pixels are uint16"):
         decode_hybrid_images(white, black, bad, descs)
+    with pytest.raises(SlscanError, match="black image: image is"):
+        decode_hybrid_images(white, black[1:], images, descs)
     with pytest.raises(SlscanError, match="RGB"):
         decode_hybrid_images(white[..., 0], black[..., 0], [im[..., 0] for im in images], descs)
     with pytest.raises(SlscanError, match="not a hybrid pattern"):

@@ -10,6 +10,7 @@ import pytest
 from slscan.decode.masks import (
     SaturationReport,
     channel_max,
+    channel_mean,
     lit_bounds,
     noise_sigma,
     saturation,
@@ -96,6 +97,18 @@ def test_channel_max_matches_numpy():
     image = rng.integers(0, 255, (7, 9, 3), dtype=np.uint8)
     np.testing.assert_array_equal(channel_max(image), image.max(axis=2))
     np.testing.assert_array_equal(channel_max(image[..., 0]), image[..., 0])
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_channel_mean_matches_numpy(dtype):
+    rng = np.random.default_rng(2)
+    image = rng.integers(0, np.iinfo(dtype).max, (7, 9, 3), dtype=dtype)
+    mean = channel_mean(image)
+    assert mean.dtype == np.float32
+    np.testing.assert_allclose(mean, image.mean(axis=2), rtol=1e-6)
+    np.testing.assert_array_equal(channel_mean(image[..., 1]), image[..., 1].astype(np.float32))
+    with pytest.raises(SlscanError, match="got shape"):
+        channel_mean(image[None])
 
 
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16])

@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from slscan.calibrate.target import Board
+from slscan.decode.masks import channel_mean
 from slscan.errors import SlscanError
 from slscan.rig import PinholeModel
 
@@ -82,7 +83,7 @@ def grey_image(image: np.ndarray) -> np.ndarray:
     """Grey float32 (h, w) in [0, 255] of an (h, w) or (h, w, 3) uint8/uint16/float image."""
     image = np.asarray(image)
     scale = {np.dtype(np.uint8): 1.0, np.dtype(np.uint16): 255.0 / 65535.0}.get(image.dtype, 255.0)
-    grey = image.mean(axis=2, dtype=np.float32) if image.ndim == 3 else image.astype(np.float32)
+    grey = channel_mean(image)
     return grey * np.float32(scale)
 
 

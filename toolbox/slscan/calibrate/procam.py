@@ -53,6 +53,7 @@ from slscan.calibrate.camera import (
 from slscan.calibrate.target import Board
 from slscan.capture.session import Session, ViewRecord
 from slscan.decode.graycode import GrayResult, decode_gray_images
+from slscan.decode.masks import channel_mean
 from slscan.errors import SlscanError
 from slscan.rig import PinholeModel, Projector, Rig
 
@@ -221,7 +222,7 @@ def decode_gray_axes(session: Session, view: ViewRecord) -> GrayAxes:
 
     def t(image: np.ndarray) -> np.ndarray:
         """Transposed grey image, float32 in [0, 1] (the decoder reads RGB as the mean)."""
-        grey = image.mean(axis=2, dtype=np.float32) if image.ndim == 3 else image.astype(np.float32)
+        grey = channel_mean(image)
         return np.ascontiguousarray((grey * np.float32(1.0 / full)).T)
 
     rows = decode_gray_images(

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import os
 import struct
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,7 +25,7 @@ import numpy as np
 
 from slscan import __version__
 from slscan.errors import SlscanError
-from slscan.fsio import atomic_output_dir, read_json, read_png, write_json, write_png
+from slscan.fsio import Prefetched, atomic_output_dir, read_json, read_png, write_json, write_png
 from slscan.patterns import PatternImage
 from slscan.rig import Rig, _as_pose
 
@@ -157,6 +158,12 @@ class Session:
         image = read_png(path)
         _check_image(path, image.shape, image.dtype.itemsize * 8, self)
         return image
+
+    def prefetch_images(self, view: ViewRecord, records: Sequence[ImageRecord]) -> Prefetched:
+        """The captures ``records`` of ``view`` by pattern id, read (and checked like
+        :meth:`read_image`) in that order by a background thread; use it in a ``with`` block."""
+        by_id = {rec.pattern: rec for rec in records}
+        return Prefetched(lambda pid: self.read_image(view, by_id[pid]), list(by_id))
 
     def load_ground_truth(self, view: ViewRecord) -> GroundTruth:
         if view.ground_truth is None:

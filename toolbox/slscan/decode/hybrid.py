@@ -78,7 +78,7 @@ Conference (1991), 217-225.
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -421,45 +421,49 @@ class _Unmixer:
             unmix = np.linalg.inv(crosstalk).T  # row vectors: U = d @ unmix
         except np.linalg.LinAlgError:
             raise SlscanError(f"crosstalk matrix is singular:\n{crosstalk}") from None
-        h, w_ = mask.shape
-        inside = np.flatnonzero(mask)  # the coefficients are worked out on lit pixels only
-        black = np.asarray(black).reshape(-1, 3)[inside].astype(np.float64)
-        w = np.maximum((np.asarray(white).reshape(-1, 3)[inside] - black) @ unmix, 0.0)
-        wr, wg, wb = w[:, 0], w[:, 1], w[:, 2]
+        # plane by plane in float32 (an (n, 3) @ (3, 3) product per pixel is several times
+        # slower); pixels outside the mask get the "nothing there" coefficients at the end
+        f32 = np.float32
+        black = [np.asarray(black[..., j], f32) for j in range(3)]
+        lit = [np.asarray(white[..., j], f32) - black[j] for j in range(3)]
+
+        def mix(planes: list[np.ndarray], m: np.ndarray, c: int) -> np.ndarray:
+            """Σ_j planes[j] m[j, c]"""
+            out = planes[0] * f32(m[0, c])
+            for j in (1, 2):
+                out += planes[j] * f32(m[j, c])
+            return out
+
+        wr, wg, wb = (np.maximum(mix(lit, unmix, c), 0.0) for c in range(3))
+        del lit
         sq_r, sq_g, sq_b = wr * wr, wg * wg, wb * wb
-        with np.errstate(divide="ignore", invalid="ignore"):
-            w_rb = np.where((sq_r > 0) & (sq_b > 0), sq_r * sq_b / (sq_r + sq_b), 0.0)
+        zero = np.zeros_like(wr)
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            w_rb = np.where((sq_r > 0) & (sq_b > 0), sq_r * sq_b / (sq_r + sq_b), zero)
             # g as a function of the primaries' signals U: a + Σ_c k_c U_c
             den_g = sq_g + w_rb
-            a = np.where(den_g > 0, w_rb / den_g, 0.0)
-            k_u = np.stack(
-                [
-                    np.where(sq_r > 0, -a / wr, 0.0),
-                    np.where(den_g > 0, wg / den_g, 0.0),
-                    np.where(sq_b > 0, -a / wb, 0.0),
-                ],
-                axis=-1,
-            )
+            a = np.where(den_g > 0, w_rb / den_g, zero)
+            k_u = [
+                np.where(sq_r > 0, -a / wr, zero),
+                np.where(den_g > 0, wg / den_g, zero),
+                np.where(sq_b > 0, -a / wb, zero),
+            ]
             den_e = sq_r + sq_b
             ok_e = den_e > 0
-            b = np.where(ok_e, sq_b / den_e, 0.5)
-            j_u = np.stack(
-                [np.where(ok_e, wr / den_e, 0.0), np.zeros_like(wr), np.where(ok_e, -wb / den_e, 0.0)],
-                axis=-1,
-            )
+            b = np.where(ok_e, sq_b / den_e, f32(0.5))
+            j_u = [np.where(ok_e, wr / den_e, zero), zero, np.where(ok_e, -wb / den_e, zero)]
         # U = (I − B) @ unmix, so Σ_c k_c U_c = Σ_j (unmix @ k)_j (I_j − B_j)
-        k_i, j_i = k_u @ unmix.T, j_u @ unmix.T
-        g0 = np.zeros(h * w_, np.float32)
-        e0 = np.full(h * w_, 0.5, np.float32)
-        g0[inside] = a - np.einsum("nc,nc->n", k_i, black)
-        e0[inside] = b - np.einsum("nc,nc->n", j_i, black)
-
-        def maps(c: np.ndarray) -> tuple[np.ndarray, ...]:
-            out = np.zeros((3, h * w_), np.float32)
-            out[:, inside] = c.T
-            return tuple(out[j].reshape(h, w_) for j in range(3))
-
-        return cls(g0.reshape(h, w_), maps(k_i), e0.reshape(h, w_), maps(j_i))
+        outside = ~np.asarray(mask, bool)
+        k_i = tuple(mix(k_u, unmix.T, j) for j in range(3))
+        j_i = tuple(mix(j_u, unmix.T, j) for j in range(3))
+        g0, e0 = a, b
+        for j in range(3):
+            g0 -= k_i[j] * black[j]
+            e0 -= j_i[j] * black[j]
+        for plane in (*k_i, *j_i, g0):
+            plane[outside] = 0.0
+        e0[outside] = 0.5
+        return cls(g0, k_i, e0, j_i)
 
     def signals(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Line signal ``g`` and redness ``e``, (h, w) float32, from a raw capture (h, w, 3)."""
@@ -594,16 +598,37 @@ def order_consistent(
 # --- decoding ------------------------------------------------------------------------------
 
 
+def _check_image(image: np.ndarray, name: str, white: np.ndarray, where: str) -> np.ndarray:
+    """``image`` as an array, or an error naming it when it differs from ``white`` in
+    shape or dtype."""
+    image = np.asarray(image)
+    if image.shape != white.shape:
+        raise SlscanError(
+            f"{where}{name}: image is {image.shape}, expected {white.shape} like the white image"
+        )
+    if image.dtype != white.dtype:
+        raise SlscanError(
+            f"{where}{name}: pixels are {image.dtype}, expected {white.dtype} like the white image"
+        )
+    return image
+
+
 def _check_inputs(
     white: np.ndarray,
     black: np.ndarray,
-    images: Sequence[np.ndarray],
+    images: Sequence[np.ndarray] | Mapping[str, np.ndarray],
     descs: Sequence[PatternImage],
     names: Sequence[str] | None,
     where: str,
-) -> tuple[list[np.ndarray], list[PatternImage], list[str]]:
-    """Validate shapes, dtypes and levels; return images, descriptions and names in level order."""
-    if len(images) != len(descs):
+) -> tuple[list[int], list[str]]:
+    """Validate the descriptions, levels and flat frames; return the level order (indices
+    into ``descs``) and the images' names in that order. The pattern images themselves are
+    checked as they are used (:func:`_check_image`), so they may still be loading."""
+    if isinstance(images, Mapping):
+        missing = [d.id for d in descs if d.id not in images]
+        if missing:
+            raise SlscanError(f"{where}no image of hybrid pattern(s) {', '.join(missing)}")
+    elif len(images) != len(descs):
         raise SlscanError(
             f"{where}{len(images)} hybrid images for {len(descs)} pattern descriptions"
         )
@@ -612,24 +637,13 @@ def _check_inputs(
         raise SlscanError(f"{where}{len(names)} names for {len(descs)} pattern descriptions")
     if not descs:
         raise SlscanError(f"{where}no hybrid pattern images to decode")
-    white, black = np.asarray(white), np.asarray(black)
+    white = np.asarray(white)
     if white.ndim != 3 or white.shape[2] != 3:
         raise SlscanError(
             f"{where}white image is {white.shape}: the hybrid pattern is colour-coded and needs "
             "(h, w, 3) RGB captures"
         )
-    for name, image in (("black image", black), *zip(names, images)):
-        image = np.asarray(image)
-        if image.shape != white.shape:
-            raise SlscanError(
-                f"{where}{name}: image is {image.shape}, "
-                f"expected {white.shape} like the white image"
-            )
-        if image.dtype != white.dtype:
-            raise SlscanError(
-                f"{where}{name}: pixels are {image.dtype}, "
-                f"expected {white.dtype} like the white image"
-            )
+    _check_image(black, "black image", white, where)
     for d, name in zip(descs, names):
         if d.family != "hybrid":
             raise SlscanError(
@@ -658,11 +672,7 @@ def _check_inputs(
             raise SlscanError(
                 f"{where}pattern {descs[i].id!r} is {descs[i].width} px wide, expected {width}"
             )
-    return (
-        [np.asarray(images[i]) for i in order],
-        [descs[i] for i in order],
-        [names[i] for i in order],
-    )
+    return order, [names[i] for i in order]
 
 
 def _keep(ok: np.ndarray, cond: np.ndarray, rejected: dict[str, int], reason: str) -> np.ndarray:
@@ -674,7 +684,7 @@ def _keep(ok: np.ndarray, cond: np.ndarray, rejected: dict[str, int], reason: st
 def decode_hybrid_images(
     white: np.ndarray,
     black: np.ndarray,
-    images: Sequence[np.ndarray],
+    images: Sequence[np.ndarray] | Mapping[str, np.ndarray],
     descs: Sequence[PatternImage],
     *,
     estimator: str = DEFAULT_ESTIMATOR,
@@ -695,8 +705,12 @@ def decode_hybrid_images(
 
     white, black : (h, w, 3) captures under projector white and black, uint8, uint16 or
         float in [0, 1]
-    images : (h, w, 3) captures of the hybrid images, one per level (any order)
-    descs : their pattern descriptions (:func:`slscan.patterns.hybrid.generate`), same order
+    images : (h, w, 3) captures of the hybrid images, one per level (any order), or a
+        mapping of pattern id to capture (e.g. :meth:`Session.prefetch_images
+        <slscan.capture.session.Session.prefetch_images>`, still loading: each image is
+        taken when its level is decoded, so decoding overlaps the reading)
+    descs : their pattern descriptions (:func:`slscan.patterns.hybrid.generate`), in the
+        order of ``images`` when it is a sequence
     estimator : {"centroid", "gaussian", "parabola", "blais-rioux"}, the sub-pixel line
         centre (module docstring)
     min_contrast : shadow-mask threshold, fraction of full scale
@@ -733,7 +747,8 @@ def decode_hybrid_images(
             f"unknown line estimator {estimator!r}: expected one of {', '.join(ESTIMATORS)}"
         )
     prefix = f"{where}: " if where else ""
-    images, descs, names = _check_inputs(white, black, images, descs, names, prefix)
+    order, names = _check_inputs(white, black, images, descs, names, prefix)
+    descs = [descs[i] for i in order]
     white, black = np.asarray(white), np.asarray(black)
     full_shape = white.shape[:2]
     full_mask = shadow_mask(white, black, min_contrast=min_contrast, bit_depth=bit_depth)
@@ -743,18 +758,30 @@ def decode_hybrid_images(
     y0, x0 = box[0].start, box[1].start
     full_white = white
     white, black, mask = white[box], black[box], full_mask[box]
-    images = [image[box] for image in images]
     h, w = mask.shape
     clipped = {
         name: saturation(image, bit_depth=bit_depth)
-        for name, image in zip((*flat_names, *names), (white, black, *images))
+        for name, image in zip(flat_names, (white, black))
     }
+
+    def image(k: int) -> np.ndarray:
+        """The level-``k + 1`` capture, checked and cropped; its clipped pixels recorded.
+        (``images`` may be a :class:`~slscan.fsio.Prefetched` still reading: take each
+        image only when it is needed.)"""
+        i = order[k]
+        raw = images[descs[k].id] if isinstance(images, Mapping) else images[i]
+        cropped = _check_image(raw, names[k], full_white, prefix)[box]
+        if names[k] not in clipped:
+            clipped[names[k]] = saturation(cropped, bit_depth=bit_depth)
+        return cropped
+
     sat_white = clipped[flat_names[0]]
     if crosstalk is None:
+        coarse = [image(k) for k in range(min(CROSSTALK_LEVELS, len(descs)))]
         crosstalk = estimate_crosstalk(
             white,
             black,
-            images[:CROSSTALK_LEVELS],
+            coarse,
             mask=mask,
             bit_depth=bit_depth,
             row_step=crosstalk_step,
@@ -762,6 +789,7 @@ def decode_hybrid_images(
                 [sat_white, *(clipped[n] for n in names[:CROSSTALK_LEVELS])]
             ),
         )
+        del coarse
     crosstalk = np.asarray(crosstalk, np.float64)
     if crosstalk.shape != (3, 3):
         raise SlscanError(f"{prefix}crosstalk must be a (3, 3) matrix, got shape {crosstalk.shape}")
@@ -782,8 +810,8 @@ def decode_hybrid_images(
     line_maps: dict[str, np.ndarray] = {}
     rejected = dict.fromkeys(("sub-pixel fit", "ambiguous bit", "edge", "polarity"), 0)
     n_peaks = 0
-    for k, (image, desc, name) in enumerate(zip(images, descs, names), start=1):
-        g, e = unmixer.signals(image)
+    for k, (desc, name) in enumerate(zip(descs, names), start=1):
+        g, e = unmixer.signals(image(k - 1))
         if smooth_rows:
             g = cv2.filter2D(g, -1, _ROW_KERNEL[:, None], borderType=cv2.BORDER_CONSTANT)
         rows, cols = find_line_peaks(g, min_peak=min_peak, min_prominence=min_prominence)
@@ -921,20 +949,21 @@ def decode_hybrid(
             )
         return recs[0]
 
+    flat = record(white_id), record(black_id)
     recs = [record(d.id) for d in descs]
-    white = session.read_image(view, record(white_id))
-    black = session.read_image(view, record(black_id))
-    images = [session.read_image(view, r) for r in recs]
-    return decode_hybrid_images(
-        white[..., :3],
-        black[..., :3],
-        [im[..., :3] for im in images],
-        descs,
-        estimator=estimator,
-        min_contrast=min_contrast,
-        bit_depth=session.bit_depth,
-        names=[r.file for r in recs],
-        flat_names=(record(white_id).file, record(black_id).file),
-        where=where,
-        **options,
-    )
+    # read in the order decoding uses them, in the background: level k is decoded while
+    # level k + 1 loads
+    with session.prefetch_images(view, [*flat, *recs]) as images:
+        return decode_hybrid_images(
+            images[white_id],
+            images[black_id],
+            images,
+            descs,
+            estimator=estimator,
+            min_contrast=min_contrast,
+            bit_depth=session.bit_depth,
+            names=[r.file for r in recs],
+            flat_names=(flat[0].file, flat[1].file),
+            where=where,
+            **options,
+        )

@@ -65,6 +65,24 @@ def channel_max(image: np.ndarray) -> np.ndarray:
     return out
 
 
+def channel_mean(image: np.ndarray) -> np.ndarray:
+    """Per-pixel mean over channels, (h, w) float32; a grey (h, w) image is converted as is.
+
+    (Channel by channel, like :func:`channel_max`: about ten times faster than
+    ``image.mean(axis=2)``, which reduces over a 3-long innermost axis.)
+    """
+    image = np.asarray(image)
+    if image.ndim == 2:
+        return image.astype(np.float32)
+    if image.ndim != 3:
+        raise SlscanError(f"expected an (h, w) or (h, w, channels) image, got shape {image.shape}")
+    out = image[..., 0].astype(np.float32)
+    for c in range(1, image.shape[2]):
+        out += image[..., c]
+    out *= np.float32(1.0 / image.shape[2])
+    return out
+
+
 def noise_sigma(black: np.ndarray) -> float:
     """Standard deviation (DN) of one frame's noise, from the black frame's pixel-to-pixel jitter.
 

@@ -149,11 +149,9 @@ def decode_view(
         res = decode_gray(session, view)
         samples, mask, codes, saturated = res.edges, res.mask, res.column, res.saturated
         code_max = session.projector_size[0]
+    white = res.white
     if method == "hybrid":
-        white = res.white
         saturated = saturation(white)
-    else:
-        white = session.read_image(view, view.image_for(session.flat_frame_ids()[0]))
     if config.trim_line_ends:
         samples = samples.trim_line_ends(config.trim_line_ends)
     seconds["decode"] = time.perf_counter() - t
