@@ -114,7 +114,7 @@ def plane_errors(points: np.ndarray, scene, pose: np.ndarray) -> tuple[float, fl
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scale", type=float, default=1.0, help="resolution factor (1: 1440x960 camera)")
-    parser.add_argument("--repeat", type=int, default=3, help="timing repetitions (median)")
+    parser.add_argument("--repeat", type=int, default=7, help="timing repetitions (median)")
     args = parser.parse_args()
     levels = min(9, int(np.log2(1024 * args.scale)) - 1)
     base = VirtualCaptureConfig(camera_scale=args.scale, projector_scale=args.scale, levels=levels,
@@ -159,7 +159,7 @@ def main() -> None:
         header = (f"{'scene':<22}{'method':<14}{'vertices':>9}{'plane fit':>11}{'true plane':>12}"
                   f"{'mean mm':>9}{'p95 mm':>9}{'coverage':>10}{'interior':>10}{'saturated':>11}")
         print(header)
-        timing = {}
+        timing = []
         by_angle = {}
         for name, session in sessions.items():
             session = load_session(session.root)
@@ -172,12 +172,7 @@ def main() -> None:
             for method, trim in variants:
                 label = method if not trim else f"{method} trim {trim}"
                 warnings.messages.clear()
-                times, parts = [], []
-                for _ in range(args.repeat if "4x" not in name and not trim else 1):
-                    t = time.perf_counter()
-                    result = decode_view(session, view, DecodeConfig(method=method, trim_line_ends=trim))
-                    times.append(time.perf_counter() - t)
-                    parts.append(result.seconds)
+                result = decode_view(session, view, DecodeConfig(method=method, trim_line_ends=trim))
                 rm = result.range_map
                 d = true_surface_distance(rm.vertices, scene, view.rig_from_object)
                 lit = truth.visibility == LIT
@@ -189,8 +184,7 @@ def main() -> None:
                 for message in dict.fromkeys(warnings.messages):
                     print(f"{'':<22}warning: {message}")
                 if "4x" not in name and not trim:
-                    timing[(name, method)] = (statistics.median(times),
-                                              {k: statistics.median(p[k] for p in parts) for k in parts[0]})
+                    timing.append((name, method))
                 if name == "figurine" and not trim:
                     by_angle[method] = (covered_pixels(rm, rig.camera, lit.shape), lit,
                                         obliquity(truth, session.calibration.projector.center))
@@ -207,26 +201,32 @@ def main() -> None:
             print(f"{limit:<10}{within.sum() / lit_px.sum():>14.3f}{row}")
 
         # (e)
-        print("\n(e) time per view next to loading the view's PNGs (decode includes reading them)")
+        print("\n(e) time per view next to loading the view's PNGs (decode includes reading them;")
+        print(f"    medians of {args.repeat} runs, loading and decoding taken in turn so that both see")
+        print("    the same machine load)")
         print(f"{'scene':<12}{'method':<8}{'load PNGs s':>12}{'decode s':>10}{'triang. s':>10}{'mesh s':>8}"
               f"{'total s':>9}{'dec+tri x load':>16}{'total x load':>14}")
-        for (name, method), (total, parts) in timing.items():
+        for name, method in timing:
             session = sessions[name]
             view = session.views[0]
             # load only the images this method reads: flat frames + its patterns
             family = "hybrid" if method == "hybrid" else "gray"
             recs = [r for r in view.pattern_images() if session.pattern(r.pattern).family in (family, "flat")]
-            loads = []
+            loads, totals, parts = [], [], []
             for _ in range(args.repeat):
                 t = time.perf_counter()
                 for rec in recs:
                     read_png(session.image_path(view, rec))
                 loads.append(time.perf_counter() - t)
-            load = statistics.median(loads)
-            dec_tri = parts["decode"] + parts["triangulate"]
-            print(f"{name:<12}{method:<8}{load:>12.3f}{parts['decode']:>10.3f}{parts['triangulate']:>10.3f}"
-                  f"{parts['mesh']:>8.3f}{total:>9.3f}{dec_tri / load:>16.2f}{total / load:>14.2f}")
-
+                t = time.perf_counter()
+                result = decode_view(session, view, DecodeConfig(method=method))
+                totals.append(time.perf_counter() - t)
+                parts.append(result.seconds)
+            load, total = statistics.median(loads), statistics.median(totals)
+            part = {k: statistics.median(p[k] for p in parts) for k in parts[0]}
+            dec_tri = statistics.median(p["decode"] + p["triangulate"] for p in parts)
+            print(f"{name:<12}{method:<8}{load:>12.3f}{part['decode']:>10.3f}{part['triangulate']:>10.3f}"
+                  f"{part['mesh']:>8.3f}{total:>9.3f}{dec_tri / load:>16.2f}{total / load:>14.2f}")
 
 if __name__ == "__main__":
     main()
