@@ -432,7 +432,6 @@ def decode_gray(session: Session, view: ViewRecord | str, **options) -> GrayResu
     # the order decoding uses them: flat frames, then column and row (pattern, inverse) pairs
     pairs = gray_pairs(descs, "columns") + gray_pairs(descs, "rows")
     ids = [white_id, black_id, *(p for pair in pairs for p in pair)]
-    ids += [d.id for d in descs if d.id not in ids]
     records = [view.image_for(pid) for pid in ids]
     # read in the background while the images already read are decoded
     with session.prefetch_images(view, records) as images:
