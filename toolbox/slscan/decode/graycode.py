@@ -30,7 +30,14 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from slscan.capture.session import Session, ViewRecord
-from slscan.decode.masks import channel_max, channel_mean, full_scale, lit_bounds, uncrop
+from slscan.decode.masks import (
+    channel_max,
+    channel_mean,
+    full_scale,
+    like_white,
+    lit_bounds,
+    uncrop,
+)
 from slscan.decode.samples import StripeSamples
 from slscan.errors import SlscanError
 from slscan.patterns import PatternImage
@@ -140,35 +147,19 @@ def gray_pairs(descs: Sequence[PatternImage], axis: str) -> list[tuple[str, str]
 class _Reader:
     """Turns captures into grey float32 images in fractions of full scale, tracking clipping."""
 
-    def __init__(self, shape: tuple[int, ...], dtype: np.dtype, where: str) -> None:
-        self.shape, self.dtype, self.where = shape, dtype, where
-        self.scale = full_scale(np.empty(0, dtype), where)
-        self.saturated = np.zeros(shape[:2], bool)
+    def __init__(self, white: np.ndarray, where: str) -> None:
+        self.white, self.where = white, where
+        self.scale = full_scale(np.empty(0, white.dtype), where)
+        self.saturated = np.zeros(white.shape[:2], bool)
         self.box = (slice(None), slice(None))  # the part of each image returned
 
-
     def __call__(self, image: np.ndarray, name: str) -> np.ndarray:
-        image = np.asarray(image)
-        if image.shape != self.shape:
-            raise SlscanError(
-                f"{self.where}{name}: image is {_shape_text(image.shape)}, expected "
-                f"{_shape_text(self.shape)} like the white image"
-            )
-        if image.dtype != self.dtype:
-            raise SlscanError(
-                f"{self.where}{name}: pixels are {image.dtype}, expected {self.dtype} "
-                "like the white image"
-            )
+        image = like_white(image, self.white, name, self.where)
         image = image[self.box]
         self.saturated[self.box] |= channel_max(image) >= self.scale
         grey = channel_mean(image)
         grey *= np.float32(1.0 / self.scale)
         return grey
-
-
-def _shape_text(shape: tuple[int, ...]) -> str:
-    text = f"{shape[1]}x{shape[0]}" if len(shape) >= 2 else str(shape)
-    return text + (f"x{shape[2]}" if len(shape) == 3 else "")
 
 
 # --- decoding -------------------------------------------------------------------------------
@@ -356,7 +347,7 @@ def decode_gray_images(
             f"{where}white: expected an (h, w) or (h, w, 3) image, got shape {white.shape}"
         )
     full_scale(white, f"{where}white")
-    read = _Reader(white.shape, white.dtype, where)
+    read = _Reader(white, where)
     w_img, b_img = read(white, "white"), read(black, "black")
     full_contrast = w_img - b_img
     full_lit = full_contrast > min_contrast

@@ -91,6 +91,7 @@ from slscan.decode.masks import (
     SaturationReport,
     channel_max,
     full_scale,
+    like_white,
     lit_bounds,
     saturation,
     saturation_report,
@@ -598,21 +599,6 @@ def order_consistent(
 # --- decoding ------------------------------------------------------------------------------
 
 
-def _check_image(image: np.ndarray, name: str, white: np.ndarray, where: str) -> np.ndarray:
-    """``image`` as an array, or an error naming it when it differs from ``white`` in
-    shape or dtype."""
-    image = np.asarray(image)
-    if image.shape != white.shape:
-        raise SlscanError(
-            f"{where}{name}: image is {image.shape}, expected {white.shape} like the white image"
-        )
-    if image.dtype != white.dtype:
-        raise SlscanError(
-            f"{where}{name}: pixels are {image.dtype}, expected {white.dtype} like the white image"
-        )
-    return image
-
-
 def _check_inputs(
     white: np.ndarray,
     black: np.ndarray,
@@ -623,7 +609,7 @@ def _check_inputs(
 ) -> tuple[list[int], list[str]]:
     """Validate the descriptions, levels and flat frames; return the level order (indices
     into ``descs``) and the images' names in that order. The pattern images themselves are
-    checked as they are used (:func:`_check_image`), so they may still be loading."""
+    checked as they are used (:func:`~slscan.decode.masks.like_white`), so they may still be loading."""
     if isinstance(images, Mapping):
         missing = [d.id for d in descs if d.id not in images]
         if missing:
@@ -643,7 +629,7 @@ def _check_inputs(
             f"{where}white image is {white.shape}: the hybrid pattern is colour-coded and needs "
             "(h, w, 3) RGB captures"
         )
-    _check_image(black, "black image", white, where)
+    like_white(black, white, "black image", where)
     for d, name in zip(descs, names):
         if d.family != "hybrid":
             raise SlscanError(
@@ -770,7 +756,7 @@ def decode_hybrid_images(
         image only when it is needed.)"""
         i = order[k]
         raw = images[descs[k].id] if isinstance(images, Mapping) else images[i]
-        cropped = _check_image(raw, names[k], full_white, prefix)[box]
+        cropped = like_white(raw, full_white, names[k], prefix)[box]
         if names[k] not in clipped:
             clipped[names[k]] = saturation(cropped, bit_depth=bit_depth)
         return cropped

@@ -49,6 +49,28 @@ def full_scale(image: np.ndarray, name: str = "image", *, bit_depth: int | None 
     )
 
 
+def like_white(image: np.ndarray, white: np.ndarray, name: str, where: str = "") -> np.ndarray:
+    """``image`` as an array; an error naming it (``where`` + ``name``) when its size,
+    channels or pixel type differ from the view's white frame ``white``."""
+    image = np.asarray(image)
+    if image.shape != white.shape:
+        raise SlscanError(
+            f"{where}{name}: image is {shape_text(image.shape)}, "
+            f"expected {shape_text(white.shape)} like the white image"
+        )
+    if image.dtype != white.dtype:
+        raise SlscanError(
+            f"{where}{name}: pixels are {image.dtype}, expected {white.dtype} like the white image"
+        )
+    return image
+
+
+def shape_text(shape: tuple[int, ...]) -> str:
+    """An image shape as people write it: ``1440x960`` or ``1440x960x3``."""
+    text = f"{shape[1]}x{shape[0]}" if len(shape) >= 2 else str(shape)
+    return text + (f"x{shape[2]}" if len(shape) == 3 else "")
+
+
 def channel_max(image: np.ndarray) -> np.ndarray:
     """Per-pixel maximum over channels, (h, w); a grey (h, w) image is returned as is.
 
