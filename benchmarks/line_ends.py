@@ -25,7 +25,6 @@ from pathlib import Path
 
 import numpy as np
 from measure import distances_to_mesh, surface_samples
-from stripe_axes import true_crossings
 
 from slscan.capture.session import Session
 from slscan.decode.pipeline import DecodeConfig, decode_view
@@ -41,8 +40,8 @@ CONTINUITY = ((2, "inside a line"), (1, "line end"), (0, "lone sample"))
 
 def axis_errors(session: Session, samples: StripeSamples) -> np.ndarray:
     """(k,) signed camera-x error of each sample against the truth (NaN where unknown)."""
-    u = session.load_ground_truth(session.views[0]).projector_uv[..., 0].astype(np.float64)
-    return samples.x - true_crossings(u, samples)
+    truth = session.load_ground_truth(session.views[0])
+    return samples.x - truth.column_crossings(samples.row, samples.x, samples.projector_column)
 
 
 def main() -> None:

@@ -42,7 +42,6 @@ import numpy as np
 
 from slscan.capture.session import LIT, Session
 from slscan.decode.hybrid import DEFAULT_ESTIMATOR, ESTIMATORS, HybridResult, decode_hybrid
-from slscan.decode.samples import StripeSamples
 from slscan.patterns import hybrid
 from slscan.virtual.device import VirtualCaptureConfig, capture_session
 from slscan.virtual.sensor import Sensor
@@ -72,20 +71,6 @@ def possible_crossings(u: np.ndarray, lit: np.ndarray, columns: np.ndarray) -> i
     )
 
 
-def true_crossings(u: np.ndarray, samples: StripeSamples) -> np.ndarray:
-    """(k,) camera x where the true projector column ``u`` (h, w), linear between pixel
-    centres, crosses each sample's ``projector_column`` within 3 px of it; NaN where not."""
-    w = u.shape[1]
-    true_x = np.full(len(samples), np.nan)
-    start = np.round(samples.x).astype(int) - 3
-    for o in range(7):
-        xi = np.clip(start + o, 0, w - 2)
-        ua, ub = u[samples.row, xi], u[samples.row, xi + 1]
-        hit = (ua <= samples.projector_column) & (samples.projector_column < ub) & np.isnan(true_x)
-        true_x = np.where(hit, xi + (samples.projector_column - ua) / (ub - ua), true_x)
-    return true_x
-
-
 def evaluate(session: Session, result: HybridResult) -> dict[str, float]:
     truth = session.load_ground_truth(session.views[0])
     u = truth.projector_uv[..., 0].astype(np.float64)
@@ -98,7 +83,7 @@ def evaluate(session: Session, result: HybridResult) -> dict[str, float]:
     known = np.isfinite(u_at)
     nearest = np.abs(columns[None, :] - np.where(known, u_at, -1e9)[:, None]).argmin(axis=1)
     correct = known & (nearest == s.stripe)
-    true_x = true_crossings(u, s)
+    true_x = truth.column_crossings(s.row, s.x, s.projector_column)
     measured = correct & np.isfinite(true_x)
     err = np.abs(s.x - true_x)[measured]
     lit = truth.visibility == LIT

@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from slscan.capture.session import LIT, SHADOW, load_session
+from slscan.capture.session import LIT, SHADOW, GroundTruth, load_session
 from slscan.errors import SlscanError
 from slscan.fsio import write_png
 from slscan.virtual.device import (
@@ -98,3 +98,21 @@ def test_sixteen_bit_sessions(tmp_path):
     s = load_session(capture_session(config, tmp_path / "s16").root)
     image = s.read_image(s.views[0], s.views[0].images[0])
     assert image.dtype == np.uint16 and image.max() > 1000
+
+
+def test_ground_truth_column_crossings():
+    # projector column u = 0.8 x + 10 along every row, rising; background (NaN) on row 1
+    h, w = 3, 40
+    u = np.tile(0.8 * np.arange(w, dtype=np.float32) + 10, (h, 1))
+    u[1] = np.nan
+    uv = np.stack([u, np.zeros_like(u)], axis=-1)
+    nan3 = np.full((h, w, 3), np.nan, np.float32)
+    truth = GroundTruth(nan3, nan3, nan3, uv, np.full((h, w), LIT, np.uint8))
+    rows = np.array([0, 2, 0, 1])
+    columns = np.array([20.0, 31.0, 20.0, 20.0])
+    x = np.array([12.7, 26.0, 20.0, 12.5])  # measured near 12.5, 26.25; the third too far
+    got = truth.column_crossings(rows, x, columns)
+    np.testing.assert_allclose(got[:2], [12.5, 26.25], rtol=0, atol=1e-5)
+    assert np.isnan(got[2]) and np.isnan(got[3])
+    assert np.isnan(truth.column_crossings(rows[:1], x[:1] + 5.5, columns[:1])[0])
+    assert truth.column_crossings(rows[:1], x[:1] + 5.5, columns[:1], reach=6)[0] == pytest.approx(12.5)

@@ -158,13 +158,7 @@ def _truth(session: Session, result: HybridResult):
     columns = hybrid.line_columns(session.projector_size[0], levels)
     nearest = np.abs(columns[None, :] - np.nan_to_num(u_at, nan=-1e9)[:, None]).argmin(axis=1)
     # true x of the line: u(x) = column, interpolated between the bracketing pixels
-    true_x = np.full(len(s), np.nan)
-    start = np.round(s.x).astype(int) - 3
-    for o in range(7):
-        xi = np.clip(start + o, 0, w - 2)
-        ua, ub = u[s.row, xi], u[s.row, xi + 1]
-        hit = (ua <= s.projector_column) & (s.projector_column < ub) & np.isnan(true_x)
-        true_x = np.where(hit, xi + (s.projector_column - ua) / (ub - ua), true_x)
+    true_x = truth.column_crossings(s.row, s.x, s.projector_column)
     return truth, u_at, nearest, true_x
 
 

@@ -208,6 +208,24 @@ class GroundTruth:
     projector_uv: np.ndarray
     visibility: np.ndarray
 
+    def column_crossings(
+        self, rows: np.ndarray, x: np.ndarray, columns: np.ndarray, reach: int = 3
+    ) -> np.ndarray:
+        """(k,) camera x where the true projector column, linear between pixel centres,
+        rises through ``columns`` (k,) on camera row ``rows`` (k,), searched within
+        ``reach`` px of ``x`` (k,) — the true position of a measured stripe sample; NaN
+        where it does not cross there."""
+        u = self.projector_uv[..., 0].astype(np.float64)
+        rows, columns = np.asarray(rows), np.asarray(columns, np.float64)
+        true_x = np.full(len(rows), np.nan)
+        start = np.round(np.asarray(x)).astype(int) - reach
+        for o in range(2 * reach + 1):
+            xi = np.clip(start + o, 0, u.shape[1] - 2)
+            ua, ub = u[rows, xi], u[rows, xi + 1]
+            hit = (ua <= columns) & (columns < ub) & np.isnan(true_x)
+            true_x = np.where(hit, xi + (columns - ua) / (ub - ua), true_x)
+        return true_x
+
     def save(self, path: str | os.PathLike) -> None:
         np.savez_compressed(
             path, point=self.point, normal=self.normal, albedo=self.albedo,
