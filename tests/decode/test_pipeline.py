@@ -62,6 +62,9 @@ def test_trimming_line_ends_drops_the_samples_without_two_neighbours(figurine):
     for bad in (-1, 1.5):
         with pytest.raises(SlscanError, match="trim_line_ends"):
             DecodeConfig(trim_line_ends=bad)
+    for field, bad in (("max_edge_factor", 0.0), ("max_gap_columns", -2.0), ("max_view_angle_deg", 95.0)):
+        with pytest.raises(SlscanError, match=field):
+            DecodeConfig(**{field: bad})
 
 
 def test_a_session_without_calibration_or_patterns_is_refused(figurine, tmp_path):

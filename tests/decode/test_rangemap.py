@@ -123,7 +123,7 @@ def test_nan_duplicate_and_saturated_samples():
     saturated[hot] = True
     dup = StripeSamples(dup.row, dup.x, dup.projector_column, dup.stripe, dup.contrast, saturated)
 
-    strict = _build(dup, points, max_stripe_gap=1)
+    strict = _build(dup, points, max_gap_columns=1)
     steps = np.abs(np.diff(strict.stripe[strict.faces][:, [0, 1, 2, 0]], axis=1))
     assert steps.max() == 1  # no face spans a missing stripe
     # per hole: the 6 triangles around the missing vertex go, one is re-formed from the
@@ -205,6 +205,31 @@ def test_line_continuity_and_trimming():
     assert plain.quality[(plain.row == 13) & (plain.stripe == 12)][0] == pytest.approx(full[(13, 12)])
     with pytest.raises(SlscanError, match="continuity_weight"):
         _build(samples, points[keep], continuity_weight=(1, 1))
+
+
+def test_gaps_are_bridged_up_to_a_distance_in_projector_columns():
+    """A run of missing stripes in one row is bridged when the stripes on either side are at
+    most ``max_gap_columns`` projector columns apart: the same limit for lines two columns
+    apart (hybrid) as for edges one apart (Gray code)."""
+    samples, points = _grid()
+    row = 14
+    for spacing in (1.0, 2.0):  # projector columns between neighbouring stripes
+        spaced = StripeSamples(samples.row, samples.x, samples.stripe * spacing, samples.stripe,
+                               samples.contrast, samples.saturated)
+        for missing in (1, 3, 4):  # stripes 10 .. 10 + missing - 1 lost in one row
+            lost = (samples.row == row) & (samples.stripe >= 10) & (samples.stripe < 10 + missing)
+            keep = ~lost
+            step = (missing + 1) * spacing  # the bridge's span in projector columns
+            sub = spaced.subset(keep)
+            assert len(sub) == len(samples) - missing
+            for limit in (step - 0.5, step):
+                rm = _build(sub, points[keep], max_gap_columns=limit)
+                spans = np.ptp(rm.stripe[rm.faces], axis=1) * spacing
+                bridged = np.any(spans >= step)
+                assert bridged == (limit >= step), (spacing, missing, limit)
+                assert spans.max() <= limit
+    with pytest.raises(SlscanError, match="max_gap_columns"):
+        _build(samples, points, max_gap_columns=0)
 
 
 def test_bad_inputs():

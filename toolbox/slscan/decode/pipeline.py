@@ -23,7 +23,14 @@ from slscan.capture.session import Session, ViewRecord, load_session
 from slscan.decode.graycode import decode_gray
 from slscan.decode.hybrid import DEFAULT_ESTIMATOR, ESTIMATORS, decode_hybrid, hybrid_pattern_ids
 from slscan.decode.masks import saturation
-from slscan.decode.rangemap import RangeMap, build_range_map, write_ply
+from slscan.decode.rangemap import (
+    MAX_EDGE_FACTOR,
+    MAX_GAP_COLUMNS,
+    MAX_VIEW_ANGLE_DEG,
+    RangeMap,
+    build_range_map,
+    write_ply,
+)
 from slscan.decode.samples import LightPlanes, StripeSamples
 from slscan.decode.triangulate import RigPlanes, triangulate
 from slscan.errors import SlscanError
@@ -46,10 +53,13 @@ class DecodeConfig:
     pattern when the session has it, else Gray code."""
     estimator: str = DEFAULT_ESTIMATOR
     """Sub-pixel medial-axis estimator of the hybrid green lines (see ``decode.hybrid``)."""
-    max_edge_factor: float = 4.0
+    max_edge_factor: float = MAX_EDGE_FACTOR
     """Mesh edges longer than this many times the expected spacing are cut (depth jumps)."""
-    max_view_angle_deg: float = 80.0
+    max_view_angle_deg: float = MAX_VIEW_ANGLE_DEG
     """Triangles seen more obliquely than this are dropped (grazing angles)."""
+    max_gap_columns: float = MAX_GAP_COLUMNS
+    """Stripes missing in a row are bridged by the mesh up to this many projector columns
+    (hybrid lines are 2 columns apart, Gray-code edges 1)."""
     trim_line_ends: int = 0
     """Samples dropped at either end of every line (and lone samples, from 1): line ends
     are 2-3x less accurate; trimming one row trades coverage for accuracy (see
@@ -63,6 +73,13 @@ class DecodeConfig:
         if self.estimator not in ESTIMATORS:
             raise SlscanError(
                 f"unknown estimator {self.estimator!r}: expected one of {', '.join(ESTIMATORS)}"
+            )
+        for name in ("max_edge_factor", "max_gap_columns"):
+            if not getattr(self, name) > 0:
+                raise SlscanError(f"{name} must be positive, got {getattr(self, name)!r}")
+        if not 0 < self.max_view_angle_deg <= 90:
+            raise SlscanError(
+                f"max_view_angle_deg must be in (0, 90] degrees, got {self.max_view_angle_deg!r}"
             )
         if not (isinstance(self.trim_line_ends, int) and self.trim_line_ends >= 0):
             raise SlscanError(
@@ -167,6 +184,7 @@ def decode_view(
         view=view.name,
         max_edge_factor=config.max_edge_factor,
         max_view_angle_deg=config.max_view_angle_deg,
+        max_gap_columns=config.max_gap_columns,
     )
     seconds["mesh"] = time.perf_counter() - t
     if len(range_map.faces) == 0:
