@@ -1,6 +1,6 @@
 """Reconstruction accuracy and speed on the virtual rig, against its ground truth.
 
-    .venv/bin/python benchmarks/reconstruction.py [--scale 1.0]
+    .venv/bin/python benchmarks/reconstruction.py [--scale 1.0] [--repeat 7] [--figure PNG]
 
 At the paper's geometry with default noise (full size unless --scale), prints:
 
@@ -128,6 +128,27 @@ def lit_contrast(white: np.ndarray, black: np.ndarray) -> np.ndarray:
     return (diff.mean(axis=2) if diff.ndim == 3 else diff) * scale
 
 
+CAUSE_COLOURS = {
+    "within 2 px of the lit region's border": (1.0, 1.0, 0.0),
+    "lit < 10 DN above black": (0.0, 0.5, 1.0),
+    "beyond 80 deg to camera or projector": (1.0, 0.5, 0.0),
+    "other": (1.0, 0.0, 1.0),
+}
+"""Colours of the uncovered lit pixels by cause in ``--figure`` (covered: green tint)."""
+
+
+def write_figure(path: Path, picture: np.ndarray, lit: np.ndarray) -> None:
+    """The (h, w, 3) RGB float picture cropped to the lit pixels, doubled, as a PNG."""
+    ys, xs = np.nonzero(lit)
+    crop = picture[max(ys.min() - 5, 0):ys.max() + 6, max(xs.min() - 5, 0):xs.max() + 6]
+    rgb = np.clip(np.rint(crop * 255), 0, 255).astype(np.uint8)
+    rgb = cv2.resize(rgb, None, fx=2, fy=2, interpolation=cv2.INTER_NEAREST)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
+        raise SystemExit(f"could not write {path}")
+    print(f"    wrote {path} (covered: green; uncovered: yellow border, blue dim, orange oblique, magenta other)")
+
+
 def plane_errors(points: np.ndarray, scene, pose: np.ndarray) -> tuple[float, float]:
     """Mean |distance| to the fitted plane and to the tile's true front plane (mm)."""
     centre = points.mean(axis=0)
@@ -145,6 +166,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scale", type=float, default=1.0, help="resolution factor (1: 1440x960 camera)")
     parser.add_argument("--repeat", type=int, default=7, help="timing repetitions (median)")
+    parser.add_argument("--figure", type=Path, metavar="PNG",
+                        help="also write the hybrid figurine's coverage by cause as a picture "
+                             "(docs/images/coverage_figurine.png)")
     args = parser.parse_args()
     levels = min(9, int(np.log2(1024 * args.scale)) - 1)
     base = VirtualCaptureConfig(camera_scale=args.scale, projector_scale=args.scale, levels=levels,
@@ -220,6 +244,7 @@ def main() -> None:
                 if name == "figurine" and not trim:
                     by_angle[method] = (covered_pixels(rm, rig.camera, lit.shape), lit,
                                         obliquity(truth, session.calibration.projector.center),
+                                                        result.white,
                                         lit_contrast(result.white, read_png(
                                             session.image_path(view, view.image_for(session.flat_frame_ids()[1])))))
 
@@ -229,7 +254,7 @@ def main() -> None:
         for limit in (60, 70, 75, 80, 85, 90):
             within = None
             row = ""
-            for covered, lit_px, angle, _ in by_angle.values():
+            for covered, lit_px, angle, *_ in by_angle.values():
                 within = lit_px & (angle <= limit)
                 row += f"{covered[within].mean():>13.3f}"
             print(f"{limit:<10}{within.sum() / lit_px.sum():>14.3f}{row}")
@@ -238,9 +263,11 @@ def main() -> None:
         print("    first that applies; shares of all lit pixels)")
         print(f"{'cause':<48}" + "".join(f"{m:>10}" for m in by_angle))
         causes = {}
-        for method, (covered, lit_px, angle, dn) in by_angle.items():
+        for method, (covered, lit_px, angle, white, dn) in by_angle.items():
             border = lit_px & ~cv2.erode(lit_px.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
             left = lit_px & ~covered
+            picture = (np.asarray(white, np.float32) * (0.5 / 255 if white.dtype == np.uint8 else 0.5 / 65535))
+            picture[lit_px & covered] = 0.6 * picture[lit_px & covered] + [0.0, 0.3, 0.0]
             for label, where in (
                 ("within 2 px of the lit region's border", border),
                 ("lit < 10 DN above black", dn < 10),
@@ -248,9 +275,14 @@ def main() -> None:
                 ("other", np.ones_like(lit_px)),
             ):
                 causes.setdefault(label, {})[method] = (left & where).sum() / lit_px.sum()
+                picture[left & where] = CAUSE_COLOURS[label]
                 left = left & ~where
+            if method == "hybrid":
+                figure = (picture, lit_px)
         for label, shares in causes.items():
             print(f"{label:<48}" + "".join(f"{v:>10.3f}" for v in shares.values()))
+        if args.figure:
+            write_figure(args.figure, *figure)
 
         # (e)
         print("\n(e) time per view next to loading the view's PNGs (decode includes reading them;")

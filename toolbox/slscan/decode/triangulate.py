@@ -54,16 +54,18 @@ def intersect_rays_planes(
     """
     rays = np.asarray(rays, dtype=np.float64)
     planes = np.asarray(planes, dtype=np.float64)
-    n, d = planes[:, :3], planes[:, 3]
-    n_norm = np.linalg.norm(n, axis=1)
-    r_norm = np.linalg.norm(rays, axis=1)
-    denom = np.einsum("ij,ij->i", n, rays)
+    # column by column: (k, 3) row-wise norms and dot products cost several times more
+    r = [rays[:, i] for i in range(3)]
+    n = [planes[:, i] for i in range(3)]
+    n_norm2 = n[0] * n[0] + n[1] * n[1] + n[2] * n[2]
+    r_norm2 = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
+    denom = n[0] * r[0] + n[1] * r[1] + n[2] * r[2]
     with np.errstate(divide="ignore", invalid="ignore"):
-        sin_angle = np.abs(denom) / (n_norm * r_norm)
-        t = -d / denom
+        sin_angle = np.abs(denom) / np.sqrt(n_norm2 * r_norm2)
+        t = -planes[:, 3] / denom
     ok = (sin_angle > math.sin(math.radians(min_angle_deg))) & (t > 0) & np.isfinite(t)
-    points = rays * np.where(ok, t, np.nan)[:, None]
-    return points
+    t = np.where(ok, t, np.nan)
+    return np.stack([r[0] * t, r[1] * t, r[2] * t], axis=1)
 
 
 def triangulate(
