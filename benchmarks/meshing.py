@@ -45,8 +45,8 @@ from slscan.virtual.device import VirtualCaptureConfig, capture_session
 from slscan.virtual.scenes import builtin_object
 
 sys.path.insert(0, str(Path(__file__).parent))
-from measure import distances_to_mesh, surface_samples  # noqa: E402
-from reconstruction import coverage, mesh_error  # noqa: E402
+from measure import distances_to_mesh, surface_samples
+from reconstruction import coverage, mesh_error
 
 
 def fused(session, decoded: dict, edge: float, gap: float, voxel: float):
