@@ -24,14 +24,12 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from measure import distances_to_mesh, surface_samples
+from measure import fuse_at_true_poses, model_vs_truth, surface_samples
 
 from slscan.capture.session import Session
 from slscan.decode.pipeline import DecodeConfig, decode_view
 from slscan.decode.rangemap import build_range_map
 from slscan.decode.samples import StripeSamples
-from slscan.fuse import FuseConfig, fuse_scans
-from slscan.register.rangescan import scan_from_mesh
 from slscan.virtual.device import VirtualCaptureConfig, capture_session
 from slscan.virtual.scenes import builtin_object
 
@@ -84,22 +82,16 @@ def main() -> None:
             ("line ends trimmed (1 row)", None, 1),
         )
         for label, weight, trim in variants:
-            scans, poses = [], {}
+            maps = {}
             for v in session.views:
                 res = decode_view(session, v, DecodeConfig(method="hybrid", trim_line_ends=trim))
-                rm = res.range_map
+                maps[v.name] = res.range_map
                 if weight is not None:
-                    rm = build_range_map(res.samples, res.points, white_image=res.white,
-                                         camera=session.calibration.camera, view=v.name,
-                                         continuity_weight=weight)
-                centre = rm.vertices.mean(axis=0)
-                scans.append(scan_from_mesh(rm.vertices, rm.faces, quality=rm.quality, normals=rm.normals,
-                                            name=v.name, view_direction=-centre / np.linalg.norm(centre)))
-                poses[v.name] = np.linalg.inv(v.rig_from_object)
-            mesh = fuse_scans(scans, poses, config=FuseConfig(voxel_size=args.voxel)).mesh
-            d = distances_to_mesh(surface_samples(mesh.vertices, mesh.faces, 300_000),
-                                  scene.vertices, scene.triangles)
-            complete = float(np.mean(distances_to_mesh(truth_points, mesh.vertices, mesh.faces) < 1.0))
+                    maps[v.name] = build_range_map(res.samples, res.points, white_image=res.white,
+                                                   camera=session.calibration.camera, view=v.name,
+                                                   continuity_weight=weight)
+            mesh = fuse_at_true_poses(session, maps, args.voxel)
+            d, complete = model_vs_truth(mesh, scene, truth_points)
             print(f"{label:<34}{len(mesh.faces):>10d}{d.mean():>9.4f}{np.percentile(d, 95):>9.4f}"
                   f"{np.percentile(d, 99):>9.4f}{complete:>13.4f}")
 

@@ -5,7 +5,9 @@
 - :func:`run_measured`: run a command and sample the resident memory of its whole process
   tree (the command and every worker it starts), so a stage that fans out over worker
   processes is charged for all of them at once;
-- :func:`surface_samples`, :func:`distances_to_mesh`: surface-to-surface distances.
+- :func:`surface_samples`, :func:`distances_to_mesh`: surface-to-surface distances;
+- :func:`fuse_at_true_poses`, :func:`model_vs_truth`: a virtual session's range maps fused
+  at the recorded poses, and how far the fused model is from the true surface.
 """
 
 from __future__ import annotations
@@ -126,3 +128,29 @@ def distances_to_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarra
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3c.Tensor(np.asarray(vertices, np.float32)), o3c.Tensor(np.asarray(faces, np.uint32)))
     return scene.compute_distance(o3c.Tensor(np.asarray(points, np.float32))).numpy()
+
+
+def fuse_at_true_poses(session, range_maps: dict, voxel: float):
+    """The range maps (view name -> :class:`slscan.decode.rangemap.RangeMap`) of a virtual
+    session fused at the views' recorded object poses (weighted TSDF, ``voxel`` mm): the
+    fused mesh, in the object frame."""
+    from slscan.fuse import FuseConfig, fuse_scans
+    from slscan.register.rangescan import scan_from_mesh
+
+    scans, poses = [], {}
+    for v in session.views:
+        rm = range_maps[v.name]
+        centre = rm.vertices.mean(axis=0)
+        scans.append(scan_from_mesh(rm.vertices, rm.faces, quality=rm.quality, normals=rm.normals,
+                                    name=v.name, view_direction=-centre / np.linalg.norm(centre)))
+        poses[v.name] = np.linalg.inv(v.rig_from_object)
+    return fuse_scans(scans, poses, config=FuseConfig(voxel_size=voxel)).mesh
+
+
+def model_vs_truth(mesh, scene, truth_points: np.ndarray) -> tuple[np.ndarray, float]:
+    """Distances (mm) from 300 000 points spread by area on ``mesh`` to the true surface
+    ``scene``, and completeness: the share of ``truth_points`` (spread on the true surface)
+    within 1 mm of the mesh."""
+    d = distances_to_mesh(surface_samples(mesh.vertices, mesh.faces, 300_000), scene.vertices, scene.triangles)
+    complete = float(np.mean(distances_to_mesh(truth_points, mesh.vertices, mesh.faces) < 1.0))
+    return d, complete

@@ -39,28 +39,12 @@ import numpy as np
 from slscan.capture.session import LIT
 from slscan.decode.pipeline import DecodeConfig, decode_view
 from slscan.decode.rangemap import MAX_EDGE_FACTOR, MAX_GAP_COLUMNS, build_range_map
-from slscan.fuse import FuseConfig, fuse_scans
-from slscan.register.rangescan import scan_from_mesh
 from slscan.virtual.device import VirtualCaptureConfig, capture_session
 from slscan.virtual.scenes import builtin_object
 
 sys.path.insert(0, str(Path(__file__).parent))
-from measure import distances_to_mesh, surface_samples
+from measure import fuse_at_true_poses, model_vs_truth, surface_samples
 from reconstruction import coverage, mesh_error
-
-
-def fused(session, decoded: dict, edge: float, gap: float, voxel: float):
-    """The views' range maps meshed with these settings, fused at the true poses."""
-    scans, poses = [], {}
-    for v in session.views:
-        res = decoded[v.name]
-        rm = build_range_map(res.samples, res.points, white_image=res.white, camera=session.calibration.camera,
-                             view=v.name, max_edge_factor=edge, max_gap_columns=gap)
-        centre = rm.vertices.mean(axis=0)
-        scans.append(scan_from_mesh(rm.vertices, rm.faces, quality=rm.quality, normals=rm.normals,
-                                    name=v.name, view_direction=-centre / np.linalg.norm(centre)))
-        poses[v.name] = np.linalg.inv(v.rig_from_object)
-    return fuse_scans(scans, poses, config=FuseConfig(voxel_size=voxel)).mesh
 
 
 def main() -> None:
@@ -91,19 +75,18 @@ def main() -> None:
               f"{'faces':>10}{'mean mm':>9}{'p99 mm':>8}{'within 1 mm':>13}")
         for method in ("hybrid", "gray"):
             everything = {v.name: decode_view(session, v, DecodeConfig(method=method)) for v in session.views}
-            decoded = everything[view.name]
             for edge in args.edge:
                 for gap in args.gap:
-                    rm = build_range_map(decoded.samples, decoded.points, white_image=decoded.white,
-                                         camera=camera, max_edge_factor=edge, max_gap_columns=gap)
+                    maps = {name: build_range_map(res.samples, res.points, white_image=res.white, camera=camera,
+                                                  view=name, max_edge_factor=edge, max_gap_columns=gap)
+                            for name, res in everything.items()}
+                    rm = maps[view.name]
                     cov, _ = coverage(rm, camera, lit)
                     err = mesh_error(rm, camera, lit, scene, view.rig_from_object)
                     hit = np.isfinite(err)
                     mark = "*" if (edge, gap) == (MAX_EDGE_FACTOR, MAX_GAP_COLUMNS) else " "
-                    mesh = fused(session, everything, edge, gap, args.voxel)
-                    d = distances_to_mesh(surface_samples(mesh.vertices, mesh.faces, 300_000),
-                                          scene.vertices, scene.triangles)
-                    complete = np.mean(distances_to_mesh(truth_points, mesh.vertices, mesh.faces) < 1.0)
+                    mesh = fuse_at_true_poses(session, maps, args.voxel)
+                    d, complete = model_vs_truth(mesh, scene, truth_points)
                     print(f"{method:<8}{edge:>7g}{gap:>9g}{rm.n_faces:>9d}{cov:>10.3f}{hit.mean():>8.3f}"
                           f"{np.mean(err < 0.5):>9.3f}{np.mean(hit & (err > 1.0)):>10.4f}"
                           f"{err[hit].mean():>9.4f}{np.percentile(err[hit], 99):>8.3f}"
