@@ -41,6 +41,7 @@ import cv2
 import numpy as np
 
 from slscan.capture.session import LIT, load_session
+from slscan.decode.masks import channel_mean, full_scale
 from slscan.decode.pipeline import DecodeConfig, decode_view
 from slscan.fsio import read_png
 from slscan.rig import transform_points
@@ -123,9 +124,7 @@ def obliquity(truth, projector_centre: np.ndarray) -> np.ndarray:
 
 def lit_contrast(white: np.ndarray, black: np.ndarray) -> np.ndarray:
     """(h, w) white - black frame, channel mean, in 8-bit digital numbers."""
-    scale = 255.0 / 65535.0 if white.dtype == np.uint16 else 1.0
-    diff = white.astype(np.float32) - black.astype(np.float32)
-    return (diff.mean(axis=2) if diff.ndim == 3 else diff) * scale
+    return (channel_mean(white) - channel_mean(black)) * (255.0 / full_scale(white, "white frame"))
 
 
 CAUSE_COLOURS = {
