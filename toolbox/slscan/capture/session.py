@@ -15,11 +15,12 @@ internals, so real captures drop in.
 from __future__ import annotations
 
 import os
+import shutil
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 import numpy as np
 
@@ -378,12 +379,19 @@ def load_session(path: str | os.PathLike, *, validate: bool = True) -> Session:
 
 
 class SessionWriter:
-    """Write a session view by view into a temporary folder, renamed into place at the end.
+    """Write a capture session view by view.
 
-    Use as a context manager; if the block raises, nothing is left at ``out``::
+    By default the whole session is written into a temporary folder, renamed into place
+    at the end: if the block raises, nothing is left at ``out``. With ``incremental=True``
+    (live scans) ``out`` is created at once and each view is written into a hidden
+    ``.view_NNN.partial`` folder, renamed to ``view_NNN`` when complete, and then added to
+    ``session.json`` (rewritten atomically): an interrupted scan keeps every finished view,
+    and ``resume=True`` reopens such a session (same devices and patterns) to add more::
 
         with SessionWriter(out, camera_size=..., ...) as writer:
-            writer.add_view("view_000", [(record, image), ...], rig_from_object=pose)
+            folder = writer.view_folder("view_000")
+            writer.write_image("view_000", record, image)
+            writer.add_view(ViewRecord("view_000", ...))
     """
 
     def __init__(
@@ -399,6 +407,8 @@ class SessionWriter:
         calibration_source: str | None = None,
         device: dict | None = None,
         overwrite: bool = False,
+        incremental: bool = False,
+        resume: bool = False,
     ) -> None:
         self.out = Path(out)
         self._meta = dict(
@@ -407,17 +417,61 @@ class SessionWriter:
             calibration_source=calibration_source, device=device or {},
         )
         self._overwrite = overwrite
+        self._incremental = incremental or resume
+        self._resume = resume
         self._views: list[ViewRecord] = []
         self._ctx = None
         self.tmp: Path | None = None
 
-    def __enter__(self) -> SessionWriter:
-        self._ctx = atomic_output_dir(self.out, overwrite=self._overwrite)
-        self.tmp = self._ctx.__enter__()
+    @property
+    def views(self) -> tuple[ViewRecord, ...]:
+        """The views written so far (with ``resume``, those found in the session too)."""
+        return tuple(self._views)
+
+    def __enter__(self) -> Self:
+        if not self._incremental:
+            self._ctx = atomic_output_dir(self.out, overwrite=self._overwrite)
+            self.tmp = self._ctx.__enter__()
+            return self
+        self.tmp = self.out
+        meta = self.out / SESSION_FILE
+        if self._resume and meta.is_file():
+            old = load_session(self.out)
+            self._check_resumable(old, meta)
+            self._views = list(old.views)
+            for left in self.out.glob(".view_*.partial"):  # a view cut off mid-way
+                shutil.rmtree(left, ignore_errors=True)
+            return self
+        if self.out.exists() and not self.out.is_dir():
+            raise SlscanError(f"{self.out}: exists and is not a folder")
+        if self.out.is_dir() and any(self.out.iterdir()):
+            if not self._overwrite:
+                hint = "pass --resume to continue it, or --overwrite" if meta.is_file() else "pass --overwrite"
+                raise SlscanError(f"{self.out}: folder exists and is not empty ({hint})")
+            shutil.rmtree(self.out)
+        try:
+            self.out.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise SlscanError(f"{self.out}: cannot write here ({exc.strerror})") from None
+        write_json(meta, self.session().to_dict())
         return self
 
+    def _check_resumable(self, old: Session, meta: Path) -> None:
+        new = self.session()
+        for what, a, b in (
+            ("camera size", old.camera_size, new.camera_size),
+            ("projector size", old.projector_size, new.projector_size),
+            ("channels", old.channels, new.channels), ("bit depth", old.bit_depth, new.bit_depth),
+            ("pattern set", [p.id for p in old.patterns], [p.id for p in new.patterns]),
+        ):
+            if a != b:
+                raise SlscanError(f"{meta}: cannot resume: its {what} is {a}, this scan's is {b}")
+
+    def _folder_name(self, name: str) -> str:
+        return f".{name}.partial" if self._incremental else name
+
     def view_folder(self, name: str) -> Path:
-        folder = self.tmp / name
+        folder = self.tmp / self._folder_name(name)
         folder.mkdir(exist_ok=True)
         return folder
 
@@ -427,14 +481,34 @@ class SessionWriter:
             raise SlscanError(f"{rec.file}: expected {expected_dtype.__name__} pixels, got {image.dtype}")
         write_png(self.view_folder(view_name) / rec.file, image)
 
+    def discard_view(self, name: str) -> None:
+        """Remove what was written of an unfinished view."""
+        shutil.rmtree(self.tmp / self._folder_name(name), ignore_errors=True)
+
     def add_view(self, view: ViewRecord) -> None:
-        """Register a view whose images were written with :meth:`write_image`."""
-        self._views.append(view)
+        """Register a view whose images were written with :meth:`write_image`; when
+        incremental, the view is then complete on disk and listed in ``session.json``."""
+        if any(v.name == view.name for v in self._views):
+            raise SlscanError(f"{self.out}: view {view.name} is already in the session")
+        if self._incremental:
+            folder = self.view_folder(view.name)
+            target = self.out / view.name
+            if target.exists():
+                shutil.rmtree(target)
+            folder.rename(target)
+            self._views.append(view)
+            write_json(self.out / SESSION_FILE, self.session().to_dict())
+        else:
+            self._views.append(view)
 
     def session(self) -> Session:
         return Session(root=self.out, views=tuple(self._views), **self._meta)
 
     def __exit__(self, exc_type, exc, tb) -> bool:
+        if self._incremental:
+            for left in self.out.glob(".view_*.partial"):
+                shutil.rmtree(left, ignore_errors=True)
+            return False
         if exc_type is None:
             write_json(self.tmp / SESSION_FILE, self.session().to_dict())
         return bool(self._ctx.__exit__(exc_type, exc, tb))

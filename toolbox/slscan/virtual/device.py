@@ -7,25 +7,18 @@ per-view ground truth, so the rest of the pipeline never knows the difference.
 from __future__ import annotations
 
 import logging
-import math
 import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from slscan.capture.session import (
-    LIT,
-    SHADOW,
-    GroundTruth,
-    ImageRecord,
-    Session,
-    SessionWriter,
-    ViewRecord,
-)
+from slscan.capture.driver import ScanDevices, ScanPlan, scan
+from slscan.capture.session import LIT, SHADOW, GroundTruth, ImageRecord, Session
 from slscan.errors import SlscanError
-from slscan.patterns import PatternImage, file_name, render, standard_set
-from slscan.rig import Rig, default_rig, rotation_about_axis, transform_points
+from slscan.patterns import PatternImage, file_name, standard_set
+from slscan.rig import Rig, default_rig, transform_points
+from slscan.virtual.devices import VirtualRig, turntable_pose
 from slscan.virtual.render import Optics, ViewGeometry, shade_light, shade_pattern, trace_view
 from slscan.virtual.scenes import Scene, scene_by_name
 from slscan.virtual.sensor import Sensor
@@ -80,15 +73,6 @@ class VirtualCaptureConfig:
             "projector_scale": self.projector_scale, "sensor": self.sensor.to_dict(),
             "optics": self.optics.to_dict(), "lit_exposure": self.lit_exposure, "seed": self.seed,
         }
-
-
-def turntable_pose(rig: Rig, angle_deg: float) -> np.ndarray:
-    """``rig_from_object`` with the object at the working distance, turned ``angle_deg``
-    about its vertical (y) axis."""
-    pose = np.eye(4)
-    pose[:3, :3] = rotation_about_axis([0, 1, 0], math.radians(angle_deg))
-    pose[:3, 3] = [0.0, 0.0, rig.working_distance]
-    return pose
 
 
 def check_visible(scene: Scene, rig: Rig, rig_from_object: np.ndarray) -> None:
@@ -148,6 +132,48 @@ def capture_view(
     return out, geom
 
 
+def virtual_devices(
+    config: VirtualCaptureConfig,
+    *,
+    scene: Scene | None = None,
+    poses: list[np.ndarray] | None = None,
+    rig: Rig | None = None,
+    latency_s: float = 0.0,
+) -> VirtualRig:
+    """The virtual rig of ``config`` as devices (see :mod:`slscan.virtual.devices`)."""
+    rig = rig or config.rig()
+    rig.validate()
+    scene = scene or scene_by_name(config.scene)
+    return VirtualRig(scene, rig, config.sensor, config.optics, poses=poses, seed=config.seed,
+                      latency_s=latency_s)
+
+
+def scan_devices(world: VirtualRig, camera=None) -> ScanDevices:
+    """The four devices of the virtual rig (``camera`` replaces its camera, e.g. a
+    :class:`slscan.virtual.devices.ScreenLoopCamera`)."""
+    return ScanDevices(world.projector, camera or world.camera, world.lights, world.stage)
+
+
+def scan_plan(config: VirtualCaptureConfig, rig: Rig, *, settle_s: float = 0.0) -> ScanPlan:
+    """What the driver captures per view for ``config``."""
+    return ScanPlan(tuple(config.pattern_set(rig)), lit_images=config.lit_images,
+                    lit_exposure=config.lit_exposure, settle_s=settle_s)
+
+
+def log_virtual_view(rec, world: VirtualRig, view_index: int) -> None:
+    """Log what only the virtual rig knows about the view just captured: the scene mesh
+    where it stands and the per-pixel truth."""
+    from slscan.viewer import log as rlog
+
+    if rec is None or world.geometry is None:
+        return
+    scene = world.scene
+    verts = transform_points(world.pose, scene.vertices)
+    rlog.log_scene_mesh(rec, verts, scene.triangles, scene.albedo.vertex_colors(scene.vertices), view_index=view_index)
+    rlog.log_ground_truth(rec, ground_truth(world.geometry), view_index=view_index,
+                          projector_width=world.rig.projector.lens.width)
+
+
 def capture_session(
     config: VirtualCaptureConfig,
     out: str | os.PathLike,
@@ -159,7 +185,9 @@ def capture_session(
     poses: list[np.ndarray] | None = None,
     rig: Rig | None = None,
 ) -> Session:
-    """Capture ``config.views`` views of ``config.scene`` on the virtual rig into folder ``out``.
+    """Capture ``config.views`` views of ``config.scene`` on the virtual rig into folder ``out``,
+    through the acquisition driver (:func:`slscan.capture.driver.scan`), written at once
+    when complete.
 
     rec : an ``rr.RecordingStream`` to stream images, truth and rig to, or None
     progress : called with a short label after each image is written
@@ -171,61 +199,38 @@ def capture_session(
 
     if config.views < 1:
         raise SlscanError(f"views must be at least 1, got {config.views}")
-    rig = rig or config.rig()
-    rig.validate()
-    scene = scene or scene_by_name(config.scene)
-    patterns = config.pattern_set(rig)
-    if poses is None:
-        poses = [turntable_pose(rig, 360.0 * v / config.views) for v in range(config.views)]
-    elif len(poses) == 0:
+    if poses is not None and len(poses) == 0:
         raise SlscanError("no poses to capture")
-    for pose in poses:
-        check_visible(scene, rig, pose)
-    rlog.log_rig(rec, rig)
-    device = {"kind": "virtual-rig", "scene": scene.name, "config": config.to_dict()}
-    by_id = {p.id: p for p in patterns}
-    with SessionWriter(
-        out,
-        camera_size=(rig.camera.width, rig.camera.height),
-        projector_size=(rig.projector.lens.width, rig.projector.lens.height),
-        channels=3,
-        bit_depth=config.sensor.bit_depth,
-        patterns=patterns,
-        calibration=rig,
-        calibration_source="virtual-rig ground truth",
-        device=device,
-        overwrite=overwrite,
-    ) as writer:
-        for v, pose in enumerate(poses):
-            name = f"view_{v:03d}"
-            geom = trace_view(scene, rig, pose)
-            if not geom.hit.any():
-                raise SlscanError(f"{name}: the camera sees nothing of scene {scene.name!r}")
-            if not geom.proj_lit.any():
-                raise SlscanError(f"{name}: the projector lights nothing the camera sees")
-            images, _ = capture_view(scene, rig, pose, patterns, config, view_index=v, geometry=geom)
-            if rec is not None:
-                verts = transform_points(pose, scene.vertices)
-                rlog.log_scene_mesh(rec, verts, scene.triangles, scene.albedo.vertex_colors(scene.vertices), view_index=v)
-            for frame, (record, image) in enumerate(images):
-                writer.write_image(name, record, image)
-                if rec is not None:
-                    rlog.log_capture(rec, image, view_index=v, frame_index=frame, label=record.pattern or f"lit {record.light}")
-                    if record.kind == "pattern":
-                        rlog.log_pattern(rec, render(by_id[record.pattern]), view_index=v, frame_index=frame)
-                if progress:
-                    progress(f"{name} {record.file}")
-            truth = ground_truth(geom)
-            truth.save(writer.view_folder(name) / "ground_truth.npz")
-            rlog.log_ground_truth(rec, truth, view_index=v, projector_width=rig.projector.lens.width)
-            writer.add_view(
-                ViewRecord(
-                    name, tuple(r for r, _ in images), pose, "ground-truth",
-                    {"sensor": config.sensor.to_dict(), "lit_exposure": config.lit_exposure},
-                    "ground_truth.npz",
-                )
-            )
-    return writer.session()
+    world = virtual_devices(config, scene=scene, poses=poses, rig=rig)
+    views = len(poses) if poses is not None else config.views
+    for v in range(views):
+        pose = poses[v] if poses is not None else turntable_pose(world.rig, 360.0 * v / views)
+        check_visible(world.scene, world.rig, pose)
+    rlog.log_rig(rec, world.rig)
+    device = {"kind": "virtual-rig", "scene": world.scene.name, "config": config.to_dict()}
+    result = scan(
+        scan_devices(world), scan_plan(config, world.rig), out, views=views, overwrite=overwrite,
+        incremental=False, calibration=world.rig, calibration_source="virtual-rig ground truth",
+        device_info=device, on_frame=frame_logger(rec), progress=progress,
+        after_view=None if rec is None else lambda v, _record, _session: log_virtual_view(rec, world, v),
+    )
+    return result.session
+
+
+def frame_logger(rec):
+    """An ``on_frame`` callback for :func:`slscan.capture.driver.scan` logging every frame
+    and the pattern it was taken under to ``rec`` (None when ``rec`` is None)."""
+    if rec is None:
+        return None
+    from slscan.viewer import log as rlog
+
+    def on_frame(f) -> None:
+        label = f.record.pattern or f"lit {f.record.light}"
+        rlog.log_capture(rec, f.image, view_index=f.view_index, frame_index=f.frame_index, label=label)
+        if f.projected is not None:
+            rlog.log_pattern(rec, f.projected, view_index=f.view_index, frame_index=f.frame_index)
+
+    return on_frame
 
 
 def images_per_view(config: VirtualCaptureConfig) -> int:

@@ -282,9 +282,20 @@ class _ProfileFilter:
 
 
 @functools.lru_cache(maxsize=64)
-def _profile_filter(desc_key: str, blur: float, values_bytes: bytes, n: int) -> _ProfileFilter:
+def _profile_filter(blur: float, values_bytes: bytes, n: int) -> _ProfileFilter:
     values = np.frombuffer(values_bytes, dtype=np.uint8).reshape(n, 3) / 255.0
     return _ProfileFilter.build(values, blur)
+
+
+def image_profile(image: np.ndarray) -> tuple[str, np.ndarray]:
+    """(axis, values) when projector ``image`` (h, w, 3) uint8 varies along one axis only:
+    axis {"none", "columns", "rows"} and its (n, 3) values; ("2d", image) otherwise."""
+    if (image == image[:1]).all():
+        values = image[0]
+        return ("none", values[:1]) if (values == values[:1]).all() else ("columns", values)
+    if (image == image[:, :1]).all():
+        return "rows", image[:, 0]
+    return "2d", image
 
 
 def projector_light(geom: ViewGeometry, desc: PatternImage | None, optics: Optics) -> np.ndarray:
@@ -292,25 +303,65 @@ def projector_light(geom: ViewGeometry, desc: PatternImage | None, optics: Optic
 
     ``desc`` None means the projector is switched off.
     """
-    hit = geom.hit
     if desc is None:
-        return np.zeros((int(hit.sum()), 3))
+        return projector_light_image(geom, None, optics)
     values = pattern_profile(desc)
-    if desc.axis == "none":
+    return _light_from_profile(geom, desc.axis, values, optics)
+
+
+def projector_light_image(geom: ViewGeometry, image: np.ndarray | None, optics: Optics) -> np.ndarray:
+    """:func:`projector_light` for any projector image (h, w, 3) uint8 (None: switched off).
+
+    Images that vary along one axis (every pattern slscan projects) take the same exact
+    footprint filter as :func:`projector_light`, so they render identically; others are
+    blurred and sampled bilinearly at each pixel's projector position."""
+    hit = geom.hit
+    if image is None:
+        return np.zeros((int(hit.sum()), 3))
+    axis, values = image_profile(image)
+    if axis != "2d":
+        return _light_from_profile(geom, axis, values, optics)
+    import cv2
+
+    plane = image.astype(np.float32) / 255.0
+    footprint = float(np.median(geom.proj_footprint[hit])) if hit.any() else 1.0
+    sigma = float(np.hypot(optics.projector_blur, footprint / np.sqrt(12.0)))
+    if sigma > 0:
+        plane = cv2.GaussianBlur(plane, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
+    uv = geom.proj_uv[hit].astype(np.float32)
+    sampled = cv2.remap(plane, uv[:, 0:1], uv[:, 1:2], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    light = sampled.reshape(-1, 3).astype(np.float64)
+    black = optics.projector_black
+    return black + (1 - black) * light
+
+
+def _light_from_profile(geom: ViewGeometry, axis: str, values: np.ndarray, optics: Optics) -> np.ndarray:
+    hit = geom.hit
+    if axis == "none":
         light = np.broadcast_to(values[0] / 255.0, (int(hit.sum()), 3)).astype(np.float64)
     else:
-        axis = 0 if desc.axis == "columns" else 1
-        filt = _profile_filter(desc.id, optics.projector_blur, values.tobytes(), len(values))
-        light = filt.sample(geom.proj_uv[..., axis][hit], geom.proj_footprint[..., axis][hit].astype(np.float64))
+        a = 0 if axis == "columns" else 1
+        values = np.ascontiguousarray(values, dtype=np.uint8)
+        filt = _profile_filter(optics.projector_blur, values.tobytes(), len(values))
+        light = filt.sample(geom.proj_uv[..., a][hit], geom.proj_footprint[..., a][hit].astype(np.float64))
     black = optics.projector_black
     return black + (1 - black) * light
 
 
 def shade_pattern(geom: ViewGeometry, desc: PatternImage | None, optics: Optics) -> np.ndarray:
     """Linear radiance image (h, w, 3) float32 under projected pattern ``desc`` (None: off)."""
+    return _shade(geom, projector_light(geom, desc, optics), optics)
+
+
+def shade_image(geom: ViewGeometry, image: np.ndarray | None, optics: Optics) -> np.ndarray:
+    """Linear radiance image (h, w, 3) float32 under projector image (h, w, 3) uint8
+    (None: off); a rendered pattern gives exactly :func:`shade_pattern`'s result."""
+    return _shade(geom, projector_light_image(geom, image, optics), optics)
+
+
+def _shade(geom: ViewGeometry, light: np.ndarray, optics: Optics) -> np.ndarray:
     hit = geom.hit
     m = np.asarray(optics.crosstalk, dtype=np.float64)
-    light = projector_light(geom, desc, optics)
     albedo = geom.albedo[hit].astype(np.float64)
     diffuse = (albedo * light) @ m.T * geom.proj_diffuse[hit][:, None]
     specular = light @ m.T * geom.proj_specular[hit][:, None]
@@ -322,11 +373,16 @@ def shade_pattern(geom: ViewGeometry, desc: PatternImage | None, optics: Optics)
 
 def shade_light(geom: ViewGeometry, light_index: int, rig: Rig, optics: Optics) -> np.ndarray:
     """Linear radiance image (h, w, 3) float32 under ring light ``light_index``, projector off."""
+    out = shade_pattern(geom, None, optics)
+    add_light(out, geom, light_index, rig)
+    return out
+
+
+def add_light(radiance: np.ndarray, geom: ViewGeometry, light_index: int, rig: Rig) -> None:
+    """Add ring light ``light_index``'s diffuse and specular light to ``radiance`` (h, w, 3)."""
     hit = geom.hit
     intensity = np.asarray(rig.lights[light_index].intensity, dtype=np.float64)
     albedo = geom.albedo[hit].astype(np.float64)
     diffuse = albedo * intensity * geom.light_diffuse[light_index][hit][:, None]
     specular = intensity * geom.light_specular[light_index][hit][:, None]
-    out = shade_pattern(geom, None, optics)
-    out[hit] += (diffuse + specular).astype(np.float32)
-    return out
+    radiance[hit] += (diffuse + specular).astype(np.float32)
