@@ -43,6 +43,7 @@ import numpy as np
 from slscan.capture.session import LIT, load_session
 from slscan.decode.masks import channel_mean, full_scale
 from slscan.decode.pipeline import DecodeConfig, decode_view
+from slscan.decode.rangemap import covered_pixels
 from slscan.fsio import read_png
 from slscan.rig import transform_points
 from slscan.virtual.device import VirtualCaptureConfig, capture_session
@@ -71,15 +72,6 @@ def true_surface_distance(points: np.ndarray, scene, pose: np.ndarray) -> np.nda
         o3d.core.Tensor(scene.triangles.astype(np.uint32)),
     )
     return rs.compute_distance(o3d.core.Tensor(points.astype(np.float32))).numpy()
-
-
-def covered_pixels(range_map, camera, shape: tuple[int, int]) -> np.ndarray:
-    """(h, w) bool camera pixels covered by range-map triangles."""
-    pix = camera.project_local(range_map.vertices)
-    tris = np.round(pix[range_map.faces] * 16).astype(np.int32)  # 4 bits of sub-pixel
-    covered = np.zeros(shape, np.uint8)
-    cv2.fillPoly(covered, list(tris), 1, lineType=cv2.LINE_8, shift=4)
-    return covered.astype(bool)
 
 
 def coverage(range_map, camera, lit: np.ndarray) -> tuple[float, float]:

@@ -380,6 +380,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_capture_options(p, demo=False)
     p.set_defaults(func=_cmd_capture)
 
+    from slscan.capture.command import add_command as add_scan_command
+
+    add_scan_command(sub)
+
     from slscan.decode.hybrid import DEFAULT_ESTIMATOR, ESTIMATORS
     from slscan.viewer.recording import add_recording_arguments
 

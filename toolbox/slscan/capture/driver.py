@@ -72,6 +72,8 @@ class ScanPlan:
         projector→camera latency, see :func:`measure_latency`)
     stale_retries : captures again this many times, waiting longer, before refusing a
         frame that did not change after a pattern change (0: no check)
+    reference_frame : capture (and drop) a frame with the projector dark before each
+        view's first pattern, so that the first pattern is checked for staleness too
     """
 
     patterns: tuple[PatternImage, ...]
@@ -79,6 +81,7 @@ class ScanPlan:
     lit_exposure: float = 1.0
     settle_s: float = 0.0
     stale_retries: int = 2
+    reference_frame: bool = True
 
     def __post_init__(self) -> None:
         if not self.patterns:
@@ -270,6 +273,9 @@ def scan(
                 timing.move = time.perf_counter() - t
                 shooter.previous = None
                 lights.all_off()
+                if plan.reference_frame and plan.stale_retries:
+                    shooter.shoot(proj.blank, timing, f"{name} reference frame (projector dark)",
+                                  identical_only=True)
                 for frame_index, record in enumerate(records):
                     where = f"{name} image {record.file}"
                     if record.kind == "pattern":
@@ -343,8 +349,8 @@ class Latency:
     delays : seconds from ``show`` returning to the first frame that saw the white, one
         per flash (an upper bound: it includes the capture's own duration)
     frame_s : median seconds per captured frame while waiting
-    settle_s : the settle time to use: the largest delay less one frame (a frame captured
-        that long after the change sees it)
+    settle_s : the settle time to use: the largest delay (conservative: a frame whose
+        exposure began before the change would mix the two images)
     """
 
     delays: tuple[float, ...]
@@ -352,31 +358,36 @@ class Latency:
     settle_s: float
 
 
-def _mean_level(image: np.ndarray) -> float:
+def _grey(image: np.ndarray) -> np.ndarray:
     full = 255.0 if image.dtype == np.uint8 else 65535.0
-    return float(image[::4, ::4].mean()) / full
+    grey = image[::2, ::2]
+    return (grey.mean(axis=2) if grey.ndim == 3 else grey).astype(np.float32) / np.float32(full)
 
 
 def measure_latency(
     projector: Projector, camera: Camera, *, flashes: int = 3, timeout_s: float = 3.0, rest_s: float = 0.3,
 ) -> Latency:
-    """Flash white after black ``flashes`` times and time when the camera first sees it."""
+    """Flash white after black ``flashes`` times and time when the camera first sees it.
+
+    Only the pixels that the projector visibly lights (brighter by 10 % of full scale under
+    white than under black) are watched, so a small object in a dark frame works too."""
     w, h = projector.resolution
     white = np.full((h, w, 3), 255, np.uint8)
     projector.show(white)
     time.sleep(rest_s)
     camera.flush()
-    bright = _mean_level(camera.capture().image)
+    bright = _grey(camera.capture().image)
     projector.blank()
     time.sleep(rest_s)
     camera.flush()
-    dark = _mean_level(camera.capture().image)
-    if bright - dark < 0.02:
+    dark = _grey(camera.capture().image)
+    lit = bright - dark > 0.1
+    if lit.mean() < 1e-3:
         raise DeviceError(
-            f"{camera.name}: cannot measure the projector latency: white and black look the same to the "
-            f"camera (mean {bright:.3f} vs {dark:.3f} of full scale); point the camera at the projected area"
+            f"{camera.name}: cannot measure the projector latency: the projected white lights no part of what "
+            "the camera sees; point the camera at the projected area (or give --settle SECONDS)"
         )
-    middle = 0.5 * (bright + dark)
+    middle = 0.5 * (float(bright[lit].mean()) + float(dark[lit].mean()))
     delays, frame_times = [], []
     for _ in range(flashes):
         projector.blank()
@@ -388,16 +399,14 @@ def measure_latency(
             frame = camera.capture()
             frame_times.append(frame.timestamp - previous)
             previous = frame.timestamp
-            if _mean_level(frame.image) > middle:
+            if float(_grey(frame.image)[lit].mean()) > middle:
                 delays.append(max(0.0, frame.timestamp - shown))
                 break
             if frame.timestamp - shown > timeout_s:
                 raise DeviceError(f"{camera.name}: the projected white did not reach the camera within "
                                   f"{timeout_s:g} s")
     projector.blank()
-    frame_s = float(np.median(frame_times))
-    settle = max(0.0, max(delays) - frame_s)
-    return Latency(tuple(delays), frame_s, settle)
+    return Latency(tuple(delays), float(np.median(frame_times)), max(delays))
 
 
 # --- exposure (paper Fig. 9) -------------------------------------------------------------------

@@ -281,9 +281,9 @@ def validate_session(session: Session) -> None:
         for rec in view.images:
             if rec.kind == "pattern" and rec.pattern not in pattern_ids:
                 raise SlscanError(f"{session.root / view.name / rec.file}: unknown pattern {rec.pattern!r}")
-            if rec.kind == "lit" and session.calibration is not None and session.calibration.lights:
-                if not 0 <= rec.light < len(session.calibration.lights):
-                    raise SlscanError(f"{session.root / view.name / rec.file}: light {rec.light} is not in the rig")
+            if (rec.kind == "lit" and session.calibration is not None and session.calibration.lights
+                    and not 0 <= rec.light < len(session.calibration.lights)):
+                raise SlscanError(f"{session.root / view.name / rec.file}: light {rec.light} is not in the rig")
             path = session.image_path(view, rec)
             w, h, channels, depth = png_header(path)
             shape = (h, w) if channels == 1 else (h, w, channels)
@@ -411,11 +411,11 @@ class SessionWriter:
         resume: bool = False,
     ) -> None:
         self.out = Path(out)
-        self._meta = dict(
-            camera_size=tuple(camera_size), projector_size=tuple(projector_size), channels=channels,
-            bit_depth=bit_depth, patterns=tuple(patterns), calibration=calibration,
-            calibration_source=calibration_source, device=device or {},
-        )
+        self._meta = {
+            "camera_size": tuple(camera_size), "projector_size": tuple(projector_size), "channels": channels,
+            "bit_depth": bit_depth, "patterns": tuple(patterns), "calibration": calibration,
+            "calibration_source": calibration_source, "device": device or {},
+        }
         self._overwrite = overwrite
         self._incremental = incremental or resume
         self._resume = resume

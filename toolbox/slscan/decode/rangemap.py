@@ -466,3 +466,18 @@ def read_ply(path: str | os.PathLike) -> RangeMap:
         stripe=column("stripe", -1, np.int32),
         view=ply.name,
     )
+
+
+def covered_pixels(range_map: RangeMap, camera, shape: tuple[int, int]) -> np.ndarray:
+    """(h, w) bool camera pixels covered by the range map's triangles.
+
+    camera : the :class:`slscan.rig.PinholeModel` the range map was measured with
+    """
+    import cv2
+
+    covered = np.zeros(shape, np.uint8)
+    if len(range_map.faces):
+        pix = camera.project_local(range_map.vertices)
+        tris = np.round(pix[range_map.faces] * 16).astype(np.int32)  # 4 bits of sub-pixel
+        cv2.fillPoly(covered, list(tris), 1, lineType=cv2.LINE_8, shift=4)
+    return covered.astype(bool)

@@ -175,6 +175,12 @@ def register_blueprint() -> rrb.Blueprint:
     )
 
 
+def _scan() -> rrb.Blueprint:
+    from slscan.viewer.log_scan import scan_blueprint
+
+    return scan_blueprint()
+
+
 def _texture() -> rrb.Blueprint:
     from slscan.viewer.log_texture import texture_blueprint
 
@@ -189,6 +195,7 @@ LAYOUTS: dict[str, Callable[[], rrb.Blueprint]] = {
     "register": register_blueprint,
     "texture": _texture,
     "pipeline": pipeline_blueprint,
+    "scan": _scan,
 }
 """Blueprint builders by stage name; :func:`save_layouts` writes ``<name>.rbl`` for each."""
 

@@ -154,10 +154,11 @@ def scan_devices(world: VirtualRig, camera=None) -> ScanDevices:
     return ScanDevices(world.projector, camera or world.camera, world.lights, world.stage)
 
 
-def scan_plan(config: VirtualCaptureConfig, rig: Rig, *, settle_s: float = 0.0) -> ScanPlan:
+def scan_plan(config: VirtualCaptureConfig, rig: Rig, *, settle_s: float = 0.0,
+              reference_frame: bool = True) -> ScanPlan:
     """What the driver captures per view for ``config``."""
     return ScanPlan(tuple(config.pattern_set(rig)), lit_images=config.lit_images,
-                    lit_exposure=config.lit_exposure, settle_s=settle_s)
+                    lit_exposure=config.lit_exposure, settle_s=settle_s, reference_frame=reference_frame)
 
 
 def log_virtual_view(rec, world: VirtualRig, view_index: int) -> None:
@@ -196,6 +197,7 @@ def capture_session(
     rig : use this rig instead of ``config.rig()`` (same sensor sizes as the config's)
     """
     from slscan.viewer import log as rlog
+    from slscan.viewer import log_scan
 
     if config.views < 1:
         raise SlscanError(f"views must be at least 1, got {config.views}")
@@ -209,28 +211,15 @@ def capture_session(
     rlog.log_rig(rec, world.rig)
     device = {"kind": "virtual-rig", "scene": world.scene.name, "config": config.to_dict()}
     result = scan(
-        scan_devices(world), scan_plan(config, world.rig), out, views=views, overwrite=overwrite,
+        # no reference frame: the virtual rig has no latency, and its images stay those of
+        # earlier slscan versions (each image's noise is drawn from its index in the view)
+        scan_devices(world), scan_plan(config, world.rig, reference_frame=False), out, views=views,
+        overwrite=overwrite,
         incremental=False, calibration=world.rig, calibration_source="virtual-rig ground truth",
-        device_info=device, on_frame=frame_logger(rec), progress=progress,
+        device_info=device, on_frame=log_scan.frame_logger(rec), progress=progress,
         after_view=None if rec is None else lambda v, _record, _session: log_virtual_view(rec, world, v),
     )
     return result.session
-
-
-def frame_logger(rec):
-    """An ``on_frame`` callback for :func:`slscan.capture.driver.scan` logging every frame
-    and the pattern it was taken under to ``rec`` (None when ``rec`` is None)."""
-    if rec is None:
-        return None
-    from slscan.viewer import log as rlog
-
-    def on_frame(f) -> None:
-        label = f.record.pattern or f"lit {f.record.light}"
-        rlog.log_capture(rec, f.image, view_index=f.view_index, frame_index=f.frame_index, label=label)
-        if f.projected is not None:
-            rlog.log_pattern(rec, f.projected, view_index=f.view_index, frame_index=f.frame_index)
-
-    return on_frame
 
 
 def images_per_view(config: VirtualCaptureConfig) -> int:

@@ -141,8 +141,9 @@ class VirtualCamera(Camera):
 
     name = "virtual-camera"
 
-    def __init__(self, world: VirtualRig, sensor: Sensor) -> None:
-        self.world, self.sensor = world, sensor
+    def __init__(self, world: VirtualRig, sensor: Sensor, *,
+                 exposure_range: tuple[float, float] = EXPOSURE_RANGE) -> None:
+        self.world, self.sensor, self.exposure_range = world, sensor, exposure_range
 
     @property
     def resolution(self) -> tuple[int, int]:
@@ -154,7 +155,7 @@ class VirtualCamera(Camera):
         return self.sensor.bit_depth
 
     def controls(self) -> dict[str, tuple[float, float]]:
-        return {"exposure": EXPOSURE_RANGE, "gain": GAIN_RANGE}
+        return {"exposure": self.exposure_range, "gain": GAIN_RANGE}
 
     def get_controls(self) -> dict[str, float]:
         return {"exposure": self.sensor.exposure, "gain": self.sensor.gain}

@@ -1,0 +1,500 @@
+"""``slscan scan``: drive a projector and a camera (real, or the virtual rig) through the
+acquisition driver, watching each view arrive in Rerun with a quick decode after it."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from slscan.devices.base import DeviceError, Placement, Stage
+from slscan.errors import SlscanError
+from slscan.progress import ProgressBar
+from slscan.progress import console as _console
+
+log = logging.getLogger(__name__)
+
+DESCRIPTION = """\
+Scan with a projector and a camera: every view projects white, black and the coded
+patterns (hybrid or Gray code), then switches the ring lights one at a time, and is
+written to the capture session as soon as it is complete. Between views you are asked to
+move the object (the virtual rig turns its turntable). After each view a quick decode
+shows its range map and its holes in Rerun, so you see what is missing before moving on.
+
+devices:
+  --projector screen[:N]   borderless full-screen window on monitor N (pip install 'slscan[screen]')
+  --camera opencv[:N]      UVC/V4L2 webcam N, or opencv:FILE for a video or image sequence
+  --camera gphoto2[:PORT]  tethered still camera through libgphoto2 (pip install 'slscan[gphoto2]')
+  --camera folder:DIR      a folder your tethering software saves each shot to
+  --camera virtual         the virtual rig (projector, camera, lights and turntable simulated)
+  --camera loop            the virtual rig's object seen through the real projector window:
+                           a test fake that checks the window shows every pattern exactly
+"""
+
+EPILOG = """\
+examples:
+  slscan scan --camera virtual --views 4 --out figurine --spawn
+  slscan scan --projector screen:1 --camera opencv:0 --auto-exposure --views 8 --out bust \\
+              --calibration rig.json --lights manual --spawn
+  slscan scan --projector screen:1 --camera gphoto2 --board 9x7 --square 25 --views 8 --out board
+  slscan scan ... --out bust --resume        continue an interrupted scan with its next view
+"""
+
+
+def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Add ``scan`` to the ``slscan`` subcommands; return its parser."""
+    from slscan.viewer.recording import add_recording_arguments
+
+    p = subparsers.add_parser(
+        "scan", help="scan with a projector and a camera (real or virtual), live in Rerun",
+        description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--out", required=True, type=Path, help="capture-session folder to write")
+    p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    p.add_argument("--resume", action="store_true", help="continue the session in --out with its next view")
+    dev = p.add_argument_group("devices")
+    dev.add_argument("--projector", default=None, metavar="SPEC",
+                     help="screen[:N] or virtual (default: virtual with --camera virtual, else screen:1)")
+    dev.add_argument("--camera", default="virtual", metavar="SPEC",
+                     help="opencv[:N|:FILE], gphoto2[:PORT], folder:DIR, virtual (default) or loop")
+    dev.add_argument("--lights", choices=("manual", "none", "virtual"), default=None,
+                     help="ring lights for the albedo images: manual (you are asked to switch each), none; "
+                          "default: virtual on the virtual rig, none on a real one")
+    dev.add_argument("--light-count", type=int, default=6, help="manual lights: how many (default 6)")
+    pat = p.add_argument_group("patterns")
+    pat.add_argument("--patterns", choices=("hybrid", "gray", "both"), default="hybrid",
+                     help="coded patterns after white and black (default: hybrid)")
+    pat.add_argument("--levels", type=int, default=None,
+                     help="hybrid levels (default: as many as keep 2 projector px per line, 9 at 1024 px)")
+    pat.add_argument("--gray-rows", action="store_true", help="also project row Gray codes")
+    p.add_argument("--views", type=int, default=1, help="views to capture (default 1); you are asked "
+                   "to move the object between views")
+    cam = p.add_argument_group("exposure and timing")
+    cam.add_argument("--settle", default=None, metavar="SECONDS|auto",
+                     help="wait after each pattern before capturing; auto: measure the projector-to-camera "
+                          "latency by flashing white (default: auto on real devices, 0 on the virtual rig)")
+    cam.add_argument("--auto-exposure", action="store_true",
+                     help="before the first view, find the exposure (then gain) that keeps the white frame and "
+                          "the finest green lines below saturation; stop if none does (paper Fig. 9)")
+    cam.add_argument("--check-exposure", action="store_true",
+                     help="only measure saturation and peak level at the current settings and report; no scan")
+    cam.add_argument("--lit-exposure", type=float, default=1.0,
+                     help="exposure of the lit images relative to the patterns' (cameras with an exposure control)")
+    cam.add_argument("--no-quick-decode", action="store_true", help="no range map after each view")
+    cal = p.add_argument_group("calibration")
+    cal.add_argument("--calibration", type=Path, metavar="CALIB.json",
+                     help="the rig's calibration (slscan calibrate): recorded in the session, used by the quick decode")
+    cal.add_argument("--board", metavar="COLSxROWS", default=None,
+                     help="capture a calibration board instead (inner corners, e.g. 9x7): Gray code with rows "
+                          "and hybrid, no lit images, corners found live in each pose; then run slscan calibrate")
+    cal.add_argument("--square", type=float, default=50.0, help="board square side, mm (default 50)")
+    cal.add_argument("--target", choices=("chessboard", "charuco"), default="chessboard", help="board kind")
+    sim = p.add_argument_group("virtual rig (--camera virtual or loop)")
+    sim.add_argument("--scene", default="object", help='"object" (figurine), "tile" or a mesh file')
+    sim.add_argument("--scale", type=float, default=0.5,
+                     help="camera and projector resolution factor (default 0.5; 1: 1440x960 and 1024x768)")
+    sim.add_argument("--exposure", type=float, default=1.0, help="virtual camera exposure (default 1)")
+    sim.add_argument("--latency", type=float, default=0.0, help="virtual projector latency, s (default 0)")
+    sim.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_recording_arguments(p)
+    p.set_defaults(func=run)
+    return p
+
+
+# --- devices --------------------------------------------------------------------------------
+
+
+class FirstViewInPlace(Stage):
+    """A hand-operated stage whose first view needs no prompt: the object is in place
+    when the scan starts (or resumes); the operator is asked before every later view."""
+
+    def __init__(self, inner: Stage) -> None:
+        self.inner, self.name, self._first = inner, inner.name, True
+
+    def move_to(self, view_index: int, views: int) -> Placement:
+        if self._first:
+            self._first = False
+            return Placement()
+        return self.inner.move_to(view_index, views)
+
+    def close(self) -> None:
+        self.inner.close()
+
+    def describe(self) -> dict:
+        return self.inner.describe()
+
+
+@dataclasses.dataclass
+class _Rig:
+    devices: object  # ScanDevices
+    patterns: list
+    world: object = None  # VirtualRig for virtual/loop
+    calibration: object = None  # slscan.rig.Rig recorded in the session
+    planes: object = None  # light planes for the quick decode (a measured calibration)
+    camera_model: object = None  # PinholeModel for coverage
+    simulated: bool = False
+
+
+def _levels(args, width: int) -> int:
+    max_levels = int(math.log2(max(4, width))) - 1  # two projector pixels per line
+    if args.levels is None:
+        return min(9, max_levels)
+    if not 1 <= args.levels <= max_levels:
+        raise SlscanError(f"--levels must be in 1..{max_levels} for a {width} px wide projector, got {args.levels}")
+    return args.levels
+
+
+def _pattern_set(args, width: int, height: int):
+    from slscan.patterns import standard_set
+
+    family, rows = ("both", True) if args.board else (args.patterns, args.gray_rows)
+    return standard_set(family, width=width, height=height, levels=_levels(args, width), rows=rows)
+
+
+def _board(args):
+    if args.board is None:
+        return None
+    from slscan.calibrate.target import Board, parse_board_size
+
+    cols, rows = parse_board_size(args.board)
+    return Board(kind=args.target, columns=cols, rows=rows, square=args.square)
+
+
+def _open_rig(args, camera_spec, projector_spec) -> _Rig:
+    from slscan.capture.driver import ScanDevices
+    from slscan.devices.base import NoLights
+    from slscan.devices.specs import SIMULATED_CAMERAS, open_camera, open_projector
+    from slscan.virtual.device import VirtualCaptureConfig, scan_devices, virtual_devices
+    from slscan.virtual.sensor import Sensor
+
+    board = _board(args)
+    if camera_spec.kind in SIMULATED_CAMERAS:
+        if not 0 < args.scale <= 2:
+            raise SlscanError(f"--scale must be in (0, 2], got {args.scale}")
+        config = VirtualCaptureConfig(
+            scene=args.scene, camera_scale=args.scale, projector_scale=args.scale, seed=args.seed,
+            lit_images=board is None, sensor=Sensor(exposure=args.exposure),
+        )
+        scene = poses = None
+        if board is not None:
+            from slscan.virtual.boards import board_poses, board_scene, default_edge_sigma
+
+            rig = config.rig()
+            scene = board_scene(board, edge_sigma=default_edge_sigma(rig))
+            poses = board_poses(rig, board, args.views)
+        world = virtual_devices(config, scene=scene, poses=poses, latency_s=args.latency)
+        lens = world.rig.projector.lens
+        patterns = _pattern_set(args, lens.width, lens.height)
+        if camera_spec.kind == "virtual":
+            if projector_spec is not None and projector_spec.kind != "virtual":
+                raise SlscanError("--camera virtual sees the virtual projector only; for a real projector "
+                                  "window use --camera loop (a test fake) or a real camera")
+            devices = scan_devices(world)
+        else:
+            from slscan.devices.screen import grab_screen
+            from slscan.virtual.devices import ScreenLoopCamera
+
+            if projector_spec is None or projector_spec.kind != "screen":
+                raise SlscanError("--camera loop watches a real projector window: give --projector screen[:N]")
+            projector = open_projector(projector_spec)
+            try:
+                if projector.resolution != (lens.width, lens.height):
+                    raise DeviceError(
+                        f"{projector.name}: the monitor is {projector.resolution[0]}x{projector.resolution[1]}, "
+                        f"the virtual rig's projector at --scale {args.scale:g} is {lens.width}x{lens.height}"
+                    )
+                camera = ScreenLoopCamera(world, lambda: grab_screen(projector), world.camera.sensor)
+            except BaseException:
+                projector.close()
+                raise
+            devices = scan_devices(world, camera)
+            devices.projector = projector
+        return _Rig(devices, patterns, world, world.rig, None, world.rig.camera, simulated=True)
+
+    # real devices
+    from slscan.devices.lights import ManualLights, ManualStage
+
+    projector = open_projector(projector_spec or _default_projector())
+    opened = [projector]
+    try:
+        camera = open_camera(camera_spec)
+        opened.append(camera)
+        lights_kind = args.lights or "none"
+        if lights_kind == "virtual":
+            raise SlscanError("--lights virtual needs the virtual rig (--camera virtual)")
+        lights = ManualLights(args.light_count) if lights_kind == "manual" and board is None else NoLights()
+        devices = ScanDevices(projector, camera, lights, FirstViewInPlace(ManualStage()))
+        w, h = projector.resolution
+        patterns = _pattern_set(args, w, h)
+        calibration = planes = camera_model = None
+        if args.calibration is not None:
+            calibration, planes, camera_model = _load_calibration(args.calibration, camera.resolution, (w, h))
+        return _Rig(devices, patterns, None, calibration, planes, camera_model)
+    except BaseException:
+        for device in opened:
+            device.close()
+        raise
+
+
+def _default_projector():
+    from slscan.devices.specs import DeviceSpec
+
+    return DeviceSpec("screen", "1")
+
+
+def _load_calibration(path: Path, camera_size, projector_size):
+    from slscan.calibrate.io import calibration_planes, load_calibration
+
+    calibration = load_calibration(path)
+    if (calibration.camera.width, calibration.camera.height) != tuple(camera_size):
+        raise SlscanError(f"{path}: calibrated for a {calibration.camera.width}x{calibration.camera.height} "
+                          f"camera, this camera gives {camera_size[0]}x{camera_size[1]}")
+    if tuple(calibration.projector_size) != tuple(projector_size):
+        raise SlscanError(f"{path}: calibrated for a {calibration.projector_size[0]}x{calibration.projector_size[1]} "
+                          f"projector, this one is {projector_size[0]}x{projector_size[1]}")
+    rig = calibration.rig() if calibration.projector is not None else None
+    return rig, calibration_planes(calibration), calibration.camera
+
+
+# --- after each view -----------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class ViewReport:
+    view: str
+    coverage: float | None = None  # covered share of the decodable pixels
+    vertices: int = 0
+    decodable: float = 0.0  # share of the frame the decoder could read
+    corners: int | None = None  # board corners found
+    note: str = ""
+
+
+class AfterView:
+    """Quick decode (range map, holes, coverage) or board corners, logged to Rerun."""
+
+    def __init__(self, rig: _Rig, rec, *, quick_decode: bool, board) -> None:
+        self.rig, self.rec, self.quick_decode, self.board = rig, rec, quick_decode, board
+        self.reports: list[ViewReport] = []
+        self.corner_cover: np.ndarray | None = None
+
+    def __call__(self, index: int, record, session) -> None:
+        from slscan.viewer.log_scan import log_scan_text
+
+        if self.rig.world is not None and self.rec is not None:
+            from slscan.virtual.device import log_virtual_view
+
+            log_virtual_view(self.rec, self.rig.world, index)
+        if self.board is not None:
+            report = self._board(index, record, session)
+        elif self.quick_decode:
+            report = self._decode(index, record, session)
+        else:
+            report = ViewReport(record.name)
+        self.reports.append(report)
+        log_scan_text(self.rec, f"{record.name}: {report.note}", level="WARN" if "hole" in report.note else "INFO")
+        if report.note:
+            _console().print(f"[cyan]{record.name}[/] {report.note}", highlight=False)
+
+    def _decode(self, index: int, record, session) -> ViewReport:
+        from slscan.decode.pipeline import DecodeConfig, choose_method, decode_view
+        from slscan.decode.rangemap import covered_pixels
+        from slscan.viewer import log_decode
+        from slscan.viewer.log_scan import log_code_map, log_holes
+
+        view = session.view(record.name)
+        if session.calibration is None and self.rig.planes is None:
+            method = choose_method(session)
+            if method == "hybrid":
+                from slscan.decode.hybrid import decode_hybrid
+
+                res = decode_hybrid(session, view)
+                codes, code_max = res.codes, max(int(res.codes.max()), 1)
+            else:
+                from slscan.decode.graycode import decode_gray
+
+                res = decode_gray(session, view)
+                codes, code_max = res.column, session.projector_size[0]
+            log_code_map(self.rec, log_decode.colormap(codes.astype(np.float64), code_max), view_index=index)
+            share = float(res.mask.mean())
+            return ViewReport(record.name, decodable=share,
+                              note=f"{100 * share:.1f} % of the frame decoded (no calibration: no range map)")
+        if self.rig.planes is not None and session.calibration is None:
+            raise SlscanError("quick decode needs a calibration with a projector model (--calibration)")
+        result = decode_view(session, view, DecodeConfig(), planes=self.rig.planes)
+        camera = self.rig.camera_model or session.calibration.camera
+        covered = covered_pixels(result.range_map, camera, result.mask.shape)
+        mask = result.mask
+        coverage = float(covered[mask].mean()) if mask.any() else 0.0
+        holes = mask & ~covered
+        if self.rec is not None:
+            rm = result.range_map
+            log_decode.log_decode_maps(self.rec, view_index=index, mask=mask, codes=result.codes,
+                                       code_max=result.code_max, saturated=result.saturated)
+            log_decode.log_range_map(self.rec, rm.vertices, rm.faces, rm.normals, rm.colors, view_index=index)
+            log_holes(self.rec, holes, coverage, view_index=index)
+        note = (f"{len(result.range_map.vertices):,} vertices, {100 * coverage:.1f} % of the decodable pixels "
+                "covered")
+        if coverage < 0.7:
+            note += " (large holes: check focus, exposure and the angle to the projector)"
+        return ViewReport(record.name, coverage, len(result.range_map.vertices), float(mask.mean()), note=note)
+
+    def _board(self, index: int, record, session) -> ViewReport:
+        from slscan.calibrate.camera import detect_corners
+        from slscan.calibrate.pipeline import board_image_id
+        from slscan.viewer.log_calibrate import log_board_image
+
+        view = session.view(record.name)
+        rec_white = view.image_for(board_image_id(session))
+        image = session.read_image(view, rec_white)
+        detection = detect_corners(image, self.board, source=rec_white.file)
+        log_board_image(self.rec, image, detection, view_index=index)
+        h, w = image.shape[:2]
+        if self.corner_cover is None:
+            self.corner_cover = np.zeros((4, 4), bool)
+        if detection:
+            cells = np.clip((detection.corners / [w / 4, h / 4]).astype(int), 0, 3)
+            self.corner_cover[cells[:, 1], cells[:, 0]] = True
+            covered = int(self.corner_cover.sum())
+            note = (f"board found: {len(detection.ids)} corners; corners seen so far in {covered} of 16 image "
+                    "cells" + ("" if covered == 16 else " (move the board towards the empty cells and tilt it)"))
+        else:
+            note = f"board NOT found ({detection.reason}): this pose will not help; try again"
+        return ViewReport(record.name, corners=len(detection.ids), note=note)
+
+
+# --- the command ----------------------------------------------------------------------------
+
+
+def _settle(args, rig: _Rig, rec) -> float:
+    from slscan.capture.driver import measure_latency
+    from slscan.viewer.log_scan import log_scan_text
+
+    text = args.settle if args.settle is not None else ("0" if rig.simulated else "auto")
+    if text != "auto":
+        try:
+            value = float(text)
+        except ValueError:
+            raise SlscanError(f"--settle must be a number of seconds or auto, got {text!r}") from None
+        if not (math.isfinite(value) and 0 <= value <= 60):
+            raise SlscanError(f"--settle must be in [0, 60] s, got {text}")
+        return value
+    latency = measure_latency(rig.devices.projector, rig.devices.camera)
+    line = (f"projector-to-camera latency {1000 * max(latency.delays):.0f} ms (flashes: "
+            f"{', '.join(f'{1000 * d:.0f}' for d in latency.delays)} ms; {1000 * latency.frame_s:.0f} ms per frame): "
+            f"settle {1000 * latency.settle_s:.0f} ms")
+    _console().print(line, highlight=False)
+    log_scan_text(rec, line)
+    return latency.settle_s
+
+
+def _exposure(args, rig: _Rig, settle: float, rec) -> None:
+    from rich.table import Table
+
+    from slscan.capture.driver import find_exposure
+    from slscan.viewer.log_scan import log_scan_text
+
+    result = find_exposure(rig.devices.projector, rig.devices.camera, rig.patterns, settle_s=settle)
+    table = Table("trial", *[k for k in result.trials[0].controls], "clipped %", "peak %", title="exposure")
+    for i, t in enumerate(result.trials):
+        table.add_row(str(i), *[f"{v:g}" for v in t.controls.values()], f"{100 * t.clipped_share:.3f}",
+                      f"{100 * t.peak:.1f}")
+    console = _console()
+    console.print(table)
+    log_scan_text(rec, "exposure: " + result.message, level="INFO" if result.ok else "WARN")
+    if not result.ok:
+        raise SlscanError(f"exposure: {result.message}")
+    console.print(f"[green]exposure[/] {result.message}", highlight=False)
+
+
+def run(args: argparse.Namespace) -> int:
+    from slscan.capture.driver import ScanPlan, scan
+    from slscan.devices.specs import CAMERA_KINDS, PROJECTOR_KINDS, parse_spec
+    from slscan.viewer.log import log_rig
+    from slscan.viewer.log_scan import frame_logger, scan_blueprint
+    from slscan.viewer.recording import recording_from_args
+
+    if args.views < 1:
+        raise SlscanError(f"--views must be at least 1, got {args.views}")
+    if not (math.isfinite(args.lit_exposure) and args.lit_exposure > 0):
+        raise SlscanError(f"--lit-exposure must be positive, got {args.lit_exposure}")
+    if args.resume and args.overwrite:
+        raise SlscanError("--resume and --overwrite contradict each other")
+    camera_spec = parse_spec(args.camera, CAMERA_KINDS, "camera")
+    projector_spec = parse_spec(args.projector, PROJECTOR_KINDS, "projector") if args.projector else None
+    if args.lights == "virtual" and camera_spec.kind not in ("virtual", "loop"):
+        raise SlscanError("--lights virtual needs the virtual rig (--camera virtual or loop)")
+    if not args.check_exposure and not args.resume and not args.overwrite and args.out.exists() \
+            and (not args.out.is_dir() or any(args.out.iterdir())):
+        raise SlscanError(f"{args.out}: exists and is not empty (pass --resume to continue it, or --overwrite)")
+    console = _console()
+    rig = _open_rig(args, camera_spec, projector_spec)
+    devices = rig.devices
+    try:
+        with recording_from_args(args, recording_name=f"scan {args.out.name}", blueprint=scan_blueprint()) as rec:
+            if rig.calibration is not None:
+                log_rig(rec, rig.calibration)
+            if rig.world is not None:
+                devices.stage.move_to(0, args.views)  # the object in view for latency and exposure
+            settle = _settle(args, rig, rec)
+            if args.check_exposure or args.auto_exposure:
+                if args.check_exposure:
+                    from slscan.capture.driver import find_exposure
+
+                    r = find_exposure(devices.projector, devices.camera, rig.patterns, settle_s=settle,
+                                      max_trials=1)
+                    console.print(("[green]" if r.ok else "[red]") + "exposure[/] " + r.message, highlight=False)
+                    return 0 if r.ok else 2
+                _exposure(args, rig, settle, rec)
+            plan = ScanPlan(tuple(rig.patterns), lit_images=args.board is None and args.lights != "none",
+                            lit_exposure=args.lit_exposure, settle_s=settle)
+            n_lights = devices.lights.count if plan.lit_images else 0
+            total = args.views * (len(rig.patterns) + n_lights)
+            after = AfterView(rig, rec, quick_decode=not args.no_quick_decode, board=_board(args))
+            device_info = devices.describe()
+            if rig.world is not None:
+                device_info["scene"] = rig.world.scene.name
+            t0 = time.perf_counter()
+            with ProgressBar(total, "scanning", args.quiet) as bar:
+                try:
+                    result = scan(
+                        devices, plan, args.out, views=args.views, overwrite=args.overwrite, resume=args.resume,
+                        calibration=rig.calibration,
+                        calibration_source=("virtual-rig ground truth" if rig.simulated else
+                                            (str(args.calibration) if rig.calibration is not None else None)),
+                        device_info=device_info, on_frame=frame_logger(rec), after_view=after,
+                        progress=bar.step,
+                    )
+                except KeyboardInterrupt:
+                    kept = len(after.reports)
+                    console.print(f"[red]interrupted[/]: {kept} finished view(s) kept in {args.out}; "
+                                  "--resume continues with the next one")
+                    return 130
+            _print_summary(result, after.reports, time.perf_counter() - t0, args.out)
+    finally:
+        devices.close()
+    return 0
+
+
+def _print_summary(result, reports, seconds: float, out: Path) -> None:
+    from rich.table import Table
+
+    table = Table("view", "imgs", "move", "show", "settle", "capture", "write", "total", "retry", "cover",
+                  title="seconds per view (cover: decodable pixels under the range map)")
+    by_view = {r.view: r for r in reports}
+    for t in result.timings:
+        r = by_view.get(t.view)
+        cov = "-" if r is None or r.coverage is None else f"{100 * r.coverage:.1f}%"
+        table.add_row(t.view.removeprefix("view_"), str(t.images), f"{t.move:.2f}", f"{t.show:.2f}", f"{t.settle:.2f}", f"{t.capture:.2f}",
+                      f"{t.write:.2f}", f"{t.total:.2f}", str(t.retries), cov)
+    console = _console()
+    console.print(table)
+    n = len(result.session.views)
+    resumed = f" ({result.resumed_views} from before)" if result.resumed_views else ""
+    console.print(f"[green]wrote[/] {out}: {n} view(s){resumed}, {seconds:.1f} s; next: slscan decode {out} "
+                  f"--out {out}-range-maps", highlight=False)

@@ -1,0 +1,77 @@
+"""Device specs as ``slscan scan`` takes them (``screen:1``, ``opencv:0``, ``folder:DIR``),
+parsed and opened; each back-end is imported only when its device is opened."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from slscan.devices.base import Camera, DeviceError, Projector
+
+PROJECTOR_KINDS = ("screen", "virtual")
+CAMERA_KINDS = ("opencv", "gphoto2", "folder", "virtual", "loop")
+SIMULATED_CAMERAS = ("virtual", "loop")
+
+
+@dataclass(frozen=True)
+class DeviceSpec:
+    """A parsed ``KIND[:ARG]``."""
+
+    kind: str
+    arg: str | None = None
+
+    def __str__(self) -> str:
+        return self.kind if self.arg is None else f"{self.kind}:{self.arg}"
+
+
+def parse_spec(text: str, kinds: tuple[str, ...], what: str) -> DeviceSpec:
+    """``"screen:1"`` → ``DeviceSpec("screen", "1")``; an unknown kind names the known ones."""
+    kind, sep, arg = text.partition(":")
+    kind = kind.strip().lower()
+    if kind not in kinds:
+        raise DeviceError(f"unknown {what} {text!r}: expected one of {', '.join(kinds)} (e.g. {kinds[0]}:0)")
+    return DeviceSpec(kind, arg if sep else None)
+
+
+def _index(spec: DeviceSpec, what: str) -> int:
+    if spec.arg is None or spec.arg == "":
+        return 0
+    try:
+        index = int(spec.arg)
+    except ValueError:
+        raise DeviceError(f"{what} {spec}: expected a number after ':', e.g. {spec.kind}:1") from None
+    if index < 0:
+        raise DeviceError(f"{what} {spec}: the index must be >= 0")
+    return index
+
+
+def open_projector(spec: DeviceSpec) -> Projector:
+    """Open a real projector (``screen[:N]``: full-screen window on monitor N)."""
+    if spec.kind == "screen":
+        from slscan.devices.screen import ScreenProjector
+
+        return ScreenProjector(_index(spec, "projector"))
+    raise DeviceError(f"projector {spec}: not a real projector (the virtual one comes with the virtual rig)")
+
+
+def open_camera(spec: DeviceSpec) -> Camera:
+    """Open a real camera: ``opencv[:N|:SOURCE]``, ``gphoto2[:PORT]``, ``folder:DIR``."""
+    if spec.kind == "opencv":
+        from slscan.devices.opencv_camera import OpenCVCamera
+
+        source: int | str = spec.arg if spec.arg and not spec.arg.isdigit() else _index(spec, "camera")
+        return OpenCVCamera(source)
+    if spec.kind == "gphoto2":
+        from slscan.devices.gphoto import GPhoto2Camera
+
+        return GPhoto2Camera(port=spec.arg or None)
+    if spec.kind == "folder":
+        if not spec.arg:
+            raise DeviceError("camera folder: name the folder the tethering software saves to, e.g. folder:~/tether")
+        from slscan.devices.folder import FolderCamera
+
+        folder = Path(spec.arg).expanduser()
+        if not folder.is_dir():
+            raise DeviceError(f"camera {spec}: {folder} is not a folder")
+        return FolderCamera(folder)
+    raise DeviceError(f"camera {spec}: not a real camera (the virtual ones come with the virtual rig)")

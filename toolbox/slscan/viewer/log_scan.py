@@ -1,0 +1,98 @@
+"""Rerun logging for live scans (``slscan scan``): every frame as it arrives, the quick
+decode after each view (range map, holes, coverage), exposure and latency, and the
+board corners of calibration captures; and the ``scan`` layout that arranges them."""
+
+from __future__ import annotations
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from slscan.viewer.log import _png, _set_view, log_capture, log_pattern
+
+HOLES_PATH = "world/camera/image/scan/holes"
+COVERAGE_PATH = "plot/scan/coverage"
+SCAN_LOG_PATH = "log/scan"
+HOLE_COLOR = (255, 40, 200, 160)  # magenta: lit but no range-map triangle
+
+
+def frame_logger(rec):
+    """An ``on_frame`` callback for :func:`slscan.capture.driver.scan` logging each frame
+    and the image projected for it; None when ``rec`` is None."""
+    if rec is None:
+        return None
+
+    def on_frame(f) -> None:
+        label = f.record.pattern or f"lit {f.record.light}"
+        log_capture(rec, f.image, view_index=f.view_index, frame_index=f.frame_index, label=label)
+        if f.projected is not None:
+            log_pattern(rec, f.projected, view_index=f.view_index, frame_index=f.frame_index)
+
+    return on_frame
+
+
+def log_scan_text(rec: rr.RecordingStream | None, text: str, *, level: str = "INFO") -> None:
+    """One line in the scan's log panel (exposure, latency, each view's coverage)."""
+    if rec is not None:
+        rec.log(SCAN_LOG_PATH, rr.TextLog(text, level=level))
+
+
+def log_holes(
+    rec: rr.RecordingStream | None, holes: np.ndarray, coverage: float, *, view_index: int
+) -> None:
+    """Overlay the decodable pixels that no range-map triangle covers, and plot coverage.
+
+    holes : (h, w) bool camera px; coverage : covered share of the decodable pixels
+    """
+    if rec is None:
+        return
+    _set_view(rec, view_index)
+    overlay = np.zeros(holes.shape + (4,), np.uint8)
+    overlay[holes] = HOLE_COLOR
+    rec.log(HOLES_PATH, rr.Image(overlay, color_model="RGBA", draw_order=10.0))
+    rec.log(COVERAGE_PATH, rr.Scalars(float(coverage)))
+
+
+def log_code_map(rec: rr.RecordingStream | None, image: np.ndarray, *, view_index: int) -> None:
+    """The decoded code map of a view without calibration (no range map to show)."""
+    if rec is None:
+        return
+    _set_view(rec, view_index)
+    rec.log("world/camera/image/decode/codes", _png(image))
+
+
+def scan_blueprint() -> rrb.Blueprint:
+    """Live scan: the frame arriving and the pattern on the projector (left); the last
+    view's range map in 3D and its holes over the white frame (right); coverage per view
+    and the scan log below."""
+    from slscan.viewer.layouts import stage_blueprint
+
+    live = rrb.Vertical(
+        rrb.Spatial2DView(origin="world/camera/image", contents="$origin/capture", name="Camera (live)"),
+        rrb.Spatial2DView(origin="world/projector/image", contents="$origin/pattern", name="Projector"),
+        name="Live",
+    )
+    holes = rrb.Spatial2DView(
+        origin="world/camera/image",
+        contents=["+ $origin/capture", "+ $origin/scan/holes", "+ $origin/decode/saturation",
+                  "+ $origin/corners"],
+        name="Holes (magenta) and clipping (red)",
+    )
+    maps = rrb.Tabs(
+        rrb.Spatial3DView(origin="world", contents=["+ $origin/scans/**", "+ $origin/camera",
+                                                   "+ $origin/projector"], name="Range maps"),
+        rrb.Spatial2DView(origin="world/camera/image", contents="$origin/decode/codes", name="Codes"),
+        name="Quick decode",
+    )
+    bottom = rrb.Horizontal(
+        rrb.TimeSeriesView(origin="plot/scan", name="Coverage per view"),
+        rrb.TextLogView(origin="log", name="Scan log"),
+    )
+    return stage_blueprint(
+        rrb.Vertical(
+            rrb.Horizontal(live, rrb.Vertical(maps, holes), column_shares=[2, 3]),
+            bottom,
+            row_shares=[4, 1],
+            name="Scan",
+        )
+    )
