@@ -475,13 +475,17 @@ def run(args: argparse.Namespace) -> int:
                     console.print(f"[red]interrupted[/]: {kept} finished view(s) kept in {args.out}; "
                                   "--resume continues with the next one")
                     return 130
-            _print_summary(result, after.reports, time.perf_counter() - t0, args.out)
+            if args.board:
+                nxt = f"slscan calibrate {args.out} --out rig.json --board {args.board} --square {args.square:g}"
+            else:
+                nxt = f"slscan decode {args.out} --out {args.out}-range-maps"
+            _print_summary(result, after.reports, time.perf_counter() - t0, args.out, nxt)
     finally:
         devices.close()
     return 0
 
 
-def _print_summary(result, reports, seconds: float, out: Path) -> None:
+def _print_summary(result, reports, seconds: float, out: Path, next_step: str) -> None:
     from rich.table import Table
 
     table = Table("view", "imgs", "move", "show", "settle", "capture", "write", "total", "retry", "cover",
@@ -496,5 +500,5 @@ def _print_summary(result, reports, seconds: float, out: Path) -> None:
     console.print(table)
     n = len(result.session.views)
     resumed = f" ({result.resumed_views} from before)" if result.resumed_views else ""
-    console.print(f"[green]wrote[/] {out}: {n} view(s){resumed}, {seconds:.1f} s; next: slscan decode {out} "
-                  f"--out {out}-range-maps", highlight=False)
+    console.print(f"[green]wrote[/] {out}: {n} view(s){resumed}, {seconds:.1f} s; next: {next_step}",
+                  highlight=False)
