@@ -98,7 +98,7 @@ def test_camera_lost_mid_scan_keeps_finished_views_and_resume_continues(tmp_path
     with pytest.raises(DeviceError) as info:
         scan(devices, scan_plan(config, world.rig, reference_frame=False), out, views=3)
     message = str(info.value)
-    assert "unplugged" in message
+    assert message.startswith("view_001 image 03_hybrid-02.png: ") and "unplugged" in message
     assert "1 finished view(s) kept" in message and "--resume" in message
     meta = json.loads((out / "session.json").read_text())
     assert [v["name"] for v in meta["views"]] == ["view_000"]

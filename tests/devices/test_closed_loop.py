@@ -67,6 +67,8 @@ def test_a_shifted_screen_changes_the_scan(tmp_path, x_display):
     (["--projector", "screen:7", "--camera", "loop"], "monitor 7 does not exist"),
     (["--projector", "screen:0", "--camera", "loop", "--scale", "0.5"], "the monitor is 1024x768"),
     (["--camera", "loop"], "give --projector screen"),
+    (["--projector", "screen:0", "--camera", "opencv:9"], "camera opencv:9 not found"),
+    (["--projector", "screen:0", "--camera", "folder:/nonexistent/dir"], "is not a folder"),
 ])
 def test_bad_projector_choices_are_one_line_errors(tmp_path, x_display, monkeypatch, capsys, argv, message):
     monkeypatch.setenv("DISPLAY", x_display)

@@ -77,7 +77,8 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
     cam = p.add_argument_group("exposure and timing")
     cam.add_argument("--settle", default=None, metavar="SECONDS|auto",
                      help="wait after each pattern before capturing; auto: measure the projector-to-camera "
-                          "latency by flashing white (default: auto on real devices, 0 on the virtual rig)")
+                          "latency by flashing white (default: auto for opencv and gphoto2 cameras, 0 for a "
+                          "watch folder and the virtual rig)")
     cam.add_argument("--auto-exposure", action="store_true",
                      help="before the first view, find the exposure (then gain) that keeps the white frame and "
                           "the finest green lines below saturation; stop if none does (paper Fig. 9)")
@@ -375,7 +376,9 @@ def _settle(args, rig: _Rig, rec) -> float:
     from slscan.capture.driver import measure_latency
     from slscan.viewer.log_scan import log_scan_text
 
-    text = args.settle if args.settle is not None else ("0" if rig.simulated else "auto")
+    # a watch folder gets each shot when something else triggers it: nothing to flash-time
+    automatic = not rig.simulated and not args.camera.startswith("folder")
+    text = args.settle if args.settle is not None else ("auto" if automatic else "0")
     if text != "auto":
         try:
             value = float(text)
@@ -471,8 +474,10 @@ def run(args: argparse.Namespace) -> int:
                         progress=bar.step,
                     )
                 except KeyboardInterrupt:
-                    kept = len(after.reports)
-                    console.print(f"[red]interrupted[/]: {kept} finished view(s) kept in {args.out}; "
+                    from slscan.capture.session import SESSION_FILE, load_session
+
+                    kept = len(load_session(args.out, validate=False).views) if (args.out / SESSION_FILE).is_file() else 0
+                    console.print(f"[red]interrupted[/]: {kept} finished view(s) in {args.out}; "
                                   "--resume continues with the next one")
                     return 130
             if args.board:

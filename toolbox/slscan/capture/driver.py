@@ -267,6 +267,7 @@ def scan(
         for v in range(done, views):
             name = f"view_{v:03d}"
             timing = ViewTiming(name, len(records))
+            where = f"{name} (moving the object into place)"
             try:
                 t = time.perf_counter()
                 placement = stage.move_to(v, views)
@@ -300,11 +301,11 @@ def scan(
                         on_frame(FrameCaptured(v, frame_index, record, image, shown))
                     if progress:
                         progress(f"{name} {record.file}")
+                where = f"{name} (after its last image)"
                 if n_lights:
                     lights.switch(n_lights - 1, False)
                     _set_lit_exposure(cam, plan.lit_exposure, on=False)
-                exposure = {"camera": cam.get_controls(), "settle_s": plan.settle_s,
-                            "lit_exposure": plan.lit_exposure}
+                exposure = {**cam.exposure_record(), "lit_exposure": plan.lit_exposure, "settle_s": plan.settle_s}
                 gt = stage.ground_truth()
                 gt_file = None
                 if gt is not None:
@@ -317,10 +318,12 @@ def scan(
                 timing.write += time.perf_counter() - t
             except BaseException as exc:
                 writer.discard_view(name)
-                if isinstance(exc, DeviceError) and incremental and v > 0:
-                    raise type(exc)(f"{exc} ({v} finished view(s) kept in {out}; --resume continues "
-                                    f"with {name})") from None
-                raise
+                if not isinstance(exc, DeviceError):
+                    raise
+                message = str(exc) if str(exc).startswith(name) else f"{where}: {exc}"
+                if incremental and v > 0:
+                    message += f" ({v} finished view(s) kept in {out}; --resume continues with {name})"
+                raise type(exc)(message) from None
             timings.append(timing)
             if after_view is not None:
                 after_view(v, record, writer.session())

@@ -131,6 +131,15 @@ class Camera(Device):
             raise DeviceError(f"{self.name}: controls {', '.join(values)} cannot be set on this camera")
         return {}
 
+    def exposure_record(self) -> dict[str, Any]:
+        """What ``session.json`` records of the capture settings of each view (JSON types).
+
+        Device controls go under ``"camera"`` in the device's own units. A camera whose
+        response is known in slscan's radiometric units adds a ``"sensor"`` block with
+        ``exposure``, ``gain`` and ``white_level`` (the virtual rig does), which the albedo
+        stage multiplies into its exposure factor."""
+        return {"camera": self.get_controls()}
+
     def flush(self) -> None:
         """Discard frames buffered before now (called after every pattern change)."""
 

@@ -173,6 +173,9 @@ class VirtualCamera(Camera):
         self.sensor = dataclasses.replace(self.sensor, **values)
         return self.get_controls()
 
+    def exposure_record(self) -> dict:
+        return {"sensor": self.sensor.to_dict(), "camera": self.get_controls()}
+
     def capture(self) -> Frame:
         now = time.monotonic()
         image = self.world.render(self.world.projected_at(now), self.sensor)
@@ -260,6 +263,9 @@ class ScreenLoopCamera(Camera):
 
     def set_controls(self, **values: float) -> dict[str, float]:
         return self.inner.set_controls(**values)
+
+    def exposure_record(self) -> dict:
+        return self.inner.exposure_record()
 
     def capture(self) -> Frame:
         screen = self.grab()
