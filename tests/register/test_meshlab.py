@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import open3d as o3d
 import pymeshlab
@@ -80,6 +82,23 @@ def test_missing_meshes_are_named(tmp_path):
     with pytest.raises(SlscanError, match=r"p\.mlp.*gone\.ply.*lost\.ply"):
         read_mlp(tmp_path / "p.mlp")
     assert len(read_mlp(tmp_path / "p.mlp", check_files=False)) == 2
+
+
+def test_relative_mesh_paths_are_relative_to_the_current_folder(tmp_path, monkeypatch):
+    """A project written with relative paths (``slscan texture --out RELATIVE``) names its
+    meshes relative to its own folder, once, whatever the current folder."""
+    import xml.etree.ElementTree as ET
+
+    monkeypatch.chdir(tmp_path)
+    folder = Path("out") / ".partial"
+    folder.mkdir(parents=True)
+    (folder / "model.obj").write_text("v 0 0 0\n")
+    (tmp_path / "elsewhere.ply").write_text("ply\n")
+    write_mlp(folder / "model.mlp", [(folder / "model.obj", np.eye(4)), (Path("elsewhere.ply"), np.eye(4))])
+    names = [m.get("filename") for m in ET.parse(folder / "model.mlp").getroot().iter("MLMesh")]
+    assert names == ["model.obj", str(tmp_path.resolve() / "elsewhere.ply")]
+    for name in names:  # as MeshLab resolves them: against the project's folder
+        assert (folder / name).is_file()
 
 
 def test_bad_projects_are_reported(tmp_path):

@@ -329,7 +329,8 @@ def write_mlp(
 ) -> Path:
     """Write a MeshLab project naming existing mesh files, atomically.
 
-    meshes : (mesh file, (4, 4) transform) pairs; files are written relative to the
+    meshes : (mesh file, (4, 4) transform) pairs; a relative file name is relative to the
+        current folder, as every path in Python; files are written relative to the
         project's folder when they lie under it, absolute otherwise
     rasters : registered images (their ``image`` names are written as they are: relative
         to the project's folder)
@@ -338,12 +339,11 @@ def write_mlp(
     base = path.parent.resolve()
     entries = []
     for file, matrix in meshes:
-        file = Path(file)
-        resolved = (base / file) if not file.is_absolute() else file
+        resolved = Path(file).resolve()
         try:
-            name = resolved.resolve().relative_to(base).as_posix()
+            name = resolved.relative_to(base).as_posix()
         except ValueError:
-            name = str(resolved.resolve())
+            name = str(resolved)
         entries.append((Path(name).name, name, matrix))
     text = format_mlp(entries, rasters=rasters)
     with atomic_output_file(path) as tmp:
