@@ -1,4 +1,7 @@
-"""Regenerate the pictures in docs/images from a demo session: .venv/bin/python docs/figures.py SESSION"""
+"""Regenerate the pictures in docs/images from a demo session: .venv/bin/python docs/figures.py SESSION
+
+The scan_*.png of docs/scanning.md need no session (they scan the virtual rig, and open the
+projector window on a private Xvfb): .venv/bin/python docs/figures.py scan"""
 
 from __future__ import annotations
 
@@ -35,5 +38,259 @@ def main(session_dir: str) -> None:
     cv2.imwrite(str(Path(__file__).parent / "images" / "capture_hybrid_level9_zoom.png"), zoom[..., ::-1])
 
 
+# --- slscan scan (docs/scanning.md) ------------------------------------------------------
+
+IMAGES = Path(__file__).parent / "images"
+LOOP_PATTERN = "hybrid-04"  # coarse enough to read when the 1024 px window is shown 480 px wide
+LOOP_ZOOM = (slice(380, 404), slice(436, 460))  # around the green line at projector column 448
+PANEL_HEIGHT = 360  # px, each panel of a side-by-side figure
+PROFILE_ROW, PROFILE_COLS = 520, slice(750, 790)  # camera px across the finest green lines (full size)
+MAGENTA = np.array([255, 40, 200], np.uint8)  # holes, as slscan.viewer.log_scan.HOLE_COLOR
+RED = np.array([255, 0, 0], np.uint8)
+
+
+def _write(name: str, rgb: np.ndarray) -> None:
+    cv2.imwrite(str(IMAGES / name), np.ascontiguousarray(rgb[..., ::-1]), [cv2.IMWRITE_PNG_COMPRESSION, 9])
+
+
+def _to_height(rgb: np.ndarray, height: int, interpolation: int = cv2.INTER_AREA) -> np.ndarray:
+    return cv2.resize(rgb, (round(rgb.shape[1] * height / rgb.shape[0]), height), interpolation=interpolation)
+
+
+def _titled(rgb: np.ndarray, *lines: str, scale: float = 0.5) -> np.ndarray:
+    """``rgb`` under a white band holding ``lines`` of black text."""
+    step = round(40 * scale) + 4
+    band = np.full((step * len(lines) + 6, rgb.shape[1], 3), 255, np.uint8)
+    for i, line in enumerate(lines):
+        cv2.putText(band, line, (6, step * (i + 1) - 4), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 1, cv2.LINE_AA)
+    return np.vstack([band, rgb])
+
+
+def _side_by_side(*panels: np.ndarray, gap: int = 10) -> np.ndarray:
+    height = max(p.shape[0] for p in panels)
+    padded = [np.pad(p, ((0, height - p.shape[0]), (0, 0), (0, 0)), constant_values=255) for p in panels]
+    spacer = np.full((height, gap, 3), 255, np.uint8)
+    out = [padded[0]]
+    for p in padded[1:]:
+        out += [spacer, p]
+    return np.hstack(out)
+
+
+class _PrivateXvfb:
+    """``Xvfb :N -screen 0 WxHx24`` on a free display number, as ``$DISPLAY`` while in use."""
+
+    def __init__(self, width: int, height: int, first: int = 80) -> None:
+        self.size, self.first = (width, height), first
+
+    def __enter__(self) -> str:
+        import os
+        import subprocess
+        import time
+
+        n = next(n for n in range(self.first, self.first + 100)
+                 if not Path(f"/tmp/.X11-unix/X{n}").exists() and not Path(f"/tmp/.X{n}-lock").exists())
+        self.name = f":{n}"
+        w, h = self.size
+        self.proc = subprocess.Popen(["Xvfb", self.name, "-screen", "0", f"{w}x{h}x24", "-nolisten", "tcp"],
+                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        deadline = time.monotonic() + 20
+        while not Path(f"/tmp/.X11-unix/X{n}").exists():
+            if self.proc.poll() is not None or time.monotonic() > deadline:
+                raise RuntimeError(f"Xvfb {self.name} did not start")
+            time.sleep(0.05)
+        time.sleep(0.2)
+        self.saved = os.environ.get("DISPLAY")
+        os.environ["DISPLAY"] = self.name
+        return self.name
+
+    def __exit__(self, *exc: object) -> None:
+        import os
+
+        if self.saved is None:
+            os.environ.pop("DISPLAY", None)
+        else:
+            os.environ["DISPLAY"] = self.saved
+        self.proc.terminate()
+        self.proc.wait(timeout=10)
+
+
+def scan_loop_figure() -> None:
+    """scan_loop.png: the projector window as the X server shows it (a screen grab of a hybrid
+    pattern on a private Xvfb), and the closed loop's camera frame of the figurine lit by that grab."""
+    from slscan.devices.screen import ScreenProjector, grab_screen
+    from slscan.patterns import render
+    from slscan.virtual.device import VirtualCaptureConfig, virtual_devices
+    from slscan.virtual.devices import ScreenLoopCamera
+
+    config = VirtualCaptureConfig()  # full size: the 1024x768 projector fits the 1024x768 screen
+    world = virtual_devices(config)
+    pattern = next(p for p in config.pattern_set(world.rig) if p.id == LOOP_PATTERN)
+    with _PrivateXvfb(1024, 768), ScreenProjector(0) as projector:
+        projector.show(render(pattern))
+        screen = grab_screen(projector)
+        world.stage.move_to(0, 1)
+        camera = ScreenLoopCamera(world, lambda: grab_screen(projector), world.camera.sensor)
+        frame = camera.capture().image
+    exact = "pixel for pixel the pattern" if np.array_equal(screen, render(pattern)) else "NOT the pattern"
+    left = _to_height(screen, PANEL_HEIGHT)
+    zoom = cv2.resize(screen[LOOP_ZOOM], None, fx=6, fy=6, interpolation=cv2.INTER_NEAREST)
+    zoom = _titled(zoom, "6x: the 1 px", "green line", scale=0.4)
+    zh, zw = zoom.shape[:2]
+    left[-zh - 12:-12, 10:10 + zw] = np.pad(zoom, ((2, 2), (2, 2), (0, 0)), constant_values=255)[2:-2, 2:-2]
+    cv2.rectangle(left, (8, left.shape[0] - zh - 14), (11 + zw, left.shape[0] - 11), (255, 255, 255), 2)
+    left = _titled(left, f"projector window, screen grab ({LOOP_PATTERN})", f"1024x768 on Xvfb: {exact}")
+    right = _titled(_to_height(frame[CROP], PANEL_HEIGHT), "fake camera (--camera loop): the figurine",
+                    "lit by that grab (1440x960 frame, cropped)")
+    _write("scan_loop.png", _side_by_side(left, right))
+
+
+def scan_quick_decode_figure() -> None:
+    """scan_quick_decode.png: a view's white frame with the quick decode's holes (decodable
+    pixels no range-map triangle covers) in magenta, the coverage in the title."""
+    import tempfile
+
+    from slscan.cli import main as slscan
+    from slscan.decode.pipeline import decode_view
+    from slscan.decode.rangemap import covered_pixels
+
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "scan"
+        if slscan(["scan", "--camera", "virtual", "--scale", "0.5", "--out", str(out), "--quiet"]) != 0:
+            raise RuntimeError("slscan scan --camera virtual failed")
+        s = load_session(out)
+        view = s.views[0]
+        result = decode_view(s, view)
+        white = s.read_image(view, view.image_for("white"))
+    covered = covered_pixels(result.range_map, s.calibration.camera, result.mask.shape)
+    holes = result.mask & ~covered
+    coverage = float(covered[result.mask].mean())
+    shown = white.copy()
+    shown[holes] = (0.35 * shown[holes] + 0.65 * MAGENTA).astype(np.uint8)
+    half = (slice(CROP[0].start // 2, CROP[0].stop // 2), slice(CROP[1].start // 2, CROP[1].stop // 2))
+    panel = cv2.resize(shown[half], None, fx=2, fy=2, interpolation=cv2.INTER_NEAREST)
+    title = (f"{view.name}: {len(result.range_map.vertices):,} vertices, {100 * coverage:.1f} % of the",
+             "decodable pixels covered; magenta: holes")
+    _write("scan_quick_decode.png", _titled(panel, *title))
+
+
+def _profile_plot(curves: list[tuple[np.ndarray, tuple[int, int, int], str]], width: int, height: int,
+                  full: float) -> np.ndarray:
+    """A small line plot of (values, colour, label) curves on 0..``full``, drawn with OpenCV."""
+    plot = np.full((height, width, 3), 255, np.uint8)
+    left, right, top, bottom = 46, 10, 10, 24
+    x0, x1, y0, y1 = left, width - right, top, height - bottom
+
+    def y(v):
+        return np.round(y1 - (y1 - y0) * np.asarray(v, float) / full).astype(np.int32)
+
+    cv2.rectangle(plot, (x0, y0), (x1, y1), (160, 160, 160), 1)
+    cv2.line(plot, (x0, int(y(full))), (x1, int(y(full))), (200, 0, 0), 1)
+    for v in (0, full / 2, full):
+        cv2.putText(plot, f"{v:.0f}", (4, int(y(v)) + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    for k, (values, colour, label) in enumerate(curves):
+        xs = np.round(np.linspace(x0, x1, len(values))).astype(np.int32)
+        pts = np.stack([xs, y(values)], axis=1).reshape(-1, 1, 2)
+        cv2.polylines(plot, [pts], False, colour, 2, cv2.LINE_AA)
+        for (px, py) in pts[:, 0]:
+            cv2.circle(plot, (int(px), int(py)), 3, colour, -1, cv2.LINE_AA)
+        cv2.putText(plot, label, (x0 + 8 + k * (x1 - x0) // 2, y1 + 17), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, 1,
+                    cv2.LINE_AA)
+    return plot
+
+
+def scan_exposure_figure() -> None:
+    """scan_exposure.png: the white frame at exposure 6 with saturated pixels in red, next to
+    the exposure find_exposure chose; below, the green channel across the finest lines at both
+    (paper Fig. 9: clipped lines lose the profile their sub-pixel centre is found from)."""
+    from slscan.capture.driver import find_exposure, finest_pattern
+    from slscan.patterns import render
+    from slscan.virtual.device import VirtualCaptureConfig, virtual_devices
+    from slscan.virtual.sensor import Sensor
+
+    config = VirtualCaptureConfig(sensor=Sensor(exposure=6))
+    world = virtual_devices(config)
+    world.stage.move_to(0, 1)
+    patterns = config.pattern_set(world.rig)
+    proj, cam = world.projector, world.camera
+    white_img = np.full((proj.resolution[1], proj.resolution[0], 3), 255, np.uint8)
+    lines_img = render(finest_pattern(patterns))
+
+    def shoot(image):
+        proj.show(image)
+        return cam.capture().image
+
+    before = shoot(white_img), shoot(lines_img)
+    result = find_exposure(proj, cam, patterns)
+    after = shoot(white_img), shoot(lines_img)
+    full = 2**cam.bit_depth - 1
+    panels = []
+    for (white, _), exposure in ((before, 6.0), (after, result.controls["exposure"])):
+        clipped = (white >= full).any(axis=2)
+        shown = white.copy()
+        shown[clipped] = RED
+        share = float(clipped[white.max(axis=2) > 0.05 * full].mean())
+        panels.append(_titled(_to_height(shown[CROP], PANEL_HEIGHT),
+                              f"white frame at exposure {exposure:.3g}",
+                              f"red: saturated ({100 * share:.1f} % of the lit pixels)"))
+    top = _side_by_side(*panels)
+    curves = [(before[1][PROFILE_ROW, PROFILE_COLS, 1], (220, 0, 0), "exposure 6: clipped flat tops"),
+              (after[1][PROFILE_ROW, PROFILE_COLS, 1], (0, 150, 0),
+               f"exposure {result.controls['exposure']:.3g}: full profiles")]
+    plot = _profile_plot(curves, top.shape[1], 200, full)
+    plot = _titled(plot, f"green channel of the finest lines ({finest_pattern(patterns).id}), camera row "
+                   f"{PROFILE_ROW}, columns {PROFILE_COLS.start}-{PROFILE_COLS.stop - 1}; red line: full scale")
+    _write("scan_exposure.png", np.vstack([top, np.full((10, top.shape[1], 3), 255, np.uint8), plot]))
+
+
+def scan_board_figure() -> None:
+    """scan_board.png: a calibration capture's white frame with the board corners found live
+    (yellow) and the 4x4 image cells that corners have reached so far (green) or not yet (grey)."""
+    import tempfile
+
+    from slscan.calibrate.camera import detect_corners
+    from slscan.calibrate.target import Board
+    from slscan.cli import main as slscan
+
+    board = Board(kind="chessboard", columns=9, rows=7, square=50.0)
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "board"
+        if slscan(["scan", "--camera", "virtual", "--board", "9x7", "--square", "50", "--views", "6",
+                   "--out", str(out), "--quiet"]) != 0:
+            raise RuntimeError("slscan scan --board failed")
+        s = load_session(out)
+        whites = [(v.name, s.read_image(v, v.image_for("white"))) for v in s.views]
+    cover = np.zeros((4, 4), bool)
+    for name, white in whites:
+        found = detect_corners(white, board)
+        h, w = white.shape[:2]
+        cells = np.clip((found.corners / [w / 4, h / 4]).astype(int), 0, 3)
+        cover[cells[:, 1], cells[:, 0]] = True
+    shown = white.astype(np.float32)
+    for r in range(4):
+        for c in range(4):
+            cell = (slice(r * h // 4, (r + 1) * h // 4), slice(c * w // 4, (c + 1) * w // 4))
+            tint = np.array([60, 200, 60] if cover[r, c] else [120, 120, 120], np.float32)
+            shown[cell] = 0.7 * shown[cell] + 0.3 * tint
+    shown = shown.astype(np.uint8)
+    for k in range(1, 4):
+        cv2.line(shown, (k * w // 4, 0), (k * w // 4, h - 1), (255, 255, 255), 1)
+        cv2.line(shown, (0, k * h // 4), (w - 1, k * h // 4), (255, 255, 255), 1)
+    for x, y in found.corners:
+        cv2.circle(shown, (round(x), round(y)), 4, (0, 0, 0), -1, cv2.LINE_AA)
+        cv2.circle(shown, (round(x), round(y)), 3, (255, 220, 0), -1, cv2.LINE_AA)
+    _write("scan_board.png", _titled(shown, f"{name}: board found, {len(found.ids)} corners (yellow);",
+                                     f"corners seen so far in {int(cover.sum())} of 16 image cells (green cells)"))
+
+
+def scan_figures() -> None:
+    scan_loop_figure()
+    scan_quick_decode_figure()
+    scan_exposure_figure()
+    scan_board_figure()
+
+
 if __name__ == "__main__":
-    main(sys.argv[1])
+    if sys.argv[1:] == ["scan"]:
+        scan_figures()
+    else:
+        main(sys.argv[1])

@@ -32,7 +32,10 @@ def test_auto_exposure_brings_a_saturating_camera_down(tmp_path, capsys):
     out = tmp_path / "scan"
     assert main(["scan", "--camera", "virtual", "--exposure", "6", "--check-exposure", "--out", str(out),
                  *QUICK]) == 2
-    assert "saturated" in capsys.readouterr().err and not out.exists()
+    err = capsys.readouterr().err
+    assert "saturated" in err and "--auto-exposure searches for one" in err and not out.exists()
+    assert main(["scan", "--camera", "virtual", "--check-exposure", *QUICK]) == 0  # no --out needed
+    assert "clipped" in capsys.readouterr().err
     assert main(["scan", "--camera", "virtual", "--exposure", "6", "--auto-exposure", "--out", str(out),
                  *QUICK]) == 0
     meta = json.loads((out / "session.json").read_text())
@@ -65,6 +68,8 @@ def test_board_capture_goes_on_to_a_calibration(tmp_path, capsys):
     (["--camera", "virtual", "--resume", "--overwrite"], "contradict"),
     (["--camera", "folder:/nonexistent/dir", "--projector", "virtual"], "not a real projector"),
     (["--camera", "virtual", "--projector", "screen:0"], "--camera virtual sees the virtual projector only"),
+    (["--camera", "virtual", "--calibration", "rig.json"], "--calibration is for real rigs"),
+    (["--camera", "virtual", "--lights", "manual"], "--lights manual is for real rigs"),
 ])
 def test_bad_scan_options_are_one_line_errors(tmp_path, capsys, argv, message):
     out = tmp_path / "s"

@@ -26,7 +26,7 @@ written to the capture session as soon as it is complete. Between views you are 
 move the object (the virtual rig turns its turntable). After each view a quick decode
 shows its range map and its holes in Rerun, so you see what is missing before moving on.
 
-devices:
+device specs:
   --projector screen[:N]   borderless full-screen window on monitor N (pip install 'slscan[screen]')
   --camera opencv[:N]      UVC/V4L2 webcam N, or opencv:FILE for a video or image sequence
   --camera gphoto2[:PORT]  tethered still camera through libgphoto2 (pip install 'slscan[gphoto2]')
@@ -54,7 +54,7 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
         "scan", help="scan with a projector and a camera (real or virtual), live in Rerun",
         description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--out", required=True, type=Path, help="capture-session folder to write")
+    p.add_argument("--out", type=Path, help="capture-session folder to write (not needed with --check-exposure)")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--resume", action="store_true", help="continue the session in --out with its next view")
     dev = p.add_argument_group("devices")
@@ -137,7 +137,7 @@ class _Rig:
     patterns: list
     world: object = None  # VirtualRig for virtual/loop
     calibration: object = None  # slscan.rig.Rig recorded in the session
-    planes: object = None  # light planes for the quick decode (a measured calibration)
+    measured: object = None  # slscan.calibrate.io.Calibration given with --calibration
     camera_model: object = None  # PinholeModel for coverage
     simulated: bool = False
 
@@ -176,6 +176,10 @@ def _open_rig(args, camera_spec, projector_spec) -> _Rig:
 
     board = _board(args)
     if camera_spec.kind in SIMULATED_CAMERAS:
+        if args.calibration is not None:
+            raise SlscanError("--calibration is for real rigs: the virtual rig records its true calibration")
+        if args.lights == "manual":
+            raise SlscanError("--lights manual is for real rigs: the virtual rig switches its own lights")
         if not 0 < args.scale <= 2:
             raise SlscanError(f"--scale must be in (0, 2], got {args.scale}")
         config = VirtualCaptureConfig(
@@ -233,10 +237,12 @@ def _open_rig(args, camera_spec, projector_spec) -> _Rig:
         devices = ScanDevices(projector, camera, lights, FirstViewInPlace(ManualStage()))
         w, h = projector.resolution
         patterns = _pattern_set(args, w, h)
-        calibration = planes = camera_model = None
+        calibration = measured = camera_model = None
         if args.calibration is not None:
-            calibration, planes, camera_model = _load_calibration(args.calibration, camera.resolution, (w, h))
-        return _Rig(devices, patterns, None, calibration, planes, camera_model)
+            measured = _load_calibration(args.calibration, camera.resolution, (w, h))
+            calibration = measured.rig()
+            camera_model = measured.camera
+        return _Rig(devices, patterns, None, calibration, measured, camera_model)
     except BaseException:
         for device in opened:
             device.close()
@@ -250,7 +256,7 @@ def _default_projector():
 
 
 def _load_calibration(path: Path, camera_size, projector_size):
-    from slscan.calibrate.io import calibration_planes, load_calibration
+    from slscan.calibrate.io import load_calibration
 
     calibration = load_calibration(path)
     if (calibration.camera.width, calibration.camera.height) != tuple(camera_size):
@@ -259,8 +265,7 @@ def _load_calibration(path: Path, camera_size, projector_size):
     if tuple(calibration.projector_size) != tuple(projector_size):
         raise SlscanError(f"{path}: calibrated for a {calibration.projector_size[0]}x{calibration.projector_size[1]} "
                           f"projector, this one is {projector_size[0]}x{projector_size[1]}")
-    rig = calibration.rig() if calibration.projector is not None else None
-    return rig, calibration_planes(calibration), calibration.camera
+    return calibration
 
 
 # --- after each view -----------------------------------------------------------------------
@@ -309,7 +314,13 @@ class AfterView:
         from slscan.viewer.log_scan import log_code_map, log_holes
 
         view = session.view(record.name)
-        if session.calibration is None and self.rig.planes is None:
+        planes = None
+        if self.rig.measured is not None:
+            from slscan.calibrate.io import apply_calibration, calibration_planes
+
+            session = apply_calibration(session, self.rig.measured)
+            planes = calibration_planes(self.rig.measured)
+        if session.calibration is None:
             method = choose_method(session)
             if method == "hybrid":
                 from slscan.decode.hybrid import decode_hybrid
@@ -325,9 +336,7 @@ class AfterView:
             share = float(res.mask.mean())
             return ViewReport(record.name, decodable=share,
                               note=f"{100 * share:.1f} % of the frame decoded (no calibration: no range map)")
-        if self.rig.planes is not None and session.calibration is None:
-            raise SlscanError("quick decode needs a calibration with a projector model (--calibration)")
-        result = decode_view(session, view, DecodeConfig(), planes=self.rig.planes)
+        result = decode_view(session, view, DecodeConfig(), planes=planes)
         camera = self.rig.camera_model or session.calibration.camera
         covered = covered_pixels(result.range_map, camera, result.mask.shape)
         mask = result.mask
@@ -422,6 +431,10 @@ def run(args: argparse.Namespace) -> int:
     from slscan.viewer.log_scan import frame_logger, scan_blueprint
     from slscan.viewer.recording import recording_from_args
 
+    if args.out is None and not args.check_exposure:
+        raise SlscanError("--out: name the capture-session folder to write")
+    if args.out is None:
+        args.out = Path("check-exposure")  # never written
     if args.views < 1:
         raise SlscanError(f"--views must be at least 1, got {args.views}")
     if not (math.isfinite(args.lit_exposure) and args.lit_exposure > 0):
@@ -450,14 +463,15 @@ def run(args: argparse.Namespace) -> int:
                     from slscan.capture.driver import find_exposure
 
                     r = find_exposure(devices.projector, devices.camera, rig.patterns, settle_s=settle,
-                                      max_trials=1)
+                                      search=False)
                     console.print(("[green]" if r.ok else "[red]") + "exposure[/] " + r.message, highlight=False)
                     return 0 if r.ok else 2
                 _exposure(args, rig, settle, rec)
-            plan = ScanPlan(tuple(rig.patterns), lit_images=args.board is None and args.lights != "none",
+            plan = ScanPlan(tuple(rig.patterns), lit_images=args.board is None and devices.lights.count > 0,
                             lit_exposure=args.lit_exposure, settle_s=settle)
             n_lights = devices.lights.count if plan.lit_images else 0
-            total = args.views * (len(rig.patterns) + n_lights)
+            done = _views_done(args.out) if args.resume else 0
+            total = max(0, args.views - done) * (len(rig.patterns) + n_lights)
             after = AfterView(rig, rec, quick_decode=not args.no_quick_decode, board=_board(args))
             device_info = devices.describe()
             if rig.world is not None:
@@ -474,9 +488,7 @@ def run(args: argparse.Namespace) -> int:
                         progress=bar.step,
                     )
                 except KeyboardInterrupt:
-                    from slscan.capture.session import SESSION_FILE, load_session
-
-                    kept = len(load_session(args.out, validate=False).views) if (args.out / SESSION_FILE).is_file() else 0
+                    kept = _views_done(args.out)
                     console.print(f"[red]interrupted[/]: {kept} finished view(s) in {args.out}; "
                                   "--resume continues with the next one")
                     return 130
@@ -488,6 +500,12 @@ def run(args: argparse.Namespace) -> int:
     finally:
         devices.close()
     return 0
+
+
+def _views_done(out: Path) -> int:
+    from slscan.capture.session import SESSION_FILE, load_session
+
+    return len(load_session(out, validate=False).views) if (out / SESSION_FILE).is_file() else 0
 
 
 def _print_summary(result, reports, seconds: float, out: Path, next_step: str) -> None:

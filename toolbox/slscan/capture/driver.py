@@ -473,13 +473,14 @@ def find_exposure(
     min_peak: float = 0.25,
     settle_s: float = 0.0,
     max_trials: int = 12,
+    search: bool = True,
 ) -> ExposureResult:
     """Find an exposure (then gain) for which the white frame and the finest green lines
     stay below saturation (at most ``max_clipped`` of the lit pixel channels at full
     scale) with their peak near ``target_peak`` of full scale and above ``min_peak``.
 
-    Cameras without an exposure control are measured as they are. Raises nothing: the
-    result says whether it succeeded (``ok``) and why not.
+    Cameras without an exposure control, or ``search=False``, are measured as they are.
+    Raises nothing: the result says whether it succeeded (``ok``) and why not.
     """
     w, h = projector.resolution
     finest = finest_pattern(patterns)
@@ -506,7 +507,7 @@ def find_exposure(
         return trial
 
     trial = measure()
-    if "exposure" in controls:
+    if search and "exposure" in controls:
         lo, hi = controls["exposure"]
         good: ExposureTrial | None = None  # the brightest unclipped setting seen
         bad: float | None = None  # the darkest clipped exposure seen
@@ -541,7 +542,12 @@ def find_exposure(
     full_name = f"{camera.name} at {', '.join(f'{k} {v:g}' for k, v in trial.controls.items()) or 'its settings'}"
     if trial.clipped_share > max_clipped:
         ok = False
-        what = "no exposure the camera allows avoids it" if "exposure" in controls else "the camera's exposure cannot be set"
+        if not search:
+            what = "lower the exposure (--auto-exposure searches for one)"
+        elif "exposure" in controls:
+            what = "no exposure the camera allows avoids it"
+        else:
+            what = "the camera's exposure cannot be set"
         message = (f"{100 * trial.clipped_share:.2f} % of the lit pixels are saturated ({full_name}); {what}: "
                    "dim the projector or close the lens aperture (paper Fig. 9)")
     elif trial.peak < min_peak:

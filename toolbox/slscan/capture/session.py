@@ -421,6 +421,7 @@ class SessionWriter:
         self._resume = resume
         self._views: list[ViewRecord] = []
         self._ctx = None
+        self._created = False  # incremental: this writer made ``out``
         self.tmp: Path | None = None
 
     @property
@@ -453,6 +454,7 @@ class SessionWriter:
             self.out.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise SlscanError(f"{self.out}: cannot write here ({exc.strerror})") from None
+        self._created = True
         write_json(meta, self.session().to_dict())
         return self
 
@@ -508,6 +510,8 @@ class SessionWriter:
         if self._incremental:
             for left in self.out.glob(".view_*.partial"):
                 shutil.rmtree(left, ignore_errors=True)
+            if exc_type is not None and self._created and not self._views:
+                shutil.rmtree(self.out, ignore_errors=True)  # nothing finished: leave nothing
             return False
         if exc_type is None:
             write_json(self.tmp / SESSION_FILE, self.session().to_dict())

@@ -59,8 +59,9 @@ def open_camera(spec: DeviceSpec) -> Camera:
     if spec.kind == "opencv":
         from slscan.devices.opencv_camera import OpenCVCamera
 
-        source: int | str = spec.arg if spec.arg and not spec.arg.isdigit() else _index(spec, "camera")
-        return OpenCVCamera(source)
+        if spec.arg and not spec.arg.isdigit():  # a video file or an image sequence: no buffered frames
+            return OpenCVCamera(spec.arg, flush_frames=0)
+        return OpenCVCamera(_index(spec, "camera"))
     if spec.kind == "gphoto2":
         from slscan.devices.gphoto import GPhoto2Camera
 
