@@ -127,9 +127,17 @@ class Camera(Device):
 
     def set_controls(self, **values: float) -> dict[str, float]:
         """Set controls by name; return the values the device actually applied."""
-        if values:
-            raise DeviceError(f"{self.name}: controls {', '.join(values)} cannot be set on this camera")
+        self.check_control_names(values)
         return {}
+
+    def check_control_names(self, values: dict[str, float], settable=None) -> None:
+        """Raise naming the controls in ``values`` that are not in ``settable`` (default:
+        :meth:`controls`)."""
+        settable = self.controls() if settable is None else settable
+        unknown = [k for k in values if k not in settable]
+        if unknown:
+            have = ", ".join(settable) or "none"
+            raise DeviceError(f"{self.name}: cannot set {', '.join(unknown)} (settable: {have})")
 
     def exposure_record(self) -> dict[str, Any]:
         """What ``session.json`` records of the capture settings of each view (JSON types).

@@ -291,10 +291,7 @@ class GPhoto2Camera(Camera):
 
     def set_controls(self, **values: float) -> dict[str, float]:
         """Set the nearest shutter speed / ISO choice; return the values the camera reads back."""
-        unknown = [k for k in values if k not in self._controls]
-        if unknown:
-            have = ", ".join(self._controls) or "none"
-            raise DeviceError(f"{self.name}: cannot set {', '.join(unknown)} (settable: {have})")
+        self.check_control_names(values, self._controls)
         applied = {}
         for key, value in values.items():
             wname, choices = self._controls[key]

@@ -300,10 +300,7 @@ class OpenCVCamera(Camera):
     def set_controls(self, **values: float) -> dict[str, float]:
         """Set exposure / gain (clamped to the driver's range); return what ``get`` reads back."""
         cap = self._require_open()
-        unknown = [k for k in values if k not in self._ranges]
-        if unknown:
-            have = ", ".join(self._ranges) or "none"
-            raise DeviceError(f"{self.name}: cannot set {', '.join(unknown)} (settable: {have})")
+        self.check_control_names(values, self._ranges)
         applied = {}
         for key, value in values.items():
             lo, hi = self._ranges[key]

@@ -164,9 +164,8 @@ class VirtualCamera(Camera):
         import dataclasses
 
         ranges = self.controls()
+        self.check_control_names(values, ranges)
         for key, value in values.items():
-            if key not in ranges:
-                raise DeviceError(f"{self.name}: no control {key!r} (it has {', '.join(ranges)})")
             lo, hi = ranges[key]
             if not (math.isfinite(value) and lo <= value <= hi):
                 raise DeviceError(f"{self.name}: {key} {value} is outside [{lo:g}, {hi:g}]")
