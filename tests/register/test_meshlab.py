@@ -84,19 +84,19 @@ def test_missing_meshes_are_named(tmp_path):
     assert len(read_mlp(tmp_path / "p.mlp", check_files=False)) == 2
 
 
-def test_relative_mesh_paths_are_relative_to_the_current_folder(tmp_path, monkeypatch):
-    """A project written with relative paths (``slscan texture --out RELATIVE``) names its
-    meshes relative to its own folder, once, whatever the current folder."""
+def test_texture_project_names_its_mesh_beside_it_from_a_relative_out(tmp_path, monkeypatch):
+    """``slscan texture --out RELATIVE`` wrote the mesh through the doubled temporary folder
+    (``out/.textured.partial-X/out/...``), which MeshLab cannot open; the project must name
+    ``model.obj`` beside itself whatever the current folder."""
     import xml.etree.ElementTree as ET
 
     monkeypatch.chdir(tmp_path)
     folder = Path("out") / ".partial"
     folder.mkdir(parents=True)
     (folder / "model.obj").write_text("v 0 0 0\n")
-    (tmp_path / "elsewhere.ply").write_text("ply\n")
-    write_mlp(folder / "model.mlp", [(folder / "model.obj", np.eye(4)), (Path("elsewhere.ply"), np.eye(4))])
+    write_mlp(folder / "model.mlp", [(Path("model.obj"), np.eye(4)), ((folder / "model.obj").resolve(), np.eye(4))])
     names = [m.get("filename") for m in ET.parse(folder / "model.mlp").getroot().iter("MLMesh")]
-    assert names == ["model.obj", str(tmp_path.resolve() / "elsewhere.ply")]
+    assert names == ["model.obj", "model.obj"]
     for name in names:  # as MeshLab resolves them: against the project's folder
         assert (folder / name).is_file()
 

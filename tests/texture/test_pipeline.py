@@ -19,10 +19,18 @@ DEMO = Path(__file__).parents[2] / "recipes" / "demo.toml"
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory) -> Path:
-    """The demo recipe at reduced size, through the texture stage (no Blender preview)."""
-    out = tmp_path_factory.mktemp("texture") / "run"
-    run_recipe(load_recipe(DEMO, reduced=True), out)
-    return out
+    """The demo recipe at reduced size, through the texture stage (no Blender preview), run
+    into a folder named relative to the current folder, as ``slscan run ... --out run`` does."""
+    import os
+
+    parent = tmp_path_factory.mktemp("texture")
+    cwd = os.getcwd()
+    os.chdir(parent)
+    try:
+        run_recipe(load_recipe(DEMO.resolve(), reduced=True), Path("run"))
+    finally:
+        os.chdir(cwd)
+    return parent / "run"
 
 
 def test_the_demo_ends_in_a_textured_glb_and_files_other_programs_open(run):
@@ -48,8 +56,16 @@ def test_the_demo_ends_in_a_textured_glb_and_files_other_programs_open(run):
 def test_the_meshlab_project_loads_in_pymeshlab_with_model_and_rasters(run):
     import pymeshlab
 
+    import xml.etree.ElementTree as ET
+
+    project = run / "texture" / "model.mlp"
+    root = ET.parse(project).getroot()
+    files = [m.get("filename") for m in root.iter("MLMesh")] + [p.get("fileName") for p in root.iter("Plane")]
+    assert files[0] == "model.obj" and len(files) == 9
+    for name in files:  # MeshLab resolves them against the project's folder, strictly
+        assert (project.parent / name).is_file(), name
     ms = pymeshlab.MeshSet()
-    ms.load_project(str(run / "texture" / "model.mlp"))
+    ms.load_project(str(project))
     assert ms.mesh_number() == 1
     assert ms.raster_number() == 8
     assert ms.current_mesh().face_number() == json.loads((run / "texture" / "texture.json").read_text())["model"]["faces"]

@@ -330,8 +330,9 @@ def write_mlp(
     """Write a MeshLab project naming existing mesh files, atomically.
 
     meshes : (mesh file, (4, 4) transform) pairs; a relative file name is relative to the
-        current folder, as every path in Python; files are written relative to the
-        project's folder when they lie under it, absolute otherwise
+        project's folder (as MeshLab reads it), so pass paths relative to the current folder
+        absolute; files are written relative to the project's folder when they lie under
+        it, absolute otherwise
     rasters : registered images (their ``image`` names are written as they are: relative
         to the project's folder)
     """
@@ -339,11 +340,12 @@ def write_mlp(
     base = path.parent.resolve()
     entries = []
     for file, matrix in meshes:
-        resolved = Path(file).resolve()
+        file = Path(file)
+        resolved = (base / file) if not file.is_absolute() else file
         try:
-            name = resolved.relative_to(base).as_posix()
+            name = resolved.resolve().relative_to(base).as_posix()
         except ValueError:
-            name = str(resolved)
+            name = str(resolved.resolve())
         entries.append((Path(name).name, name, matrix))
     text = format_mlp(entries, rasters=rasters)
     with atomic_output_file(path) as tmp:

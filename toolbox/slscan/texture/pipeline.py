@@ -153,7 +153,8 @@ def texture_model(
         entries = export.view_entries(views)
         rasters = [Raster(e["name"], e["image"], e["width"], e["height"], e["fx"], e["fy"], e["cx"], e["cy"],
                           np.asarray(e["world_from_camera"])) for e in entries]
-        write_mlp(tmp / "model.mlp", [(tmp / "model.obj", np.eye(4))], rasters=rasters)
+        # the mesh beside the project, by name: ``tmp`` may be relative to the current folder
+        write_mlp(tmp / "model.mlp", [(Path("model.obj"), np.eye(4))], rasters=rasters)
         seconds["export"] = round(time.perf_counter() - t0, 2)
         progress("exported")
         manifest = {
