@@ -54,9 +54,9 @@ def test_the_demo_ends_in_a_textured_glb_and_files_other_programs_open(run):
 
 
 def test_the_meshlab_project_loads_in_pymeshlab_with_model_and_rasters(run):
-    import pymeshlab
-
     import xml.etree.ElementTree as ET
+
+    import pymeshlab
 
     project = run / "texture" / "model.mlp"
     root = ET.parse(project).getroot()
