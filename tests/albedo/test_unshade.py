@@ -12,7 +12,8 @@ import pytest
 from slscan.albedo.lights import LightCalibration
 from slscan.albedo.photometric import AlbedoConfig, SpecularLobe, fit_specular, solve_pixels
 from slscan.albedo.surface import occluded, rasterise
-from slscan.albedo.unshade import albedo_session, albedo_view, load_range_map, read_albedo_png
+from slscan.albedo.unshade import albedo_session, albedo_view, load_range_map
+from slscan.colour import read_albedo_png
 from slscan.decode.pipeline import decode_view
 from slscan.decode.rangemap import RangeMap, read_ply
 from slscan.errors import SlscanError

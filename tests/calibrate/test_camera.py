@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from slscan.calibrate.camera import CornerDetection, calibrate_camera, detect_corners
-from slscan.calibrate.target import Board
+from slscan.calibrate.camera import calibrate_camera, detect_corners
+from slscan.calibrate.target import Board, CornerDetection
 from slscan.errors import SlscanError
 from slscan.rig import PinholeModel, default_rig
 from slscan.virtual.boards import board_poses, board_scene, default_edge_sigma

@@ -5,9 +5,8 @@ from __future__ import annotations
 import numpy as np
 import rerun.blueprint as rrb
 
-from slscan.calibrate.camera import CornerDetection
 from slscan.calibrate.planes import LightPlaneModel
-from slscan.calibrate.target import Board
+from slscan.calibrate.target import Board, CornerDetection
 from slscan.rig import default_rig
 from slscan.viewer import log_calibrate as rlog
 

@@ -7,9 +7,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from slscan.albedo.unshade import srgb8
+from slscan.colour import srgb8
 from slscan.errors import SlscanError
-from slscan.rig import PinholeModel, look_at
+from slscan.rig import PinholeModel, look_at, pixel_rays
 from slscan.texture.bake import BakeOptions, bake, check_texture_memory, pad_charts, rasterise_uv
 from slscan.texture.metrics import psnr, render_into_atlas, seam_edges, seam_error
 from slscan.texture.views import TextureView
@@ -47,8 +47,6 @@ def pattern(points: np.ndarray) -> np.ndarray:
 def render_view(name, world_from_camera, vertices, faces, color_at, camera=CAMERA) -> TextureView:
     """The view's albedo image: ``color_at`` of the surface point each pixel sees (NaN: none)."""
     import open3d as o3d
-
-    from slscan.albedo.surface import pixel_rays
 
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))

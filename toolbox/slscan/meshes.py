@@ -1,8 +1,13 @@
-"""Small triangle-mesh helpers shared by the stages."""
+"""Small triangle-mesh helpers shared by the stages and the viewer."""
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import numpy as np
+
+from slscan.errors import SlscanError
 
 
 def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -18,3 +23,25 @@ def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
         np.add.at(normals, triangles[:, k], face)
     length = np.linalg.norm(normals, axis=1, keepdims=True)
     return normals / np.where(length > 0, length, 1.0)
+
+
+def read_obj_atlas(path: str | os.PathLike) -> tuple[dict, np.ndarray]:
+    """An OBJ written by :func:`slscan.texture.export.write_obj` read back:
+    ``{"vertices", "faces", "uvs"}`` (uvs with the origin at the image's top-left, as in
+    :class:`slscan.texture.atlas.Atlas`) and its 8-bit texture."""
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise SlscanError(f"{path}: textured OBJ not found")
+    mesh = trimesh.load(path, force="mesh", process=False, maintain_order=True)
+    uv = getattr(mesh.visual, "uv", None)
+    tex = getattr(getattr(mesh.visual, "material", None), "image", None)
+    if uv is None or tex is None:
+        raise SlscanError(f"{path}: expected texture coordinates and a texture image")
+    uvs = np.asarray(uv, np.float32).copy()
+    uvs[:, 1] = 1.0 - uvs[:, 1]
+    return (
+        {"vertices": np.asarray(mesh.vertices), "faces": np.asarray(mesh.faces), "uvs": uvs},
+        np.asarray(tex.convert("RGB"), np.uint8),
+    )

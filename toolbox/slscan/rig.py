@@ -11,6 +11,7 @@ Conventions (see ``docs/capture-session.md``, section Conventions):
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -175,6 +176,23 @@ class PinholeModel:
             raise SlscanError(f"{what}: missing field {exc.args[0]!r}") from None
         except (TypeError, ValueError) as exc:
             raise SlscanError(f"{what}: {exc}") from None
+
+
+@functools.lru_cache(maxsize=4)
+def pixel_rays(camera: PinholeModel) -> np.ndarray:
+    """Unit ray directions (h, w, 3) through the pixel centres, in the camera's own frame
+    (the rig frame for the rig's camera), distortion undone.
+
+    Cached per camera model; the array is read-only.
+    """
+    grid = np.stack(
+        np.meshgrid(np.arange(camera.width, dtype=float), np.arange(camera.height, dtype=float)),
+        axis=-1,
+    )
+    rays = camera.rays_local(grid)
+    rays = rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+    rays.flags.writeable = False
+    return rays
 
 
 @dataclass(frozen=True, eq=False)

@@ -8,14 +8,13 @@ the same range-map mesh for occluders.
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import numpy as np
 
 from slscan.decode.rangemap import RangeMap
 from slscan.errors import SlscanError
-from slscan.rig import PinholeModel
+from slscan.rig import PinholeModel, pixel_rays
 
 SHADOW_OFFSET_MM = 1.0
 """Shadow rays start this far off the surface (along the normal and towards the light):
@@ -36,22 +35,6 @@ class SurfaceMap:
     points: np.ndarray
     normals: np.ndarray
     face: np.ndarray
-
-
-@functools.lru_cache(maxsize=4)
-def pixel_rays(camera: PinholeModel) -> np.ndarray:
-    """Unit ray directions (h, w, 3) through the pixel centres, rig frame (distortion undone).
-
-    Cached per camera model; the array is read-only.
-    """
-    grid = np.stack(
-        np.meshgrid(np.arange(camera.width, dtype=float), np.arange(camera.height, dtype=float)),
-        axis=-1,
-    )
-    rays = camera.rays_local(grid)
-    rays = rays / np.linalg.norm(rays, axis=-1, keepdims=True)
-    rays.flags.writeable = False
-    return rays
 
 
 def _scene(range_map: RangeMap):

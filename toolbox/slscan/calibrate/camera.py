@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from slscan.calibrate.target import Board
+from slscan.calibrate.target import MIN_CORNERS, Board, CornerDetection, pose_matrix
 from slscan.decode.masks import channel_mean
 from slscan.errors import SlscanError
 from slscan.rig import PinholeModel
@@ -29,9 +29,6 @@ log = logging.getLogger(__name__)
 
 DISTORTION_MODELS = ("none", "radial", "radial-tangential", "full")
 """Lens models: no distortion; ``k1, k2``; ``k1, k2, p1, p2``; ``k1, k2, p1, p2, k3``."""
-
-MIN_CORNERS = 6
-"""Fewest corners a view needs to count as a view of the board."""
 
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
 
@@ -52,31 +49,6 @@ def distortion_flags(model: str) -> int:
             f"unknown distortion model {model!r}: expected one of {', '.join(DISTORTION_MODELS)}"
         )
     return flags[model]
-
-
-@dataclass(frozen=True)
-class CornerDetection:
-    """Board corners found in one image.
-
-    source : the image's file (or another label), for messages
-    corners : (k, 2) float64 px, OpenCV pixel centres
-    ids : (k,) int corner ids, rows of :meth:`Board.object_points`
-    reason : why the board was not found ("" when it was)
-
-    False when fewer than :data:`MIN_CORNERS` corners were found.
-    """
-
-    source: str
-    corners: np.ndarray
-    ids: np.ndarray
-    reason: str = ""
-
-    def __bool__(self) -> bool:
-        return len(self.ids) >= MIN_CORNERS
-
-    @classmethod
-    def failed(cls, source: str, reason: str) -> CornerDetection:
-        return cls(source, np.zeros((0, 2)), np.zeros(0, int), reason)
 
 
 def grey_image(image: np.ndarray) -> np.ndarray:
@@ -204,14 +176,6 @@ class CameraCalibration:
         }
 
 
-def pose_matrix(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
-    """4x4 pose from OpenCV's rotation vector and translation."""
-    pose = np.eye(4)
-    pose[:3, :3] = cv2.Rodrigues(np.asarray(rvec, np.float64).reshape(3))[0]
-    pose[:3, 3] = np.asarray(tvec, np.float64).reshape(3)
-    return pose
-
-
 def lens_from_opencv(k: np.ndarray, dist: np.ndarray, size: tuple[int, int]) -> PinholeModel:
     """A :class:`PinholeModel` from OpenCV's camera matrix (3, 3) and distortion (>= 5,)."""
     d = np.zeros(5)
@@ -332,18 +296,3 @@ def calibrate_camera(
         rejected=tuple(rejected),
         std_intrinsics=np.asarray(std_in, float).reshape(-1)[:4],
     )
-
-
-def board_pose(lens: PinholeModel, detection: CornerDetection, board: Board) -> np.ndarray:
-    """The board's pose (4, 4) ``camera_from_board`` from its corners seen by ``lens``."""
-    obj = board.object_points(detection.ids)
-    ok, rvec, tvec = cv2.solvePnP(
-        obj,
-        detection.corners.reshape(-1, 1, 2),
-        lens.K,
-        lens.dist_array,
-        flags=cv2.SOLVEPNP_ITERATIVE,
-    )
-    if not ok:
-        raise SlscanError(f"{detection.source}: the board's pose could not be found")
-    return pose_matrix(rvec, tvec)

@@ -25,8 +25,6 @@ from pathlib import Path
 from slscan.calibrate.camera import (
     DISTORTION_MODELS,
     CameraCalibration,
-    CornerDetection,
-    board_pose,
     calibrate_camera,
     detect_corners,
 )
@@ -42,7 +40,7 @@ from slscan.calibrate.procam import (
     projector_corners,
     projector_corners_from_edges,
 )
-from slscan.calibrate.target import Board
+from slscan.calibrate.target import Board, CornerDetection, board_image_id, board_pose
 from slscan.capture.session import Session, load_session
 from slscan.decode.graycode import decode_gray, gray_pairs
 from slscan.decode.hybrid import decode_hybrid
@@ -134,14 +132,6 @@ class CalibrationRun:
     inverse_camera: InverseCameraCalibration | None
     light_planes: LightPlaneCalibration | None
     projector_corners: dict[str, ProjectorCorners]
-
-
-def board_image_id(session: Session) -> str:
-    """The pattern id of the all-white frame, in which the board's corners are found."""
-    for p in session.patterns:
-        if p.family == "flat" and list(p.params.get("value", [])) == [255, 255, 255]:
-            return p.id
-    raise SlscanError(f"{session.root}: the session has no all-white frame to find the board in")
 
 
 def plane_pattern(session: Session, wanted: str = "auto") -> str:

@@ -43,14 +43,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from slscan.calibrate.camera import (
-    MIN_CORNERS,
-    CornerDetection,
-    distortion_flags,
-    lens_from_opencv,
-    pose_matrix,
-)
-from slscan.calibrate.target import Board
+from slscan.calibrate.camera import distortion_flags, lens_from_opencv
+from slscan.calibrate.target import MIN_CORNERS, Board, CornerDetection, pose_matrix
 from slscan.capture.session import Session, ViewRecord
 from slscan.decode.graycode import GrayResult, decode_gray_images
 from slscan.decode.masks import channel_mean

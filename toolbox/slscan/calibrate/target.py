@@ -1,4 +1,5 @@
-"""Printed calibration targets: chessboard and ChArUco boards, their corners and their images.
+"""Printed calibration targets: chessboard and ChArUco boards, their corners and their images;
+the corners found in a camera image and the board pose they give.
 
 Board frame (mm): origin at the outer top-left corner of the squares, x along a row of
 squares (right), y down, z into the board, so its printed face looks towards -z (towards
@@ -12,16 +13,23 @@ from __future__ import annotations
 
 import re
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from slscan.errors import SlscanError
 
+if TYPE_CHECKING:
+    from slscan.capture.session import Session
+    from slscan.rig import PinholeModel
+
 BOARD_KINDS = ("chessboard", "charuco")
 DEFAULT_DICTIONARY = "DICT_4X4_100"
 MARKER_FRACTION = 0.75
 """Default ChArUco marker side, as a fraction of the square."""
+MIN_CORNERS = 6
+"""Fewest corners a view needs to count as a view of the board."""
 
 
 @dataclass(frozen=True)
@@ -176,3 +184,62 @@ def parse_board_size(text: str) -> tuple[int, int]:
     if not m:
         raise SlscanError(f"board size {text!r}: expected COLUMNSxROWS of inner corners, e.g. 9x7")
     return int(m.group(1)), int(m.group(2))
+
+
+# --- the board found in an image ---------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CornerDetection:
+    """Board corners found in one image.
+
+    source : the image's file (or another label), for messages
+    corners : (k, 2) float64 px, OpenCV pixel centres
+    ids : (k,) int corner ids, rows of :meth:`Board.object_points`
+    reason : why the board was not found ("" when it was)
+
+    False when fewer than :data:`MIN_CORNERS` corners were found.
+    """
+
+    source: str
+    corners: np.ndarray
+    ids: np.ndarray
+    reason: str = ""
+
+    def __bool__(self) -> bool:
+        return len(self.ids) >= MIN_CORNERS
+
+    @classmethod
+    def failed(cls, source: str, reason: str) -> CornerDetection:
+        return cls(source, np.zeros((0, 2)), np.zeros(0, int), reason)
+
+
+def board_image_id(session: Session) -> str:
+    """The pattern id of the all-white frame, in which the board's corners are found."""
+    for p in session.patterns:
+        if p.family == "flat" and list(p.params.get("value", [])) == [255, 255, 255]:
+            return p.id
+    raise SlscanError(f"{session.root}: the session has no all-white frame to find the board in")
+
+
+def pose_matrix(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    """4x4 pose from OpenCV's rotation vector and translation."""
+    pose = np.eye(4)
+    pose[:3, :3] = cv2.Rodrigues(np.asarray(rvec, np.float64).reshape(3))[0]
+    pose[:3, 3] = np.asarray(tvec, np.float64).reshape(3)
+    return pose
+
+
+def board_pose(lens: PinholeModel, detection: CornerDetection, board: Board) -> np.ndarray:
+    """The board's pose (4, 4) ``camera_from_board`` from its corners seen by ``lens``."""
+    obj = board.object_points(detection.ids)
+    ok, rvec, tvec = cv2.solvePnP(
+        obj,
+        detection.corners.reshape(-1, 1, 2),
+        lens.K,
+        lens.dist_array,
+        flags=cv2.SOLVEPNP_ITERATIVE,
+    )
+    if not ok:
+        raise SlscanError(f"{detection.source}: the board's pose could not be found")
+    return pose_matrix(rvec, tvec)

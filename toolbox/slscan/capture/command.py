@@ -356,7 +356,7 @@ class AfterView:
 
     def _board(self, index: int, record, session) -> ViewReport:
         from slscan.calibrate.camera import detect_corners
-        from slscan.calibrate.pipeline import board_image_id
+        from slscan.calibrate.target import board_image_id
         from slscan.viewer.log_calibrate import log_board_image
 
         view = session.view(record.name)

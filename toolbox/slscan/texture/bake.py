@@ -200,7 +200,7 @@ def depth_map(scene, view: TextureView, options: BakeOptions) -> DepthMap:
     import cv2
     import open3d as o3d
 
-    from slscan.albedo.surface import pixel_rays
+    from slscan.rig import pixel_rays
 
     cam = view.camera
     rays_cam = pixel_rays(cam)  # (h, w, 3) unit, camera frame

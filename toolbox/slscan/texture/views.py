@@ -105,8 +105,8 @@ def load_views(
         warning (the registration left them out).
     session : the capture session (default: the one ``albedo.json`` names)
     """
-    from slscan.albedo.unshade import read_albedo_png
     from slscan.capture.session import load_session
+    from slscan.colour import read_albedo_png
 
     albedo_dir = Path(albedo_dir)
     index = albedo_dir / "albedo.json"

@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 import rerun as rr
 
+from slscan.colour import srgb8
 from slscan.errors import SlscanError
 from slscan.meshes import vertex_normals
 from slscan.viewer.recording import FRAME_TIMELINE, LOSSLESS_ATTR, VIEW_TIMELINE
@@ -93,13 +94,6 @@ def _png(image: np.ndarray) -> rr.EncodedImage:
     if not ok:
         raise SlscanError("could not PNG-encode an image for Rerun")
     return rr.EncodedImage(contents=data.tobytes(), media_type="image/png")
-
-
-def _srgb(linear: np.ndarray) -> np.ndarray:
-    """8-bit sRGB (..., 3) uint8 of linear RGB in [0, 1]; NaN becomes black."""
-    c = np.clip(np.nan_to_num(linear, nan=0.0), 0.0, 1.0)
-    encoded = np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1 / 2.4) - 0.055)
-    return np.round(encoded * 255).astype(np.uint8)
 
 
 def _colors_u8(colors: np.ndarray) -> np.ndarray:
@@ -313,7 +307,7 @@ def log_ground_truth(
     normal = np.round(normal).clip(0, 255).astype(np.uint8)
     rec.log(f"{TRUTH_PATH}/normal", _png(normal))
 
-    albedo = _srgb(gt.albedo)
+    albedo = srgb8(gt.albedo)
     rec.log(f"{TRUTH_PATH}/albedo", _png(albedo))
 
     column = gt.projector_uv[..., 0]
@@ -343,5 +337,5 @@ def log_ground_truth(
         radius = 0.5 * float(np.median(spacing)) if spacing.size else 1.0
         rec.log(
             f"{scan_path(view_index)}/truth_points",
-            rr.Points3D(grid[valid], colors=_srgb(gt.albedo[::step, ::step][valid]), radii=radius),
+            rr.Points3D(grid[valid], colors=srgb8(gt.albedo[::step, ::step][valid]), radii=radius),
         )

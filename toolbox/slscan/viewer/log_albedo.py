@@ -24,6 +24,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from slscan.colour import srgb8
 from slscan.errors import SlscanError
 from slscan.viewer.layouts import stage_blueprint
 from slscan.viewer.log import (
@@ -32,7 +33,6 @@ from slscan.viewer.log import (
     _check_image,
     _png,
     _set_view,
-    _srgb,
     _to_uint8,
     scan_path,
 )
@@ -112,7 +112,7 @@ def log_unshaded(
     if albedo.shape[:2] != valid.shape:
         raise SlscanError(f"albedo image is {albedo.shape[:2]}, its validity mask {valid.shape}")
     _set_view(rec, view_index)
-    rec.log(f"{ALBEDO_PATH}/unshaded", _png(_srgb(np.where(valid[..., None], albedo, 0.0))))
+    rec.log(f"{ALBEDO_PATH}/unshaded", _png(srgb8(np.where(valid[..., None], albedo, 0.0))))
     if normal is not None:
         rgb = (
             np.round((np.nan_to_num(normal, nan=-1.0) + 1.0) * 127.5).clip(0, 255).astype(np.uint8)
@@ -166,7 +166,7 @@ def log_albedo_mesh(
     if len(vertex_albedo) != len(vertices):
         raise SlscanError(f"{len(vertex_albedo)} vertex albedos for {len(vertices)} vertices")
     known = np.all(np.isfinite(vertex_albedo), axis=1)
-    colors = _srgb(vertex_albedo)
+    colors = srgb8(vertex_albedo)
     colors[~known] = 96
     _set_view(rec, view_index)
     rec.log(

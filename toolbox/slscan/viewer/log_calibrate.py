@@ -29,10 +29,9 @@ from slscan.viewer.layouts import stage_blueprint
 from slscan.viewer.log import _set_view, _to_uint8, log_rig
 
 if TYPE_CHECKING:
-    from slscan.calibrate.camera import CornerDetection
     from slscan.calibrate.pipeline import CalibrationRun
     from slscan.calibrate.planes import LightPlaneModel
-    from slscan.calibrate.target import Board
+    from slscan.calibrate.target import Board, CornerDetection
     from slscan.capture.session import Session
 
 CAMERA_PATH = "world/camera/image/calibrate"
@@ -210,7 +209,7 @@ def log_calibration(rec: rr.RecordingStream | None, run: CalibrationRun, session
     """Log a calibration's results: the rig, board poses, reprojections, planes, residuals."""
     if rec is None:
         return
-    from slscan.calibrate.camera import board_pose
+    from slscan.calibrate.target import board_pose
 
     cal = run.calibration
     old = session.calibration
@@ -271,7 +270,7 @@ def log_calibration(rec: rr.RecordingStream | None, run: CalibrationRun, session
 
 
 def _white_id(session: Session) -> str:
-    from slscan.calibrate.pipeline import board_image_id
+    from slscan.calibrate.target import board_image_id
 
     return board_image_id(session)
 
