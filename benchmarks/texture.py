@@ -67,8 +67,9 @@ def truth_texture(vertices, faces, atlas, scene):
 
 
 def accuracy_rows(work: Path, size: int) -> list[tuple]:
-    from slscan.albedo.unshade import srgb8
+    from slscan.colour import srgb8
     from slscan.fuse import read_mesh
+    from slscan.register.frame import read_frame
     from slscan.texture.atlas import AtlasOptions, build_atlas
     from slscan.texture.bake import BakeOptions, bake
     from slscan.texture.metrics import psnr, seam_error
@@ -78,7 +79,11 @@ def accuracy_rows(work: Path, size: int) -> list[tuple]:
     mesh = read_mesh(work / "simplify" / "mesh.ply")
     views = load_views(work / "albedo", work / "register")
     atlas = build_atlas(mesh.vertices, mesh.faces, AtlasOptions(size=size))
-    truth = srgb8(truth_texture(mesh.vertices, mesh.faces, atlas, builtin_object()))
+    # the model is in the upright object frame; the scene's albedo is known in its own frame
+    frame = read_frame(work / "register" / "registration.json")
+    scene_from_model = np.linalg.inv(frame.object_from_reference) if frame is not None else np.eye(4)
+    scene_vertices = mesh.vertices @ scene_from_model[:3, :3].T + scene_from_model[:3, 3]
+    truth = srgb8(truth_texture(scene_vertices, mesh.faces, atlas, builtin_object()))
     rows = []
     variants = [
         ("blended (default)", BakeOptions()),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import tomllib
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
@@ -32,13 +33,62 @@ def test_every_recipe_runs_at_reduced_size_and_resumes(path, tmp_path, request):
     assert not any(r.ran for r in again)
     resolved = tomllib.loads((out / "recipe.resolved.toml").read_text())
     assert resolved == recipe.resolved()
+    for project in out.rglob("*.mlp"):
+        assert_mlp_files_exist(project)
+    if path.stem == "demo":
+        assert_demo_model_upright(out)
+    if path.stem == "bunny":  # the Stanford frame is y up; six scans were taken on a turntable
+        from slscan.register.frame import read_frame
+
+        frame = read_frame(out / "register" / "registration.json")
+        assert frame.up_from == "turntable"
+        assert set(frame.turntable_views) == {f"bun{a:03d}" for a in (0, 45, 90, 180, 270, 315)}
+        assert (frame.object_from_reference[:3, :3] @ [0.0, 1.0, 0.0])[1] > 0.99
+
+
+def assert_mlp_files_exist(project: Path) -> None:
+    """Every file a MeshLab project names exists relative to the project, as MeshLab itself
+    resolves it (no lenient search in other folders, no absolute or parent paths)."""
+    root = ET.parse(project).getroot()
+    named = [e.get("filename") for e in root.iter("MLMesh")] + [e.get("fileName") for e in root.iter("Plane")]
+    assert named and all(named), f"{project}: entries without a file name"
+    for name in named:
+        assert not Path(name).is_absolute() and ".." not in Path(name).parts, f"{project}: {name}"
+        assert (project.parent / name).is_file(), f"{project}: names {name}, which is not beside it"
+
+
+def assert_demo_model_upright(out: Path) -> None:
+    """The demo's model is written in the upright object frame: the figurine's up (the
+    scene's -y, the turntable axis) is +Y, it stands on y = 0, and the glb is the OBJ
+    scaled to metres."""
+    import numpy as np
+    import trimesh
+
+    from slscan.fuse import read_mesh
+    from slscan.register.frame import read_frame
+    from slscan.virtual.scenes import builtin_object
+
+    frame = read_frame(out / "register" / "registration.json")
+    assert frame is not None and frame.up_from == "turntable"
+    assert len(frame.turntable_views) == 8
+    up = frame.object_from_reference[:3, :3] @ [0.0, -1.0, 0.0]  # the reference: the scene's frame
+    assert np.degrees(np.arccos(np.clip(up[1], -1, 1))) < 1.0
+    scene_height = np.ptp(builtin_object().vertices[:, 1])
+    for mesh_file in sorted((out / "simplify").glob("*.ply")):  # within a voxel (2 mm, reduced)
+        v = read_mesh(mesh_file).vertices
+        assert abs(np.percentile(v[:, 1], 0.1)) < 2.5, mesh_file
+        assert np.percentile(v[:, 1], 99.9) == pytest.approx(scene_height, rel=0.05), mesh_file
+    obj = trimesh.load(out / "texture" / "model.obj", force="mesh", process=False, maintain_order=True)
+    glb = trimesh.load(out / "texture" / "model.glb", force="mesh", process=False)
+    np.testing.assert_allclose(np.sort(glb.vertices[:, 1]) * 1000.0, np.sort(obj.vertices[:, 1]), atol=1e-3)
+    assert abs(np.percentile(obj.vertices[:, 1], 0.1)) < 2.5
 
 
 def test_a_changed_setting_reruns_that_stage_and_those_after_it(tmp_path):
     demo = Path(__file__).parents[2] / "recipes" / "demo.toml"
     out = tmp_path / "run"
     run_recipe(load_recipe(demo, reduced=True), out)
-    ran = lambda runs: {r.stage: r.ran for r in runs}  # noqa: E731
+    ran = lambda runs: {r.stage: r.ran for r in runs}
     runs = run_recipe(load_recipe(demo, reduced=True, overrides=["decode.estimator=centroid"]), out)
     model = {"register": True, "fuse": True, "simplify": True, "texture": True}
     # decode changed: it and what reads its range maps run; lights does not depend on it
@@ -99,6 +149,6 @@ def test_model_stages_stream_to_rerun(shared_data, tmp_path):
     with open_recording(save=recording) as rec:
         run_recipe(load_recipe(bunny, reduced=True), tmp_path / "run", rec=rec)
     paths = {c.entity_path for c in RrdReader(recording).stream().to_chunks()}
-    assert {"/world/scans/bun000", "/world/scans/bun000/mesh", "/world/model/fused",
-            "/world/model/simplified"} <= paths, sorted(paths)
+    assert {"/object/scans/bun000", "/object/scans/bun000/mesh", "/object/model/fused",
+            "/object/model/simplified"} <= paths, sorted(paths)
     assert any(p.startswith("/plot/register/rmse/") for p in paths)

@@ -214,5 +214,5 @@ def test_registration_logs_to_rerun(tmp_path, blob_views):
         log_scan_poses(rec, result.poses, stage="registered")
         log_pair_residuals(rec, result.pairs)
     paths = {c.entity_path for c in RrdReader(out).stream().to_chunks()}
-    assert "/world/scans/view0" in paths and "/world/scans/view0/mesh" in paths
+    assert "/object/scans/view0" in paths and "/object/scans/view0/mesh" in paths
     assert any(p.startswith("/plot/register/rmse/") for p in paths)

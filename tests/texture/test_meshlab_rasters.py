@@ -16,8 +16,9 @@ MeshLab's projection runs in two ways:
   an OpenGL context: pymeshlab's Linux wheel ships no Qt platform plugin (PyMeshLab
   issue #359), so they run (in a subprocess: a failure aborts the process) only where
   ``libqxcb.so`` is found (``QT_PLUGIN_PATH``, or the ``PyQt5-Qt5==5.15.2`` wheel, which
-  matches pymeshlab's Qt) and an X display (``DISPLAY``, or ``xvfb-run``); skipped
-  otherwise. See the section's comment for two faults of MeshLab's depth test.
+  matches pymeshlab's Qt, in the test extras) and an X display (``DISPLAY``, or
+  ``xvfb-run`` from .ci/setup); skipped otherwise, and failed when ``CI`` is set. See the
+  section's comment for two faults of MeshLab's depth test.
 """
 
 from __future__ import annotations
@@ -395,6 +396,14 @@ def _qt_plugin_dir() -> Path | None:
     return None
 
 
+def _unavailable(reason: str) -> None:
+    """Skip for lack of a GL context, except in CI (``CI`` set), where .ci/setup provides one
+    (Xvfb, and the ``PyQt5-Qt5`` wheel of the test extras): there, a skip is a failure."""
+    if os.environ.get("CI"):
+        pytest.fail(f"{reason} (CI is set: .ci/setup should provide Xvfb and PyQt5-Qt5)")
+    pytest.skip(reason)
+
+
 def run_meshlab_projection(
     jobs: list[tuple[str, Path, str]], folder: Path
 ) -> dict[str, np.ndarray]:
@@ -404,10 +413,10 @@ def run_meshlab_projection(
         raster without or with the depth test, or all rasters blended
     """
     if sys.platform != "linux":
-        pytest.skip("pymeshlab's OpenGL filters are exercised on Linux only")
+        _unavailable("pymeshlab's OpenGL filters are exercised on Linux only")
     plugins = _qt_plugin_dir()
     if plugins is None:
-        pytest.skip(
+        _unavailable(
             "no Qt platform plugin for pymeshlab's OpenGL filters (its Linux wheel ships "
             "none): set QT_PLUGIN_PATH or install PyQt5-Qt5==5.15.2"
         )
@@ -426,7 +435,7 @@ def run_meshlab_projection(
     command = [sys.executable, "-c", _GL_DRIVER]
     if not env.get("DISPLAY"):
         if shutil.which("xvfb-run") is None:
-            pytest.skip("pymeshlab's OpenGL filters need an X display: no DISPLAY, no xvfb-run")
+            _unavailable("pymeshlab's OpenGL filters need an X display: no DISPLAY, no xvfb-run")
         command = ["xvfb-run", "-a", *command]
     outs = [folder / f"meshlab_job{i}.npz" for i in range(len(jobs))]
     payload = json.dumps([(str(p), kind, str(o)) for (_, p, kind), o in zip(jobs, outs)])
@@ -447,7 +456,7 @@ def run_meshlab_projection(
                 word in tail for word in ("GL", "Qt platform plugin", "xvfb", "display", "Aborted")
             )
         ):
-            pytest.skip(f"pymeshlab could not open an OpenGL context: {tail}")
+            _unavailable(f"pymeshlab could not open an OpenGL context: {tail}")
         raise AssertionError(f"pymeshlab colour projection failed:\n{tail}")
     result = {}
     for (key, _, _), out in zip(jobs, outs):

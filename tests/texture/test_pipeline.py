@@ -74,8 +74,9 @@ def test_the_meshlab_project_loads_in_pymeshlab_with_model_and_rasters(run):
 def test_the_baked_colour_matches_the_true_albedo(run):
     """Registration, camera poses, projection and baking together: wrong poses or a
     flipped axis would drop this to ~12 dB."""
-    from slscan.albedo.unshade import srgb8
+    from slscan.colour import srgb8
     from slscan.fuse import read_mesh
+    from slscan.register.frame import read_frame
     from slscan.texture.atlas import AtlasOptions, build_atlas
     from slscan.texture.bake import bake
     from slscan.texture.metrics import psnr, render_into_atlas
@@ -87,7 +88,11 @@ def test_the_baked_colour_matches_the_true_albedo(run):
     atlas = build_atlas(mesh.vertices, mesh.faces, AtlasOptions(size=512))
     baked = bake(mesh.vertices, mesh.faces, atlas, views)
     scene = builtin_object()
-    truth, covered = render_into_atlas(mesh.vertices, mesh.faces, atlas, lambda p: surface_albedo(scene, p))
+    # the model is in the upright object frame; the scene's albedo is known in the scene's
+    frame = read_frame(run / "register" / "registration.json")
+    scene_from_model = np.linalg.inv(frame.object_from_reference)
+    in_scene = mesh.vertices @ scene_from_model[:3, :3].T + scene_from_model[:3, 3]
+    truth, _ = render_into_atlas(in_scene, mesh.faces, atlas, lambda p: surface_albedo(scene, p))
     value = psnr(srgb8(baked.linear), srgb8(truth), baked.observed)
     assert value > 21.0, f"PSNR {value:.1f} dB"  # quarter-size scans: blurred albedo, ~1 degree registration
     # the same views with their poses turned 3 degrees about the object's vertical axis

@@ -45,6 +45,7 @@ class PlyData(dict):
 
     info: dict[str, str]
     view_direction: np.ndarray | None = None
+    up_direction: np.ndarray | None = None
     grid_shape: tuple[int, int] | None = None
     name: str = ""
     is_slscan_range_map: bool = False
@@ -111,13 +112,13 @@ def read_ply_elements(path: str | os.PathLike) -> PlyData:
 
 
 def _header_comment(out: PlyData, words: list[str], line: str) -> None:
-    if words[0] == "view_direction" and len(words) == 4:
+    if words[0] in ("view_direction", "up_direction") and len(words) == 4:
         try:
             d = np.array([float(x) for x in words[1:]])
         except ValueError:
             return
-        if np.linalg.norm(d) > 0:
-            out.view_direction = d
+        if np.isfinite(d).all() and np.linalg.norm(d) > 0:
+            setattr(out, words[0], d)
     elif words[0] == "grid" and len(words) == 3 and words[1].isdigit() and words[2].isdigit():
         out.grid_shape = (int(words[1]), int(words[2]))
     elif words[0] in ("name", "view") and len(words) >= 2:  # slscan scans; decode range maps

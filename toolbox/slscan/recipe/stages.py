@@ -192,17 +192,20 @@ def _run_register(ctx: StageContext, config: RegisterConfig) -> dict[str, Any]:
         scans, poses = load_scans(ctx.inputs["range_maps"])
     else:
         raise SlscanError("register: set register.source, or decode range maps in an earlier stage")
+    from slscan.register.frame import preview_frame, to_object_frame
     from slscan.register.multiview import MultiviewConfig
     from slscan.viewer import log_register as rlog
 
     poses = poses if config.use_poses else None
-    rlog.log_registration_start(ctx.rec, scans, poses)
+    start = preview_frame(scans, poses)
+    rlog.log_registration_start(ctx.rec, scans, start.apply(poses) if start else poses)
     result = register_scans(scans, initial_poses=poses, reference=config.reference or None, progress=ctx.progress,
                             config=MultiviewConfig(pose_tolerance=config.pose_tolerance or None))
+    result, frame = to_object_frame(scans, result)
     rlog.log_registration_result(ctx.rec, result)
-    save_registration(ctx.out, scans, result, overwrite=True)
+    save_registration(ctx.out, scans, result, overwrite=True, frame=frame)
     rmse = [p.rmse for p in result.pairs]
-    return {"aligned": len(result.poses), "left_out": len(result.left_out),
+    return {"aligned": len(result.poses), "left_out": len(result.left_out), "up_from": frame.up_from,
             "median_pair_rmse_mm": round(float(np.median(rmse)), 4) if rmse else None}
 
 

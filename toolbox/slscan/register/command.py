@@ -49,10 +49,11 @@ def load_scans(path: Path) -> tuple[list, dict[str, np.ndarray] | None]:
     return [load_range_scan(p) for p in plys], None
 
 
-def save_registration(folder: Path, scans, result, *, overwrite: bool = False) -> Path:
+def save_registration(folder: Path, scans, result, *, overwrite: bool = False, frame=None) -> Path:
     """Write a registration: the aligned set (each registered scan as PLY + ``aligned.mlp``,
     atomically) and ``registration.json`` (reference, poses, residual per pair, scans left
-    out). Returns the project's path."""
+    out, and with ``frame`` — a :class:`~slscan.register.frame.ObjectFrame` — the object
+    frame the poses are in). Returns the project's path."""
     from slscan.fsio import write_json
     from slscan.register.meshlab import write_scan_project
 
@@ -64,11 +65,13 @@ def save_registration(folder: Path, scans, result, *, overwrite: bool = False) -
         "pairs": [{"source": p.source, "target": p.target, "fitness": p.fitness, "rmse_mm": p.rmse}
                   for p in result.pairs],
         "left_out": result.left_out,
+        **({"frame": frame.to_json()} if frame is not None else {}),
     })
     return project
 
 
 def _cmd_register(args: argparse.Namespace) -> int:
+    from slscan.register.frame import preview_frame, to_object_frame
     from slscan.register.multiview import register_scans
     from slscan.viewer import log_register as rlog
     from slscan.viewer.recording import recording_from_args
@@ -81,12 +84,14 @@ def _cmd_register(args: argparse.Namespace) -> int:
 
     with recording_from_args(args, recording_name=f"register {args.scans.name}",
                              blueprint=register_blueprint()) as rec:
-        rlog.log_registration_start(rec, scans, poses)
+        start = preview_frame(scans, poses)
+        rlog.log_registration_start(rec, scans, start.apply(poses) if start else poses)
         n_pairs = len(scans) * (len(scans) - 1) // 2
         with ProgressBar(n_pairs + 1, "registering", args.quiet) as bar:
             result = register_scans(scans, initial_poses=poses, reference=args.reference, progress=bar.step)
+        result, frame = to_object_frame(scans, result)
         rlog.log_registration_result(rec, result)
-    project = save_registration(args.out, scans, result, overwrite=args.overwrite)
+    project = save_registration(args.out, scans, result, overwrite=args.overwrite, frame=frame)
     out = console()
     rmse = [p.rmse for p in result.pairs]
     out.print(f"[green]aligned[/] {len(result.poses)} of {len(scans)} scans in {time.perf_counter() - t0:.1f} s; "
@@ -94,19 +99,24 @@ def _cmd_register(args: argparse.Namespace) -> int:
               f"-> {project}", highlight=False)
     for name, reason in result.left_out.items():
         out.print(f"[yellow]left out[/] {name}: {reason}", highlight=False)
+    up = (f"the turntable axis of {len(frame.turntable_views)} views" if frame.up_from == "turntable"
+          else "the cameras' up (no turntable axis found)")
+    out.print(f"object frame: y up along {up}, origin at the object's base", highlight=False)
     return 0
 
 
 def _cmd_fuse(args: argparse.Namespace) -> int:
     from slscan.fuse import FuseConfig, fuse_scans, poisson_reconstruct, write_mesh
     from slscan.viewer import log_register as rlog
+    from slscan.viewer.layouts import register_blueprint
     from slscan.viewer.recording import recording_from_args
 
+    _check_mesh_out(args.out, args.overwrite)
     scans, poses = load_scans(args.aligned)
     if poses is None:
         raise SlscanError(f"{args.aligned}: the scans have no poses; run `slscan register` first")
     t0 = time.perf_counter()
-    with recording_from_args(args, recording_name=f"fuse {args.aligned.name}") as rec:
+    with recording_from_args(args, recording_name=f"fuse {args.aligned.name}", blueprint=register_blueprint()) as rec:
         with ProgressBar(len(scans), f"fusing ({args.method})", args.quiet) as bar:
             if args.method == "tsdf":
                 mesh = fuse_scans(scans, poses, config=FuseConfig(voxel_size=args.voxel), progress=bar.step).mesh
@@ -119,12 +129,28 @@ def _cmd_fuse(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_mesh_out(out: Path, overwrite: bool) -> None:
+    """Refuse to replace an existing mesh file ``out`` unless ``overwrite`` (before any work)."""
+    if out.is_dir():
+        raise SlscanError(f"{out}: is a folder; expected a mesh file such as model.ply")
+    if out.exists() and not overwrite:
+        raise SlscanError(f"{out}: exists (pass --overwrite to replace it)")
+
+
 def _cmd_simplify(args: argparse.Namespace) -> int:
     from slscan.simplify import simplify_file
+    from slscan.viewer import log_register as rlog
+    from slscan.viewer.layouts import register_blueprint
+    from slscan.viewer.recording import recording_from_args
 
+    _check_mesh_out(args.out, args.overwrite)
     t0 = time.perf_counter()
-    mesh = simplify_file(args.mesh, args.out, args.faces, method=args.method,
-                         preserve_boundary=not args.free_boundary)
+    with (recording_from_args(args, recording_name=f"simplify {args.mesh.name}", blueprint=register_blueprint()) as rec,
+          ProgressBar(1, f"simplifying ({args.method})", args.quiet) as bar):
+        mesh = simplify_file(args.mesh, args.out, args.faces, method=args.method,
+                             preserve_boundary=not args.free_boundary)
+        bar.step(f"{len(mesh.faces):,} faces")
+        rlog.log_simplified_mesh(rec, mesh)
     console().print(f"[green]simplified[/] {args.mesh} to {len(mesh.faces):,} faces in "
                     f"{time.perf_counter() - t0:.1f} s -> {args.out}", highlight=False)
     return 0
@@ -167,6 +193,7 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, type=Path, help="mesh file to write (PLY)")
     p.add_argument("--voxel", type=float, default=0.57, help="voxel size, mm (default 0.57, the paper's)")
     p.add_argument("--method", choices=("tsdf", "poisson"), default="tsdf", help="default: tsdf")
+    p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_recording_arguments(p)
     p.set_defaults(func=_cmd_fuse)
@@ -184,4 +211,7 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--faces", type=int, default=1_000_000, help="target face count (default 1000000)")
     p.add_argument("--method", choices=("fast", "quadric"), default="fast", help="default: fast")
     p.add_argument("--free-boundary", action="store_true", help="let boundary edges collapse")
+    p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_recording_arguments(p)
     p.set_defaults(func=_cmd_simplify)

@@ -35,6 +35,11 @@ log = logging.getLogger(__name__)
 STANFORD_VIEW_DIRECTION = (0.0, 0.0, 1.0)
 """Towards the sensor in a Stanford scan's frame: the Cyberware scanner looks along -z."""
 
+OPENCV_UP = (0.0, -1.0, 0.0)
+"""The sensor's up in an OpenCV camera frame (x right, y down): slscan's range maps."""
+STANFORD_UP = (0.0, 1.0, 0.0)
+"""The sensor's up in a Stanford scan's frame (y up)."""
+
 UNITS_TO_MM = {"m": 1000.0, "cm": 10.0, "mm": 1.0}
 
 
@@ -56,6 +61,10 @@ class RangeScan:
     name : the scan's name (the file stem when loaded)
     grid : (rows, cols) int32 or None: the vertex index of each range-grid cell, -1 where
         the cell has no sample, when the scan came from a range grid
+    up_direction : (3,) float64 unit vector, scan frame: the sensor's up, the sensor held
+        upright (:data:`OPENCV_UP` for slscan's range maps, :data:`STANFORD_UP` for the
+        Stanford scans); it chooses which way the object frame's +Y points
+        (:mod:`slscan.register.frame`)
     """
 
     vertices: np.ndarray
@@ -65,6 +74,7 @@ class RangeScan:
     view_direction: np.ndarray
     name: str = ""
     grid: np.ndarray | None = field(default=None, repr=False)
+    up_direction: np.ndarray = field(default_factory=lambda: np.array(OPENCV_UP), repr=False)
 
     def __post_init__(self) -> None:
         n = len(self.vertices)
@@ -86,6 +96,8 @@ class RangeScan:
             )
         if np.shape(self.view_direction) != (3,):
             raise SlscanError(f"scan {self.name!r}: expected a (3,) view direction")
+        if np.shape(self.up_direction) != (3,):
+            raise SlscanError(f"scan {self.name!r}: expected a (3,) up direction")
 
     @property
     def n_vertices(self) -> int:
@@ -114,6 +126,7 @@ def scan_from_mesh(
     name: str = "",
     grid: np.ndarray | None = None,
     drop_unreferenced: bool = True,
+    up_direction: np.ndarray | None = None,
 ) -> RangeScan:
     """A :class:`RangeScan` from a triangle mesh in the scan frame.
 
@@ -125,6 +138,7 @@ def scan_from_mesh(
     normals : (n, 3); default: area-weighted vertex normals of ``faces``
     grid : (rows, cols) int index map, -1 for empty cells (re-indexed with the vertices)
     drop_unreferenced : remove vertices no face uses
+    up_direction : (3,) the sensor's up in the scan frame; default :data:`OPENCV_UP`
     """
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces, np.int64).reshape(-1, 3)
@@ -172,7 +186,13 @@ def scan_from_mesh(
         view_direction=d,
         name=name,
         grid=grid,
+        up_direction=_unit(up_direction if up_direction is not None else OPENCV_UP),
     )
+
+
+def _unit(v) -> np.ndarray:
+    v = np.asarray(v, np.float64)
+    return v / np.linalg.norm(v)
 
 
 def grid_faces(
@@ -316,7 +336,8 @@ def load_stanford_scan(
             f"{path}: no triangle could be made from the range grid (empty or degenerate scan)"
         )
     direction = np.array(STANFORD_VIEW_DIRECTION)
-    scan = scan_from_mesh(points, faces, view_direction=direction, name=path.stem, grid=grid)
+    scan = scan_from_mesh(points, faces, view_direction=direction, name=path.stem, grid=grid,
+                          up_direction=np.array(STANFORD_UP))
     referenced = np.ones(scan.n_vertices, bool)
     quality = scan.quality.astype(np.float64) * boundary_ramp(scan.grid, referenced, ramp_cells)
     if "confidence" in vertex:
@@ -577,6 +598,7 @@ def load_range_scan(
         direction = ply.view_direction
     if direction is None and ply.is_slscan_range_map:
         direction = -points.mean(axis=0)
+    up = ply.up_direction if ply.up_direction is not None else np.array(OPENCV_UP)
     normals = None
     if all(k in vertex for k in ("nx", "ny", "nz")):
         normals = np.stack([vertex[k] for k in ("nx", "ny", "nz")], axis=1)
@@ -602,6 +624,7 @@ def load_range_scan(
         normals=normals,
         name=ply.name or path.stem,
         grid=grid,
+        up_direction=up,
     )
 
 
@@ -610,7 +633,7 @@ def write_range_scan(scan: RangeScan, path: str | os.PathLike) -> Path:
 
     Vertex properties ``x y z`` (float, mm, scan frame), ``nx ny nz``, ``quality``
     (MeshLab's vertex quality) and, with a grid, ``row col`` (int); faces
-    ``vertex_indices``. Header comments carry the name, view direction and grid size, so
+    ``vertex_indices``. Header comments carry the name, view and up directions and grid size, so
     :func:`load_range_scan` reads the scan back whole.
     """
     n = scan.n_vertices
@@ -642,6 +665,8 @@ def write_range_scan(scan: RangeScan, path: str | os.PathLike) -> Path:
     if name:
         comments.append(f"name {name}")
     comments.append(f"view_direction {d[0]:.9g} {d[1]:.9g} {d[2]:.9g}")
+    u = scan.up_direction
+    comments.append(f"up_direction {u[0]:.9g} {u[1]:.9g} {u[2]:.9g}")
     if scan.grid is not None:
         comments.append(f"grid {scan.grid.shape[0]} {scan.grid.shape[1]}")
     return write_triangle_ply(path, verts, scan.faces, comments)

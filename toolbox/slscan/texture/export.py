@@ -2,8 +2,13 @@
 
 - ``model.glb``: glTF 2.0 binary, the atlas mesh with a PBR material whose base colour is
   the baked texture (sRGB PNG, embedded); positions in metres, Y up (glTF's conventions:
-  ``gltf_from_world`` in ``texture.json`` says how the slscan world frame, mm, maps in).
-- ``model.obj`` + ``model.mtl`` + ``model_albedo.png``: the same in the slscan frame (mm).
+  ``gltf_from_world`` in ``texture.json`` says how the object frame, mm, maps in: a pure
+  scale, the object frame being upright already, see :mod:`slscan.register.frame`). The
+  node, mesh, material and image are named after the model (not trimesh's
+  ``geometry_0`` / ``Image_0``), so Blender's outliner says what they are.
+- ``model.obj`` + ``model.mtl`` + ``model_albedo.png``: the same in the object frame (mm);
+  the MTL is matte white under the texture (``Kd 1``, ``Ks 0``), so viewers show the
+  texture's own colours rather than trimesh's grey, glossy defaults (``Kd``/``Ks 0.4``).
 - ``model_vertex_colors.ply``: the model (not split at seams) with per-vertex sRGB colour.
 - ``views/VIEW.png``: each view's un-shaded image, sRGB, resampled to a pure pinhole
   camera with the same fx, fy and the principal point at the image centre (MeshLab
@@ -27,9 +32,20 @@ from slscan.errors import SlscanError
 from slscan.fsio import atomic_output_file, write_png
 from slscan.texture.views import TextureView
 
-GLTF_FROM_WORLD = np.diag([0.001, -0.001, -0.001, 1.0])
-"""slscan world (mm, the reference camera's axes: x right, y down, z forward) → glTF
-(metres, y up): the reference camera then looks down glTF's −z, as glTF cameras do."""
+GLTF_FROM_WORLD = np.diag([0.001, 0.001, 0.001, 1.0])
+"""The upright object frame (mm, y up, +z towards the reference view; see
+:mod:`slscan.register.frame`) → glTF (metres, y up): a scale."""
+
+MTL_TEMPLATE = """# slscan textured model: matte, the texture's colours as they are
+newmtl {material}
+Ka 0.000000 0.000000 0.000000
+Kd 1.000000 1.000000 1.000000
+Ks 0.000000 0.000000 0.000000
+Ns 0.000000
+d 1.000000
+illum 1
+map_Kd {image}
+"""
 
 
 def _textured_trimesh(vertices: np.ndarray, faces: np.ndarray, uvs: np.ndarray, texture: np.ndarray,
@@ -56,10 +72,12 @@ def _check_texture(texture: np.ndarray) -> None:
 
 
 def write_glb(path: str | os.PathLike, atlas, texture: np.ndarray, normals: np.ndarray | None = None,
-              *, gltf_from_world: np.ndarray = GLTF_FROM_WORLD) -> Path:
+              *, gltf_from_world: np.ndarray = GLTF_FROM_WORLD, name: str | None = None) -> Path:
     """Write the atlas mesh with its 8-bit sRGB ``texture`` as glTF binary, atomically.
 
-    normals : (m, 3) per atlas vertex (slscan frame), or None
+    normals : (m, 3) per atlas vertex (object frame), or None
+    name : the node's and mesh's name (default: the file's stem); the image is
+        ``NAME_albedo``, the material ``albedo``
     """
     _check_texture(texture)
     m = np.asarray(gltf_from_world, float)
@@ -68,16 +86,40 @@ def write_glb(path: str | os.PathLike, atlas, texture: np.ndarray, normals: np.n
         rot = m[:3, :3] / np.cbrt(abs(np.linalg.det(m[:3, :3])))
         normals = np.asarray(normals, np.float64) @ rot.T
     mesh = _textured_trimesh(vertices, atlas.faces, atlas.uvs, texture, normals)
-    data = mesh.export(file_type="glb")
     path = Path(path)
+    data = name_glb(mesh.export(file_type="glb"), name or path.stem)
     with atomic_output_file(path) as tmp:
         tmp.write_bytes(data)
     return path
 
 
+def name_glb(data: bytes, name: str) -> bytes:
+    """A one-mesh glb (as trimesh writes it) with its node and mesh called ``name``, its
+    images ``NAME_albedo``; the binary chunk is kept byte for byte."""
+    import json
+    import struct
+
+    magic, version, _ = struct.unpack_from("<4sII", data, 0)
+    length, kind = struct.unpack_from("<I4s", data, 12)
+    if magic != b"glTF" or kind != b"JSON":
+        raise SlscanError("glTF binary: unexpected layout (no JSON chunk first)")
+    doc = json.loads(data[20:20 + length])
+    for key in ("nodes", "meshes"):
+        for item in doc.get(key, []):
+            item["name"] = name
+    for k, image in enumerate(doc.get("images", [])):
+        image["name"] = f"{name}_albedo" + (f"_{k}" if k else "")
+    text = json.dumps(doc, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 4)  # chunks are 4-byte aligned; JSON pads with spaces
+    rest = data[20 + length:]
+    return struct.pack("<4sII", magic, version, 12 + 8 + len(text) + len(rest)) + \
+        struct.pack("<I4s", len(text), b"JSON") + text + rest
+
+
 def write_obj(path: str | os.PathLike, atlas, texture: np.ndarray, normals: np.ndarray | None = None) -> Path:
-    """Write ``NAME.obj``, ``NAME.mtl`` and ``NAME_albedo.png`` (slscan frame, mm), atomically
-    file by file (the PNG and MTL first, so an OBJ never names missing files)."""
+    """Write ``NAME.obj``, ``NAME.mtl`` and ``NAME_albedo.png`` (object frame, mm), atomically
+    file by file (the PNG and MTL first, so an OBJ never names missing files). The MTL is
+    :data:`MTL_TEMPLATE`: matte white under the texture."""
     from trimesh.exchange.obj import export_obj
 
     _check_texture(texture)
@@ -87,11 +129,13 @@ def write_obj(path: str | os.PathLike, atlas, texture: np.ndarray, normals: np.n
     text, files = export_obj(mesh, include_normals=normals is not None, include_texture=True,
                              return_texture=True, mtl_name=f"{stem}.mtl")
     image_name = f"{stem}_albedo.png"
-    mtl = next((v for k, v in files.items() if k.endswith(".mtl")), None)
-    if mtl is None:
+    if not any(k.endswith(".mtl") for k in files):
         raise SlscanError(f"{path}: trimesh wrote no material file")
-    old_image = next(k for k in files if not k.endswith(".mtl"))
-    mtl = mtl.decode().replace(old_image, image_name).encode()
+    material = next((line.split(None, 1)[1].strip() for line in text.splitlines()
+                     if line.startswith("usemtl ")), None)
+    if material is None:
+        raise SlscanError(f"{path}: trimesh wrote no usemtl line")
+    mtl = MTL_TEMPLATE.format(material=material, image=image_name).encode()
     write_png(path.parent / image_name, texture)
     with atomic_output_file(path.parent / f"{stem}.mtl") as tmp:
         tmp.write_bytes(mtl)
@@ -126,7 +170,7 @@ def undistorted_view_image(view: TextureView) -> np.ndarray:
     unknown or outside the original image)."""
     import cv2
 
-    from slscan.albedo.unshade import srgb8
+    from slscan.colour import srgb8
 
     image = srgb8(view.albedo)
     cam = view.camera
@@ -151,26 +195,6 @@ def view_entries(views: Sequence[TextureView], folder: str = "views") -> list[di
             "world_from_camera": np.asarray(v.world_from_camera, float).tolist(), "source": v.image_file,
         })
     return entries
-
-
-def read_obj_atlas(path: str | os.PathLike) -> tuple[dict, np.ndarray]:
-    """An OBJ written by :func:`write_obj` read back: ``{"vertices", "faces", "uvs"}`` (uvs
-    with the origin at the image's top-left, as in :class:`slscan.texture.atlas.Atlas`) and
-    its 8-bit texture."""
-    import trimesh
-
-    path = Path(path)
-    if not path.is_file():
-        raise SlscanError(f"{path}: textured OBJ not found")
-    mesh = trimesh.load(path, force="mesh", process=False, maintain_order=True)
-    uv = getattr(mesh.visual, "uv", None)
-    tex = getattr(getattr(mesh.visual, "material", None), "image", None)
-    if uv is None or tex is None:
-        raise SlscanError(f"{path}: expected texture coordinates and a texture image")
-    uvs = np.asarray(uv, np.float32).copy()
-    uvs[:, 1] = 1.0 - uvs[:, 1]
-    return ({"vertices": np.asarray(mesh.vertices), "faces": np.asarray(mesh.faces), "uvs": uvs},
-            np.asarray(tex.convert("RGB"), np.uint8))
 
 
 def glb_summary(path: str | os.PathLike) -> dict:

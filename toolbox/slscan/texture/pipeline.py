@@ -88,7 +88,7 @@ def texture_model(
         dict name → world_from_camera); see :func:`slscan.texture.views.load_views`
     session : the capture session, when not the one ``albedo.json`` names
     """
-    from slscan.albedo.unshade import srgb8
+    from slscan.colour import srgb8
     from slscan.fsio import atomic_output_dir, write_json, write_png
     from slscan.fuse import read_mesh
     from slscan.meshes import vertex_normals
@@ -139,7 +139,7 @@ def texture_model(
     with atomic_output_dir(out, overwrite=overwrite) as tmp:
         t0 = time.perf_counter()
         atlas_normals = normals[atlas.source_vertex]
-        export.write_glb(tmp / "model.glb", atlas, texture, atlas_normals)
+        export.write_glb(tmp / "model.glb", atlas, texture, atlas_normals, name=model_name(out))
         export.write_obj(tmp / "model.obj", atlas, texture, atlas_normals)
         export.write_vertex_color_ply(tmp / "model_vertex_colors.ply", mesh.vertices, mesh.faces,
                                       srgb8(baked.vertex_colors), normals)
@@ -181,6 +181,17 @@ def texture_model(
     log_texture_views(rec, entries, images)
     log_textured_model(rec, atlas, texture, atlas_normals, baked.view_count, metrics)
     return TextureResult(out, len(mesh.faces), atlas.n_charts, atlas.size, metrics, seconds)
+
+
+def model_name(out: Path) -> str:
+    """The name a model carries inside its files (glTF node, Blender object): the output
+    folder's, or its parent's when the folder is named for the stage (``bust/texture`` →
+    ``bust``)."""
+    resolved = Path(os.path.abspath(out))
+    name = resolved.name
+    if name.lower() in {"texture", "textured", "model"} and resolved.parent.name:
+        name = resolved.parent.name
+    return name or "model"
 
 
 def _preview(folder: Path, config: TextureConfig, manifest: dict, seconds: dict, progress) -> None:

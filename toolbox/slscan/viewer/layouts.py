@@ -158,10 +158,10 @@ def register_blueprint() -> rrb.Blueprint:
     residuals."""
     from slscan.viewer.recording import STAGE_TIMELINE
 
-    scans = rrb.Spatial3DView(origin="world", contents=["+ $origin/scans/**"], name="Range maps at their poses")
+    scans = rrb.Spatial3DView(origin="object", contents=["+ $origin/scans/**"], name="Range maps at their poses")
     models = rrb.Tabs(
-        rrb.Spatial3DView(origin="world", contents=["+ $origin/model/fused"], name="Fused"),
-        rrb.Spatial3DView(origin="world", contents=["+ $origin/model/simplified"], name="Simplified"),
+        rrb.Spatial3DView(origin="object", contents=["+ $origin/model/fused"], name="Fused"),
+        rrb.Spatial3DView(origin="object", contents=["+ $origin/model/simplified"], name="Simplified"),
         name="Model",
     )
     residuals = rrb.Vertical(

@@ -3,12 +3,14 @@
 One ``log_*`` function per thing logged; each takes the recording stream first and
 returns at once when it is ``None``.
 
-Entity tree (world frame of the aligned set, mm)::
+Entity tree (the upright object frame of the aligned set, mm, y up; see
+:mod:`slscan.register.frame`; ``world/`` keeps the rig frame of capture and decode)::
 
-    world/scans/<name>             Transform3D world_from_scan      [stage]
-    world/scans/<name>/mesh        Mesh3D of the scan, scan frame, one colour per scan (static)
-    world/model/fused              Mesh3D of the fused model        [stage = fused]
-    world/model/simplified         Mesh3D of the simplified model   [stage = simplified]
+    object                          ViewCoordinates RUF, y up (static)
+    object/scans/<name>             Transform3D object_from_scan     [stage]
+    object/scans/<name>/mesh        Mesh3D of the scan, scan frame, one colour per scan (static)
+    object/model/fused              Mesh3D of the fused model        [stage = fused]
+    object/model/simplified         Mesh3D of the simplified model   [stage = simplified]
     plot/register/rmse/<a>-<b>     point-to-plane RMS of a pair (mm)   [stage]
     plot/register/overlap/<a>-<b>  fraction of a's samples on b         [stage]
 
@@ -34,8 +36,9 @@ if TYPE_CHECKING:
 
 STAGES = {"initial": 0, "registered": 1, "fused": 2, "simplified": 3}
 """Sequence numbers of the pipeline steps on the ``stage`` timeline."""
-SCANS_PATH = "world/scans"
-MODEL_PATH = "world/model"
+OBJECT_PATH = "object"
+SCANS_PATH = f"{OBJECT_PATH}/scans"
+MODEL_PATH = f"{OBJECT_PATH}/model"
 MAX_LOGGED_FACES = 2_000_000
 """Meshes with more faces are logged as a uniform subset of their faces (display only)."""
 MODEL_COLOR = (200, 200, 190)
@@ -46,6 +49,14 @@ def scan_color(index: int) -> tuple[int, int, int]:
     h = (index * 0.618033988749895) % 1.0
     r, g, b = colorsys.hsv_to_rgb(h, 0.55, 0.95)
     return int(r * 255), int(g * 255), int(b * 255)
+
+
+def log_object_frame(rec: rr.RecordingStream | None) -> None:
+    """The object frame's axes at ``object`` (static): right-handed, y up, as the archive's
+    files (PLY, OBJ, .mlp, glTF) have them, so Rerun shows the model upright."""
+    if rec is None:
+        return
+    rec.log(OBJECT_PATH, rr.ViewCoordinates.RIGHT_HAND_Y_UP, static=True)
 
 
 def _set_stage(rec: rr.RecordingStream, stage: str) -> None:
@@ -67,9 +78,10 @@ def _mesh3d(
 
 
 def log_scan_meshes(rec: rr.RecordingStream | None, scans: Sequence[RangeScan]) -> None:
-    """Each scan's mesh, own frame, at ``world/scans/<name>/mesh`` (static), one colour each."""
+    """Each scan's mesh, own frame, at ``object/scans/<name>/mesh`` (static), one colour each."""
     if rec is None:
         return
+    log_object_frame(rec)
     for k, scan in enumerate(scans):
         rec.log(
             f"{SCANS_PATH}/{scan.name}/mesh",
@@ -81,9 +93,9 @@ def log_scan_meshes(rec: rr.RecordingStream | None, scans: Sequence[RangeScan]) 
 def log_scan_poses(
     rec: rr.RecordingStream | None, poses: Mapping[str, np.ndarray], *, stage: str
 ) -> None:
-    """world_from_scan of each scan as a Transform3D at ``world/scans/<name>``, at ``stage``.
+    """object_from_scan of each scan as a Transform3D at ``object/scans/<name>``, at ``stage``.
 
-    poses : {name: (4, 4) world_from_scan, mm}
+    poses : {name: (4, 4) object_from_scan, mm}
     stage : a key of :data:`STAGES` ("initial", "registered")
     """
     if rec is None:
@@ -139,17 +151,19 @@ def log_registration_result(rec: rr.RecordingStream | None, result) -> None:
 
 
 def log_fused_mesh(rec: rr.RecordingStream | None, mesh: Mesh) -> None:
-    """The fused model at ``world/model/fused`` (stage "fused")."""
+    """The fused model at ``object/model/fused`` (stage "fused")."""
     if rec is None:
         return
+    log_object_frame(rec)
     _set_stage(rec, "fused")
     rec.log(f"{MODEL_PATH}/fused", _mesh3d(mesh.vertices, mesh.faces, mesh.normals, MODEL_COLOR))
 
 
 def log_simplified_mesh(rec: rr.RecordingStream | None, mesh: Mesh) -> None:
-    """The simplified model at ``world/model/simplified`` (stage "simplified")."""
+    """The simplified model at ``object/model/simplified`` (stage "simplified")."""
     if rec is None:
         return
+    log_object_frame(rec)
     _set_stage(rec, "simplified")
     rec.log(
         f"{MODEL_PATH}/simplified", _mesh3d(mesh.vertices, mesh.faces, mesh.normals, MODEL_COLOR)

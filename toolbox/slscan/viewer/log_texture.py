@@ -1,10 +1,10 @@
 """Loggers for the texture stage: the textured model, the atlas and how many views fed each texel.
 
-Entity tree (world frame of the aligned set, mm)::
+Entity tree (the upright object frame of the aligned set, mm, y up)::
 
-    world/model/textured          Mesh3D with texcoords and the baked albedo texture   (static)
-    world/views/<name>            Transform3D world_from_camera + Pinhole of each view (static)
-    world/views/<name>/albedo     the view's un-shaded image (sRGB)                      (static)
+    object/model/textured          Mesh3D with texcoords and the baked albedo texture   (static)
+    object/views/<name>            Transform3D object_from_camera + Pinhole of each view (static)
+    object/views/<name>/albedo     the view's un-shaded image (sRGB)                      (static)
     texture/atlas                 the baked atlas (sRGB image)                           (static)
     texture/view_count            views blended per texel (0 = filled from vertices)      (static)
     plot/texture/<metric>         coverage, observed share, seam error, seconds           [stage = textured]
@@ -18,11 +18,17 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from slscan.viewer.log_register import MAX_LOGGED_FACES, MODEL_PATH, STAGES, _set_stage
+from slscan.viewer.log_register import (
+    MAX_LOGGED_FACES,
+    MODEL_PATH,
+    STAGES,
+    _set_stage,
+    log_object_frame,
+)
 
 TEXTURED_STAGE = "textured"
 STAGES.setdefault(TEXTURED_STAGE, len(STAGES))
-VIEWS_PATH = "world/views"
+VIEWS_PATH = "object/views"
 ATLAS_PATH = "texture/atlas"
 VIEW_COUNT_PATH = "texture/view_count"
 MAX_LOGGED_TEXTURE = 4096
@@ -34,6 +40,7 @@ def log_texture_views(rec: rr.RecordingStream | None, entries: Sequence[Mapping]
     world_from_camera)."""
     if rec is None:
         return
+    log_object_frame(rec)
     for entry, image in zip(entries, images):
         path = f"{VIEWS_PATH}/{entry['name']}"
         m = np.asarray(entry["world_from_camera"], float)
@@ -51,7 +58,7 @@ def log_texture_result(rec: rr.RecordingStream | None, folder) -> None:
     from types import SimpleNamespace
 
     from slscan.fsio import read_json, read_png
-    from slscan.texture.export import read_obj_atlas
+    from slscan.meshes import read_obj_atlas
 
     if rec is None:
         return
@@ -69,6 +76,7 @@ def log_textured_model(rec: rr.RecordingStream | None, atlas, texture: np.ndarra
     """The textured mesh, the atlas image, the per-texel view count and the metrics."""
     if rec is None:
         return
+    log_object_frame(rec)
     _set_stage(rec, TEXTURED_STAGE)
     faces = np.asarray(atlas.faces)
     if len(faces) > MAX_LOGGED_FACES:
@@ -99,8 +107,8 @@ def texture_blueprint() -> rrb.Blueprint:
     from slscan.viewer.recording import STAGE_TIMELINE
 
     model = rrb.Tabs(
-        rrb.Spatial3DView(origin="world", contents=["+ $origin/model/textured"], name="Textured model"),
-        rrb.Spatial3DView(origin="world", contents=["+ $origin/model/textured", "+ $origin/views/**"],
+        rrb.Spatial3DView(origin="object", contents=["+ $origin/model/textured"], name="Textured model"),
+        rrb.Spatial3DView(origin="object", contents=["+ $origin/model/textured", "+ $origin/views/**"],
                           name="Model and views"),
         name="Model",
     )
