@@ -19,7 +19,8 @@ from slscan.progress import console as _console
 
 EPILOG = """\
 quick start:
-  slscan demo --out demo-scan --save demo-scan.rrd   scan the built-in figurine on the virtual rig
+  slscan demo --out demo-scan --save demo-scan.rrd   scan the built-in figurine on the virtual rig,
+                                                      end to end: demo-scan/texture/model.glb
   rerun demo-scan.rrd                                 look at it in the Rerun viewer
   slscan info demo-scan/capture                       what a capture session holds
   slscan decode demo-scan/capture --out maps          capture session -> range maps (PLY)
@@ -44,91 +45,149 @@ def _human(n: float) -> str:
 # --- capture / demo -------------------------------------------------------------------
 
 
-def _add_capture_options(p: argparse.ArgumentParser, *, demo: bool) -> None:
+def _add_capture_options(p: argparse.ArgumentParser) -> None:
     from slscan.viewer.recording import add_recording_arguments
 
     p.add_argument("--out", required=True, type=Path, help="capture-session folder to create")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
-    if not demo:
-        p.add_argument(
-            "--scene", default="object",
-            help='"object" (built-in figurine, default), "tile" (flat plane test) or a mesh file '
-                 "(PLY/OBJ/glTF/GLB; y-up; mm, or metres when under 10 units across)",
-        )
-        p.add_argument("--patterns", choices=("hybrid", "gray", "both"), default="hybrid",
-                       help="coded patterns after white and black (default: hybrid)")
-        p.add_argument("--levels", type=int, default=9, help="hybrid subdivision levels (default 9: 511 lines)")
-        p.add_argument("--gray-rows", action="store_true", help="also project row Gray codes")
-        p.add_argument("--no-lit", action="store_true", help="skip the 6 ring-light images")
-        p.add_argument("--bit-depth", type=int, choices=(8, 16), default=8, help="PNG bit depth (default 8)")
-        p.add_argument("--exposure", type=float, default=1.0, help="exposure factor (default 1; 4 saturates)")
-        p.add_argument("--gain", type=float, default=1.0, help="sensor gain (default 1)")
-        p.add_argument("--no-noise", action="store_true", help="noise-free images (still quantised)")
-        p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
-    views, scale = (8, 0.5) if demo else (1, 1.0)
-    p.add_argument("--views", type=int, default=views, help=f"turntable views over 360 degrees (default {views})")
-    p.add_argument("--scale", type=float, default=scale,
-                   help=f"camera and projector resolution factor (default {scale:g}; 1: the paper's 1440x960 "
+    p.add_argument(
+        "--scene", default="object",
+        help='"object" (built-in figurine, default), "tile" (flat plane test) or a mesh file '
+             "(PLY/OBJ/glTF/GLB; y-up; mm, or metres when under 10 units across)",
+    )
+    p.add_argument("--patterns", choices=("hybrid", "gray", "both"), default="hybrid",
+                   help="coded patterns after white and black (default: hybrid)")
+    p.add_argument("--levels", type=int, default=9, help="hybrid subdivision levels (default 9: 511 lines)")
+    p.add_argument("--gray-rows", action="store_true", help="also project row Gray codes")
+    p.add_argument("--no-lit", action="store_true", help="skip the 6 ring-light images")
+    p.add_argument("--bit-depth", type=int, choices=(8, 16), default=8, help="PNG bit depth (default 8)")
+    p.add_argument("--exposure", type=float, default=1.0, help="exposure factor (default 1; 4 saturates)")
+    p.add_argument("--gain", type=float, default=1.0, help="sensor gain (default 1)")
+    p.add_argument("--no-noise", action="store_true", help="noise-free images (still quantised)")
+    p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    p.add_argument("--views", type=int, default=1, help="turntable views over 360 degrees (default 1)")
+    p.add_argument("--scale", type=float, default=1.0,
+                   help="camera and projector resolution factor (default 1: the paper's 1440x960 "
                         "camera and 1024x768 projector)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_recording_arguments(p)
 
 
-def _cmd_capture(args: argparse.Namespace, *, demo: bool = False) -> int:
-    from slscan.decode.pipeline import DecodeConfig
-    from slscan.viewer.layouts import capture_blueprint, pipeline_blueprint
+def _max_levels(scale: float) -> int:
+    """Hybrid levels that keep two projector pixels per line on a projector ``scale`` x 1024 wide."""
+    return int(math.log2(max(4, round(1024 * scale)))) - 1
+
+
+def _check_scale(scale: float) -> None:
+    if scale <= 0 or scale > 2:
+        raise SlscanError(f"--scale must be in (0, 2], got {scale}")
+
+
+def _cmd_capture(args: argparse.Namespace) -> int:
+    from slscan.viewer.layouts import capture_blueprint
     from slscan.viewer.recording import recording_from_args
     from slscan.virtual.device import VirtualCaptureConfig, capture_session, images_per_view
     from slscan.virtual.sensor import Sensor
 
-    if args.scale <= 0 or args.scale > 2:
-        raise SlscanError(f"--scale must be in (0, 2], got {args.scale}")
-    levels = 9
-    if demo:
-        config = VirtualCaptureConfig(views=args.views, camera_scale=args.scale, projector_scale=args.scale)
-    else:
-        levels = args.levels
-        config = VirtualCaptureConfig(
-            scene=args.scene, views=args.views, patterns=args.patterns, levels=levels,
-            gray_rows=args.gray_rows, lit_images=not args.no_lit, camera_scale=args.scale,
-            projector_scale=args.scale, seed=args.seed,
-            sensor=Sensor(bit_depth=args.bit_depth, exposure=args.exposure, gain=args.gain, noise=not args.no_noise),
-        )
+    _check_scale(args.scale)
+    config = VirtualCaptureConfig(
+        scene=args.scene, views=args.views, patterns=args.patterns, levels=args.levels,
+        gray_rows=args.gray_rows, lit_images=not args.no_lit, camera_scale=args.scale,
+        projector_scale=args.scale, seed=args.seed,
+        sensor=Sensor(bit_depth=args.bit_depth, exposure=args.exposure, gain=args.gain, noise=not args.no_noise),
+    )
     if args.scale < 1 and config.patterns != "gray":
         # keep two projector pixels per line on a smaller projector
-        max_levels = int(math.log2(max(4, round(1024 * args.scale)))) - 1
-        if levels > max_levels:
+        max_levels = _max_levels(args.scale)
+        if args.levels > max_levels:
             logging.getLogger(__name__).warning("--scale %s: using %d hybrid levels", args.scale, max_levels)
             config = dataclasses.replace(config, levels=max_levels)
     total = config.views * images_per_view(config)
-    capture_dir = args.out / "capture" if demo else args.out
-    if demo:
-        _check_demo_folder(args.out, args.overwrite)
     console = _console()
-    blueprint = pipeline_blueprint() if demo else capture_blueprint()
     t0 = time.perf_counter()
-    with recording_from_args(args, recording_name=f"{args.command} {args.out.name}", blueprint=blueprint) as rec:
-        with _ProgressBar(total, "capturing", args.quiet) as bar:
-            session = capture_session(config, capture_dir, overwrite=args.overwrite, rec=rec, progress=bar.step)
-        elapsed = time.perf_counter() - t0
-        n_images = sum(len(v.images) for v in session.views)
-        console.print(
-            f"[green]wrote[/] {capture_dir}: {len(session.views)} view(s), {n_images} images "
-            f"{session.camera_size[0]}x{session.camera_size[1]}, {_human(_folder_size(capture_dir))}, {elapsed:.1f} s"
-        )
-        if demo:
-            _decode(session, args.out / "range_maps", DecodeConfig(), args.overwrite, rec, args.quiet)
-            from slscan.albedo.command import demo_step
-
-            demo_step(session, args.out, rec=rec, overwrite=args.overwrite, quiet=args.quiet,
-                      scale=args.scale, executor=executor_from_args(args))
-            from slscan.texture.command import demo_step as model_step
-
-            model_step(args.out, scale=args.scale, rec=rec, overwrite=args.overwrite, quiet=args.quiet)
-    if args.save:
-        console.print(f"[green]recording[/] {args.save} ({_human(Path(args.save).stat().st_size)}): "
-                      f"open it with  rerun {args.save}")
+    with (recording_from_args(args, recording_name=f"capture {args.out.name}", blueprint=capture_blueprint()) as rec,
+          _ProgressBar(total, "capturing", args.quiet) as bar):
+        session = capture_session(config, args.out, overwrite=args.overwrite, rec=rec, progress=bar.step)
+    n_images = sum(len(v.images) for v in session.views)
+    console.print(
+        f"[green]wrote[/] {args.out}: {len(session.views)} view(s), {n_images} images "
+        f"{session.camera_size[0]}x{session.camera_size[1]}, {_human(_folder_size(args.out))}, "
+        f"{time.perf_counter() - t0:.1f} s"
+    )
+    _say_recording(args)
     return 0
+
+
+def _say_recording(args: argparse.Namespace) -> None:
+    if getattr(args, "save", None):
+        _console().print(f"[green]recording[/] {args.save} ({_human(Path(args.save).stat().st_size)}): "
+                         f"open it with  rerun {args.save}")
+
+
+# --- demo: the demo recipe ----------------------------------------------------------------
+
+
+DEMO_DESCRIPTION = """\
+Scan the built-in painted figurine on the virtual rig and carry it all the way to a
+textured model: the demo recipe (recipes/demo.toml, shipped with slscan), run exactly as
+`slscan run` runs it. Stages and what they write in OUT:
+
+  capture/   8 turntable views: white, black, hybrid patterns and 6 ring-light images per
+             view, with per-pixel ground truth (a capture session)
+  decode/    one range map per view (PLY) and range_maps.json
+  lights/    the ring lights calibrated on a matte panel (lights.json)
+  albedo/    the un-shaded colour of every view
+  register/  the range maps aligned (aligned.mlp for MeshLab, registration.json)
+  fuse/      the fused mesh (mesh.ply)
+  simplify/  the simplified mesh (mesh.ply)
+  texture/   the textured model: model.glb, OBJ, PLY, model.mlp
+
+plus OUT/<stage>.stage.json and OUT/recipe.resolved.toml (the recipe as run). At the
+default half resolution (720x480 camera) it takes a few minutes; --reduced runs the
+recipe's quarter-size version in about a minute.
+"""
+
+DEMO_EPILOG = """\
+examples:
+  slscan demo --out demo-scan --save demo-scan.rrd    then open demo-scan/texture/model.glb
+  slscan demo --out quick --reduced --quiet
+  slscan demo --out demo-scan --overwrite --views 12 --scale 1
+  slscan demo --out demo-scan --set decode.estimator=centroid --spawn
+
+--views, --scale and --set change the recipe's settings as `slscan run --set` does:
+--scale S sets capture.camera_scale and capture.projector_scale to S, capture.levels to
+what S leaves room for (two projector pixels per line), and fuse.voxel_size to 0.5/S mm.
+"""
+
+
+def _add_demo_options(p: argparse.ArgumentParser) -> None:
+    from slscan.viewer.recording import add_recording_arguments
+
+    p.add_argument("--out", required=True, type=Path, help="folder to create (one sub-folder per stage)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="write into an existing, non-empty --out: every stage runs again and replaces its folder")
+    p.add_argument("--views", type=int, metavar="N", help="turntable views over 360 degrees (default: the recipe's, 8)")
+    p.add_argument("--scale", type=float, metavar="S",
+                   help="camera and projector resolution factor (default: the recipe's, 0.5; 1: the paper's "
+                        "1440x960 camera and 1024x768 projector)")
+    p.add_argument("--reduced", action="store_true", help="the recipe's quick reduced-size version (quarter size)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override a setting of the recipe, e.g. capture.seed=3 (repeatable)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_recording_arguments(p)
+    add_executor_arguments(p)
+
+
+def demo_overrides(*, views: int | None = None, scale: float | None = None) -> list[str]:
+    """``--set`` overrides of the demo recipe for ``slscan demo --views N --scale S``."""
+    overrides = []
+    if views is not None:
+        overrides.append(f"capture.views={views}")
+    if scale is not None:
+        _check_scale(scale)
+        overrides += [f"capture.camera_scale={scale!r}", f"capture.projector_scale={scale!r}",
+                      f"capture.levels={min(9, _max_levels(scale))}", f"fuse.voxel_size={0.5 / scale!r}"]
+    return overrides
 
 
 def _check_demo_folder(out: Path, overwrite: bool) -> None:
@@ -136,6 +195,20 @@ def _check_demo_folder(out: Path, overwrite: bool) -> None:
         raise SlscanError(f"{out}: exists and is not a folder")
     if out.is_dir() and not overwrite and any(out.iterdir()):
         raise SlscanError(f"{out}: folder exists and is not empty (pass --overwrite to replace it)")
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from slscan.recipe.runner import load_recipe, shipped_recipe
+
+    overrides = demo_overrides(views=args.views, scale=args.scale) + (args.set or [])
+    recipe = load_recipe(shipped_recipe("demo"), overrides=overrides, reduced=args.reduced)
+    _check_demo_folder(args.out, args.overwrite)
+    _run(args, recipe, args.out, force=args.overwrite)
+    glb = args.out / "texture" / "model.glb"
+    if glb.is_file():
+        _console().print(f"[bold]the textured model:[/] {glb} (glTF; Blender, MeshLab, any glTF viewer)",
+                         highlight=False)
+    return 0
 
 
 # --- decode -------------------------------------------------------------------------------
@@ -214,30 +287,43 @@ class _StageReporter:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    from slscan.recipe.runner import load_recipe, run_recipe
+    from slscan.recipe.runner import load_recipe
+
+    recipe = load_recipe(args.recipe, overrides=args.set or [], reduced=args.reduced)
+    _run(args, recipe, args.out or Path(recipe.out or f"{recipe.name}-run"), force=args.force)
+    return 0
+
+
+def _run(args: argparse.Namespace, recipe, out: Path, *, force: bool) -> None:
+    """Run ``recipe`` into ``out`` with progress bars and the recording options of ``args``
+    (``slscan run`` and ``slscan demo``)."""
+    from slscan.recipe.runner import run_recipe
     from slscan.viewer.layouts import pipeline_blueprint
     from slscan.viewer.recording import recording_from_args
 
-    recipe = load_recipe(args.recipe, overrides=args.set or [], reduced=args.reduced)
-    out = args.out or Path(recipe.out or f"{recipe.name}-run")
     t0 = time.perf_counter()
     reporter = _StageReporter(args.quiet)
     with recording_from_args(args, recording_name=f"recipe {recipe.name}", blueprint=pipeline_blueprint([st.name for st, _ in recipe.steps])) as rec:
-        runs = run_recipe(recipe, out, force=args.force, rec=rec, reporter=reporter, executor=executor_from_args(args))
+        runs = run_recipe(recipe, out, force=force, rec=rec, reporter=reporter, executor=executor_from_args(args))
     ran = sum(r.ran for r in runs)
     _console().print(
         f"[bold]{recipe.name}[/]: {ran} of {len(runs)} stage(s) run in {time.perf_counter() - t0:.1f} s; "
         f"results and recipe.resolved.toml in {out}"
     )
-    return 0
+    _say_recording(args)
 
 
 def _cmd_baseline(args: argparse.Namespace) -> int:
+    import shlex
+
     from slscan.recipe.regress import make_baseline
     from slscan.recipe.runner import load_recipe
 
     recipe = load_recipe(args.recipe, overrides=args.set or [], reduced=args.reduced)
-    make_baseline(recipe, args.out, reporter=_StageReporter(args.quiet))
+    command = shlex.join(["slscan", "baseline", str(args.recipe), *(["--reduced"] if args.reduced else []),
+                          *(f"--set={s}" for s in args.set or []), "--out", str(args.out), "--overwrite"])
+    make_baseline(recipe, args.out, reporter=_StageReporter(args.quiet), overwrite=args.overwrite,
+                  executor=executor_from_args(args), command=command)
     _console().print(f"[green]wrote[/] baseline {args.out}: check later with  slscan regress {args.out}")
     return 0
 
@@ -245,14 +331,16 @@ def _cmd_baseline(args: argparse.Namespace) -> int:
 def _cmd_regress(args: argparse.Namespace) -> int:
     from rich.markup import escape
 
-    from slscan.recipe.regress import format_table, regress
+    from slscan.recipe.regress import failed_stages, format_table, regress
 
-    checks = regress(args.baseline, work=args.keep, reporter=_StageReporter(args.quiet))
+    checks = regress(args.baseline, work=args.keep, overrides=args.set or [], reporter=_StageReporter(args.quiet),
+                     executor=executor_from_args(args))
     print(format_table(checks))
     failed = [c for c in checks if not c.ok]
     console = _console()
     if failed:
-        console.print(f"[red]{len(failed)} of {len(checks)} checks regressed[/] against {escape(str(args.baseline))}")
+        console.print(f"[red]{len(failed)} of {len(checks)} checks regressed[/] against {escape(str(args.baseline))} "
+                      f"in stage(s): [bold]{escape(', '.join(failed_stages(checks)))}[/]")
         return 1
     console.print(f"[green]all {len(checks)} checks pass[/] against {escape(str(args.baseline))}")
     return 0
@@ -358,16 +446,11 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     p = sub.add_parser(
-        "demo", help="scan the built-in figurine on the virtual rig (start here)",
-        description="Scan the built-in figurine on the virtual rig at the paper's settings: "
-                    "capture white, black, 9 hybrid patterns and 6 ring-light images per view "
-                    "(with per-pixel ground truth) into OUT/capture, then decode them into one "
-                    "range map per view in OUT/range_maps.",
-        epilog="example:\n  slscan demo --out demo-scan --save demo-scan.rrd",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        "demo", help="scan the built-in figurine on the virtual rig, end to end to a textured model (start here)",
+        description=DEMO_DESCRIPTION, epilog=DEMO_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    _add_capture_options(p, demo=True)
-    p.set_defaults(func=lambda a: _cmd_capture(a, demo=True))
+    _add_demo_options(p)
+    p.set_defaults(func=_cmd_demo)
 
     p = sub.add_parser(
         "capture", help="capture a scene on the virtual rig (object, tile or your mesh)",
@@ -377,7 +460,7 @@ def build_parser() -> argparse.ArgumentParser:
                "  slscan capture --scene statue.glb --views 8 --patterns both --out statue-scan",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    _add_capture_options(p, demo=False)
+    _add_capture_options(p)
     p.set_defaults(func=_cmd_capture)
 
     from slscan.capture.command import add_command as add_scan_command
@@ -394,7 +477,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "triangulation with the session's calibration, and meshing into one range "
                     "map per view (binary PLY with normals, colour and quality, for MeshLab). "
                     "Also writes range_maps.json with per-view metrics.",
-        epilog="example:\n  slscan decode demo-scan/capture --out demo-scan/range_maps --save decode.rrd",
+        epilog="example:\n  slscan decode demo-scan/capture --out maps --save decode.rrd",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("session", type=Path, help="capture-session folder")
@@ -458,30 +541,45 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_run)
 
     p = sub.add_parser(
-        "baseline", help="record a regression baseline: a recipe run with its recording and metrics",
-        description="Run a recipe into a new baseline folder, with its Rerun recording and the "
-                    "metrics of every stage, for later `slscan regress` checks.",
-        epilog="example:\n  slscan baseline recipes/demo.toml --reduced --out baselines/demo",
+        "baseline", help="record a regression baseline: recorded inputs and every stage's results",
+        description="Run a recipe into a new baseline folder for later `slscan regress` checks: "
+                    "its recorded capture session (and ring-light calibration), what is compared "
+                    "of every later stage (range maps, albedo images, poses, fused and simplified "
+                    "meshes, the textured model and its atlas), and baseline.json with the "
+                    "metrics, the tolerances and this command (run it again to regenerate).",
+        epilog="examples:\n  slscan baseline recipes/demo.toml --reduced --out baselines/demo\n"
+               "  the stored demo baseline: see tests/data/baselines/README.md",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("recipe", type=Path, help="recipe file (TOML)")
     p.add_argument("--out", required=True, type=Path, help="baseline folder to create")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace --out if it exists (once the new baseline is complete)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a setting (repeatable)")
     p.add_argument("--reduced", action="store_true", help="the recipe's quick reduced-size version")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_executor_arguments(p)
     p.set_defaults(func=_cmd_baseline)
 
     p = sub.add_parser(
         "regress", help="re-run a baseline's recorded session and compare (exit 1 on regression)",
-        description="Re-run every stage after the recorded capture of a baseline, then compare "
-                    "with it metric by metric (counts, distances between range maps) and "
-                    "recording by recording. Prints a table; exits 1 on a regression. The "
-                    "baseline is never written.",
-        epilog="example:\n  slscan regress tests/data/baselines/demo",
+        description="Re-run every stage of a baseline's recipe on its recorded capture session "
+                    "(and ring-light calibration), then compare stage by stage with the "
+                    "tolerances in its baseline.json: range maps, fused, simplified and textured "
+                    "models by surface distance (mm), registration poses (degrees, mm), albedo "
+                    "images and the texture by PSNR (dB), the stages' metrics, and the entities "
+                    "of the Rerun recording. Prints a table (stage, metric, baseline, now, "
+                    "tolerance, ok); exits 1 naming the stages that regressed. The baseline is "
+                    "never written.",
+        epilog="examples:\n  slscan regress tests/data/baselines/demo\n"
+               "  slscan regress tests/data/baselines/demo --set simplify.method=quadric   # what would this change?",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("baseline", type=Path, help="baseline folder (from slscan baseline)")
     p.add_argument("--keep", type=Path, help="keep the re-run in this (new) folder")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="change a setting of the re-run (repeatable), e.g. fuse.voxel_size=4")
+    add_executor_arguments(p)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_cmd_regress)
 
@@ -520,8 +618,8 @@ def build_parser() -> argparse.ArgumentParser:
         "view", help="open a result in the Rerun viewer with the layout that fits it",
         description="Open a recording (.rrd), a capture session, a range-maps folder or a recipe "
                     "run folder in the Rerun viewer, arranged with the matching layout.",
-        epilog="examples:\n  slscan view demo-scan.rrd\n  slscan view demo-scan/range_maps\n"
-               "  slscan view demo-run --save demo-run.rrd   (write a recording instead)",
+        epilog="examples:\n  slscan view demo-scan.rrd\n  slscan view demo-scan/decode\n"
+               "  slscan view demo-scan --save demo-scan-again.rrd   (write a recording instead)",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("result", type=Path, help="a .rrd file or a result folder")

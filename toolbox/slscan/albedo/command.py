@@ -1,7 +1,6 @@
 """The albedo stage's commands: ``capture-lights``, ``calibrate-lights`` and ``albedo``.
 
-``cli.py`` calls :func:`add_command` with its subparsers; ``slscan demo`` calls
-:func:`demo_step` after decoding.
+``cli.py`` calls :func:`add_command` with its subparsers.
 """
 
 from __future__ import annotations
@@ -18,8 +17,8 @@ ALBEDO_EPILOG = """\
 examples:
   slscan capture-lights --out lights-session          # virtual rig: a matte panel at 6 poses
   slscan calibrate-lights lights-session --out lights.json
-  slscan albedo demo-scan/capture --range-maps demo-scan/range_maps --lights lights.json \\
-      --out demo-scan/albedo --save albedo.rrd
+  slscan albedo demo-scan/capture --range-maps demo-scan/decode --lights lights.json \\
+      --out albedo --save albedo.rrd
 
 outputs (per view): VIEW_albedo.png (16-bit LINEAR RGB reflectance x 65535, not sRGB;
 0 where invalid), VIEW_valid.png (255 where the albedo is valid), VIEW.ply (the range
@@ -98,6 +97,8 @@ def add_command(subparsers) -> None:
     )
     p.add_argument("--no-ambient", action="store_true", help="assume no ambient light")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_recording_arguments(p)
     p.set_defaults(func=_cmd_calibrate_lights)
 
     defaults = AlbedoConfig()
@@ -205,6 +206,8 @@ def _cmd_calibrate_lights(args: argparse.Namespace) -> int:
 
     from slscan.albedo.lights import MattePanel, calibrate_lights, read_panel, write_lights
     from slscan.capture.session import load_session
+    from slscan.viewer.log_albedo import albedo_blueprint
+    from slscan.viewer.recording import recording_from_args
 
     if args.out.exists() and not args.overwrite:
         raise SlscanError(f"{args.out}: exists (pass --overwrite to replace it)")
@@ -223,7 +226,20 @@ def _cmd_calibrate_lights(args: argparse.Namespace) -> int:
         albedo = tuple(args.panel_albedo) if args.panel_albedo is not None else base.albedo
         panel = MattePanel(width=w, height=h, thickness=t, albedo=albedo, margin=base.margin)
     t0 = time.perf_counter()
-    cal = calibrate_lights(session, panel=panel, fit_ambient=not args.no_ambient)
+    with (
+        recording_from_args(
+            args, recording_name=f"calibrate-lights {args.session.name}", blueprint=albedo_blueprint()
+        ) as rec,
+        ProgressBar(len(session.views), "reading the panel", args.quiet) as bar,
+    ):
+        cal = calibrate_lights(session, panel=panel, fit_ambient=not args.no_ambient, progress=bar.step)
+        if rec is not None:
+            from slscan.viewer.log import log_rig
+            from slscan.viewer.log_albedo import log_lights
+
+            if session.calibration is not None:
+                log_rig(rec, session.calibration)
+            log_lights(rec, cal)
     write_lights(args.out, cal)
     out = console()
     truth = (
@@ -326,43 +342,3 @@ def run_albedo(
         f"({100 * valid / max(seen, 1):.1f} % of the range maps'), {time.perf_counter() - t0:.1f} s"
     )
     return results
-
-
-def demo_step(
-    session,
-    out: Path,
-    *,
-    rec=None,
-    overwrite: bool = False,
-    quiet: bool = False,
-    scale: float = 1.0,
-    executor=None,
-) -> list:
-    """The demo's colour step: calibrate the lights on the virtual rig, then un-shade.
-
-    Writes ``OUT/lights/`` (the panel session at quarter size at most, and
-    ``lights.json``) and ``OUT/albedo/`` from ``OUT/range_maps``.
-    """
-    from slscan.virtual.device import images_per_view
-    from slscan.virtual.panels import LightPanelConfig, calibrate_virtual_lights
-
-    config = LightPanelConfig(scale=min(0.25, scale))
-    total = config.poses * images_per_view(config.capture_config())
-    with ProgressBar(total, "light panel", quiet) as bar:
-        lights = calibrate_virtual_lights(
-            config, out / "lights", overwrite=overwrite, progress=bar.step
-        )
-    console().print(
-        f"[green]wrote[/] {out / 'lights' / 'lights.json'}: {len(lights.lights)} lights calibrated on "
-        f"{config.poses} panel poses (residual {lights.fit['rms']:.4f})"
-    )
-    return run_albedo(
-        session,
-        out / "range_maps",
-        out / "albedo",
-        lights=lights,
-        overwrite=overwrite,
-        rec=rec,
-        quiet=quiet,
-        executor=executor,
-    )

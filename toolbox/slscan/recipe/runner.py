@@ -108,6 +108,33 @@ def load_recipe(path: str | os.PathLike, *, overrides: list[str] = (), reduced: 
     return parse_recipe(data, where=str(path), path=path, overrides=list(overrides), reduced=reduced)
 
 
+def shipped_recipe(name: str) -> Path:
+    """Path of a recipe that ships with slscan, e.g. ``"demo"`` → ``recipes/demo.toml``.
+
+    The repository's ``recipes/`` folder is installed as the package ``slscan.recipes``
+    (see ``pyproject.toml``): in a wheel the files are copied into it, in an editable
+    install it points at ``recipes/`` itself. An editable install made before that mapping
+    existed has no ``slscan.recipes``; the source tree's ``recipes/`` is used then.
+    """
+    import importlib.resources
+
+    try:
+        folder = Path(str(importlib.resources.files("slscan.recipes")))
+    except ModuleNotFoundError:
+        import slscan
+
+        folder = Path(slscan.__file__).resolve().parents[2] / "recipes"
+        if not folder.is_dir():
+            raise SlscanError(
+                f"recipe {name!r}: slscan was installed without its recipes (no package slscan.recipes, "
+                f"and no {folder} beside the source); reinstall slscan (pip install .)"
+            ) from None
+    path = folder / f"{name}.toml"
+    if not path.is_file():
+        raise SlscanError(f"recipe {name!r}: not among slscan's recipes ({path} not found)")
+    return path
+
+
 def _fingerprint(stage: Stage, config: Any, inputs: dict[str, str]) -> str:
     blob = json.dumps({"stage": stage.name, "config": to_mapping(config), "inputs": inputs,
                        "slscan": __version__}, sort_keys=True)

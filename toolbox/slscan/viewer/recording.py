@@ -6,7 +6,7 @@ stream returned by :func:`open_recording` (or ``None``, which turns logging off)
     with open_recording(save="scan.rrd", spawn=True, recording_name="capture") as rec:
         log_rig(rec, rig)
 
-Timelines (see ``DESIGN.md``, "Rerun conventions"):
+Timelines (the layouts in ``viewer_layouts/`` open on them):
 
 - :data:`VIEW_TIMELINE` — the view (range map) index;
 - :data:`FRAME_TIMELINE` — the pattern / frame index within a view;
