@@ -136,7 +136,7 @@ class AtlasOptions:
     fill: float = 0.68
     """Share of the page the charts, grown by half the padding and a texel all round, are
     first sized to fill (xatlas packs them to about 0.7 before some spill over)."""
-    max_pack_attempts: int = 4
+    max_pack_attempts: int = 6
     """Most packings tried to find the finest scale that fits one page (each takes about
     3 s for 1M faces); see :func:`_pack_patches`."""
     xatlas_max_cost: float = 2.0
@@ -664,7 +664,8 @@ def _pack_patches(
     """Pack each patch (its own xatlas UV mesh) on one page, as finely as a few packings find.
 
     Starts at ``texels_per_mm``. A packing that spills onto a second page is redone at the
-    scale its first page's share suggests; one that fits with room to spare (xatlas fills
+    scale its first page's share suggests, and at least 10 % smaller per spill so far (a
+    sliver that keeps spilling is a chart too long for the room left); one that fits with room to spare (xatlas fills
     pages to about 0.7) is tried larger; once one fits and a larger one does not, the
     scale is bisected while packings are left and the two differ by more than 3 %.
     Returns (xatlas.Atlas, texels_per_mm) of the finest packing that fit.
@@ -673,6 +674,7 @@ def _pack_patches(
 
     fit = None  # (texels_per_mm, atlas)
     too_big = math.inf
+    spills = 0
     t = texels_per_mm
     for _ in range(options.max_pack_attempts):
         atlas = xatlas.Atlas()
@@ -696,8 +698,11 @@ def _pack_patches(
                 t *= math.sqrt(0.68 / used[0])
         else:
             too_big = t
+            spills += 1
             if fit is None:
-                t *= 0.99 * math.sqrt(used[0] / sum(used))
+                # the first page's share says how much to shrink; when a sliver keeps spilling
+                # (a chart too long for what is left on the page), shrink faster each time
+                t *= min(0.99 * math.sqrt(used[0] / sum(used)), 0.9**spills)
         if fit is not None and too_big < math.inf:
             if too_big / fit[0] < 1.03:
                 break
