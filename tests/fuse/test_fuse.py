@@ -11,6 +11,7 @@ from slscan.errors import SlscanError
 from slscan.fuse import (
     FuseConfig,
     Mesh,
+    canonical_order,
     estimate_blocks,
     fuse_scans,
     height_map,
@@ -85,6 +86,21 @@ def test_scans_can_come_one_at_a_time(sphere_views):
         at_once.mesh.vertices,
     )  # block order may differ after the grid grows
     np.testing.assert_allclose(a[np.lexsort(a.T)], b[np.lexsort(b.T)], atol=1e-5)
+
+
+def test_fusion_is_the_same_from_run_to_run(sphere_views):
+    # open3d's threads order the extracted vertices anew each run; the mesh is put in one order
+    scans, poses = sphere_views
+    config = FuseConfig(voxel_size=2.0)
+    first, again = (fuse_scans(scans, poses, config=config).mesh for _ in range(2))
+    assert np.array_equal(first.vertices, again.vertices)
+    assert np.array_equal(first.faces, again.faces)
+    rng = np.random.default_rng(0)
+    perm = rng.permutation(first.n_vertices)
+    faces = np.roll(np.argsort(perm)[first.faces], 1, axis=1)  # same triangles, other corner first
+    shuffled = Mesh(first.vertices[perm], faces[rng.permutation(first.n_faces)])
+    same = canonical_order(shuffled)
+    assert np.array_equal(same.vertices, first.vertices) and np.array_equal(same.faces, first.faces)
 
 
 def test_block_estimate_bounds_memory(sphere_views):

@@ -1,19 +1,50 @@
 """Regression checks: re-run a recorded session through its recipe and compare with a baseline.
 
-A **baseline** folder holds a recipe run (``recipe.resolved.toml``, one folder per stage),
-its recording (``recording.rrd``) and ``baseline.json`` with the metrics measured then.
-:func:`regress` re-runs every stage after the recorded capture (the captures are the
-fixed input) into a scratch folder and compares metric by metric, with tolerances, and
-recording by recording (which entities were logged, how many rows each). The baseline is
+A **baseline** folder (``slscan baseline``) holds what is needed to re-run a recipe and
+check every stage of it, and nothing that can be recomputed and is not compared:
+
+- the **recorded inputs**, handed to the re-run instead of running their stages: the
+  capture session (``capture/``: images re-encoded losslessly, without the virtual rig's
+  ground truth) and the ring-light calibration (``lights/lights.json``);
+- for every later stage the **references** it is compared with, small and in open
+  formats: range maps and meshes as geometry-only binary PLY, the registration's poses
+  (``registration.json``), the albedo images, the textured model as a PLY with per-vertex
+  texture coordinates beside its atlas PNG (opens textured in MeshLab);
+- ``recipe.resolved.toml`` and ``baseline.json``: the stages' metrics, the tolerances,
+  the rows each entity of the re-run's Rerun recording had, and the command that made
+  the baseline (run it again to regenerate it).
+
+:func:`regress` re-runs the recipe on the recorded inputs into a scratch folder and
+:func:`compare` checks it stage by stage against the tolerances in ``baseline.json``
+(defaults: :class:`Tolerances`):
+
+- decode: each range map's symmetric surface distance (mean, p95) and its metrics;
+- albedo: each view's PSNR over the pixels valid in both, and the overlap (IoU) of the
+  valid masks;
+- register: each view's pose, as the rotation between the two and the shift of the
+  scan's centroid;
+- fuse, simplify: the mesh's symmetric surface distance (mean, p95) and its face count
+  (a simplified mesh with looser tolerances: simplification amplifies tiny differences);
+- texture: the textured model's surface distance, and its colours at corresponding
+  surface points (:func:`slscan.recipe.surfaces.texture_difference`, independent of the
+  atlas layout) as PSNR where views saw both models, and separately where either was
+  filled in from the vertices; the stage's metrics, those that follow the atlas layout
+  with a looser tolerance;
+- the recording: rows per entity.
+
+Surface distances are point-to-surface (:mod:`slscan.recipe.surfaces`). The baseline is
 only read, never written.
 """
 
 from __future__ import annotations
 
+import math
 import os
+import shlex
 import shutil
 import tempfile
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -23,39 +54,148 @@ from slscan import __version__
 from slscan.errors import SlscanError
 from slscan.fsio import atomic_output_dir, read_json, write_json
 from slscan.recipe.runner import Recipe, Reporter, load_recipe, run_recipe
+from slscan.recipe.stages import Stage
+from slscan.recipe.surfaces import (
+    MAX_PSNR,
+    Surface,
+    psnr,
+    read_surface,
+    read_textured_model,
+    surface_distance,
+    texture_difference,
+    write_surface,
+)
 
 BASELINE_FORMAT = "slscan.baseline"
-BASELINE_VERSION = 1
+BASELINE_VERSION = 2
+"""2: the whole pipeline (references per stage, tolerances, recording rows in
+baseline.json); 1 held one decode stage and the recording itself."""
 RECORDING = "recording.rrd"
+"""The re-run's Rerun recording (the baseline keeps only its rows per entity)."""
+INPUT_KINDS = ("session", "lights")
+"""Results a baseline stores as recorded input and hands to the re-run instead of running
+their stages: the capture session and the ring-light calibration, both measured on the rig."""
+COUNT_KEYS = ("samples", "vertices", "faces", "pixels_on_range_map")
+ATLAS_KEYS = (
+    "charts",
+    "utilisation",
+    "texels_covered",
+    "seam_edges",
+    "seam_error_mean",
+    "seam_error_p95",
+    "vertices_observed_share",
+)
+COVERAGE_KEYS = ("observed_share", "mean_views_per_texel")
 
-COUNT_TOLERANCE = 0.01
-"""Relative tolerance on counts (samples, vertices, faces)."""
-DISTANCE_TOLERANCE_MM = 0.01
-"""Largest mean distance (both ways) between a range map and its baseline."""
-SESSION_KINDS = ("session",)
+
+@dataclass(frozen=True)
+class Tolerances:
+    """How far a re-run may drift from its baseline. ``slscan baseline`` writes these into
+    ``baseline.json``, where they can be edited for one baseline.
+
+    Measured on the demo baseline (quarter-size camera, 6 views, 5 mm voxels, 3000
+    faces): a re-run in one process or two, with one OpenMP thread or two, matches the
+    baseline to the float32 rounding of its references (distances below 1e-5 mm, poses
+    below 1e-5°, PSNR 100 dB, metrics equal). The tolerances leave room for other
+    platforms' arithmetic and for the steps that amplify it: a fused mesh 1e-4 mm off
+    simplifies to a mesh 0.03 mm (mean) and 0.17 mm (p95) off, and a simplified mesh a
+    hair off gets an atlas packed anew, whose seen colours then differ by 45-47 dB, its
+    filled ones by 32 dB and its seam metrics by up to 35 %. They still catch a range map
+    0.05 mm off, a view turned by 0.1°, a fused surface 0.05 mm off, another
+    simplification method, a matte albedo fit and a texture baked with a stronger pull to
+    the vertex colours (``tests/recipe/test_regress.py``).
+    """
+
+    count: float = 0.01
+    """Counts (samples, vertices, faces, valid pixels): relative difference."""
+    metric_abs: float = 1e-3
+    """Other stage metrics: ``|now - baseline| <= metric_abs + metric_rel * |baseline|``."""
+    metric_rel: float = 1e-3
+    atlas: float = 0.5
+    """Texture metrics that follow the atlas layout, hence the simplified mesh's connectivity
+    (charts, utilisation, texels covered, seam edges and error, vertices observed): relative."""
+    coverage: float = 0.02
+    """Texture coverage (observed share, mean views per texel): relative."""
+    range_map_mean_mm: float = 0.01
+    """Range maps: mean surface distance (mm)."""
+    range_map_p95_mm: float = 0.05
+    """Range maps: 95th percentile of the surface distance (mm)."""
+    rotation_deg: float = 0.02
+    """Registration: rotation between a view's two poses (degrees)."""
+    shift_mm: float = 0.1
+    """Registration: how far a view's centroid moves between its two poses (mm)."""
+    fused_mean_mm: float = 0.02
+    """Fused mesh: mean surface distance (mm)."""
+    fused_p95_mm: float = 0.1
+    """Fused mesh: 95th percentile of the surface distance (mm)."""
+    simplified_mean_mm: float = 0.1
+    """Simplified and textured models: mean surface distance (mm)."""
+    simplified_p95_mm: float = 0.5
+    """Simplified and textured models: 95th percentile of the surface distance (mm)."""
+    albedo_psnr_db: float = 50.0
+    """Albedo images: least PSNR (dB, linear reflectance, peak 1) over pixels valid in both."""
+    albedo_valid_iou: float = 0.995
+    """Albedo images: least overlap (intersection over union) of the valid masks."""
+    texture_psnr_db: float = 40.0
+    """Texture: least PSNR (dB, 8-bit sRGB) of the colours at corresponding surface points
+    that views saw in both models."""
+    filled_psnr_db: float = 25.0
+    """Texture: least PSNR where either model's colour was filled in from the vertices
+    (no view saw it there): the fill follows the atlas layout."""
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any] | None, where: str) -> Tolerances:
+        data = dict(data or {})
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise SlscanError(
+                f"{where}: unknown tolerance(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})"
+            )
+        try:
+            return cls(**{k: float(v) for k, v in data.items()})
+        except (TypeError, ValueError):
+            raise SlscanError(f"{where}: tolerances must be numbers") from None
 
 
 @dataclass(frozen=True)
 class Check:
     """One comparison: ``ok`` is False on a regression."""
 
-    name: str
+    stage: str
+    metric: str
     baseline: float | str
     current: float | str
     tolerance: str
     ok: bool
 
+    @property
+    def name(self) -> str:
+        return f"{self.stage}/{self.metric}"
+
+
+def failed_stages(checks: list[Check]) -> list[str]:
+    """Stages with at least one failed check, in the order of ``checks``."""
+    return list(dict.fromkeys(c.stage for c in checks if not c.ok))
+
+
+# --- metrics ----------------------------------------------------------------------------------
+
 
 def collect_metrics(run_dir: Path) -> dict[str, float]:
-    """Comparable numbers of a recipe run: per decode stage and view, and the texture
-    stage's metrics (charts, utilisation, observed share, seam error)."""
+    """Comparable numbers of a recipe run: per decode stage and view, per albedo stage and
+    view, and the texture stage's metrics (charts, utilisation, observed share, seam error)."""
     metrics: dict[str, float] = {}
-    for folder in sorted(p for p in run_dir.iterdir() if p.is_dir()):
-        if (folder / "range_maps.json").is_file():
-            summary = read_json(folder / "range_maps.json", "range-maps summary")
-            for entry in summary["views"]:
-                for key, value in entry["metrics"].items():
-                    metrics[f"{folder.name}/{entry['view']}/{key}"] = float(value)
+    for folder in sorted(p for p in Path(run_dir).iterdir() if p.is_dir()):
+        for name, what in (
+            ("range_maps.json", "range-maps summary"),
+            ("albedo.json", "albedo summary"),
+        ):
+            if (folder / name).is_file():
+                summary = read_json(folder / name, what)
+                for entry in summary.get("views", []):
+                    for key, value in entry.get("metrics", {}).items():
+                        metrics[f"{folder.name}/{entry['view']}/{key}"] = float(value)
         if (folder / "texture.json").is_file():
             summary = read_json(folder / "texture.json", "texture manifest")
             for key, value in summary.get("metrics", {}).items():
@@ -63,14 +203,342 @@ def collect_metrics(run_dir: Path) -> dict[str, float]:
     return metrics
 
 
-def _recording_rows(path: Path) -> dict[str, int]:
+def _metric_checks(old: dict[str, float], new: dict[str, float], tol: Tolerances) -> list[Check]:
+    checks = []
+    for key in sorted(set(old) | set(new)):
+        stage, metric = key.split("/", 1)
+        if key not in new:
+            checks.append(Check(stage, metric, old[key], "missing", "present", False))
+            continue
+        if key not in old:
+            checks.append(Check(stage, metric, "missing", new[key], "present", False))
+            continue
+        a, b = old[key], new[key]
+        name = metric.rsplit("/", 1)[-1]
+        if name in COUNT_KEYS:
+            bound = tol.count * max(abs(a), 1.0)
+        elif name in ATLAS_KEYS:
+            bound = tol.atlas * max(abs(a), 1e-3)
+        elif name in COVERAGE_KEYS:
+            bound = tol.coverage * max(abs(a), 1e-3)
+        else:
+            bound = tol.metric_abs + tol.metric_rel * abs(a)
+        same = (math.isnan(a) and math.isnan(b)) or abs(b - a) <= bound
+        checks.append(Check(stage, metric, a, b, f"±{bound:.3g}", bool(same)))
+    return checks
+
+
+def _at_most(stage: str, metric: str, value: float, bound: float) -> Check:
+    return Check(stage, metric, 0.0, value, f"≤{bound:g}", bool(value <= bound))
+
+
+def _at_least(stage: str, metric: str, value: float, bound: float, ideal: float) -> Check:
+    return Check(stage, metric, ideal, value, f"≥{bound:g}", bool(value >= bound))
+
+
+def _count(stage: str, metric: str, old: int, new: int, rel: float) -> Check:
+    bound = rel * max(old, 1)
+    return Check(stage, metric, old, new, f"±{bound:.3g}", abs(new - old) <= bound)
+
+
+def _distance_checks(
+    stage: str, prefix: str, old: Surface, new: Surface, tol_mean: float, tol_p95: float
+) -> list[Check]:
+    mean, p95 = surface_distance(old, new)
+    return [
+        _at_most(stage, f"{prefix}distance mean mm", mean, tol_mean),
+        _at_most(stage, f"{prefix}distance p95 mm", p95, tol_p95),
+    ]
+
+
+def _missing(stage: str, what: str) -> Check:
+    return Check(stage, what, "present", "missing", "present", False)
+
+
+# --- per kind of result: what a baseline stores, and how it is compared ----------------------------
+
+Store = Callable[[Path, Path], dict[str, Any]]
+Compare = Callable[[Stage, Path, Path, Tolerances, dict[str, Any]], list[Check]]
+"""``compare(stage, baseline_folder, run_folder, tolerances, references)``"""
+
+
+def _reencode_png(src: Path, dst: Path) -> None:
+    """Copy a PNG, re-encoded at the strongest lossless compression when that is smaller
+    (pixels checked equal); any other file is copied as it is."""
+    import cv2
+
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    if src.suffix.lower() == ".png":
+        image = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
+        if image is not None:
+            ok, data = cv2.imencode(
+                ".png",
+                image,
+                [
+                    cv2.IMWRITE_PNG_COMPRESSION,
+                    9,
+                    cv2.IMWRITE_PNG_STRATEGY,
+                    cv2.IMWRITE_PNG_STRATEGY_FILTERED,
+                ],
+            )
+            if (
+                ok
+                and data.size < src.stat().st_size
+                and np.array_equal(cv2.imdecode(data, cv2.IMREAD_UNCHANGED), image)
+            ):
+                dst.write_bytes(data.tobytes())
+                return
+    shutil.copyfile(src, dst)
+
+
+def _store_session(run: Path, dest: Path) -> dict[str, Any]:
+    """The capture session, every image losslessly, without ground truth (a real rig has none)."""
+    from slscan.capture.session import load_session
+
+    session = load_session(run)
+    views = []
+    for view in session.views:
+        for rec in view.images:
+            path = session.image_path(view, rec)
+            _reencode_png(path, dest / path.relative_to(session.root))
+        views.append(replace(view, ground_truth=None))
+    write_json(dest / "session.json", replace(session, root=dest, views=tuple(views)).to_dict())
+    load_session(dest)  # the stored session must be one
+    return {}
+
+
+def _store_json_files(run: Path, dest: Path) -> dict[str, Any]:
+    dest.mkdir(parents=True, exist_ok=True)
+    for path in sorted(run.glob("*.json")):
+        shutil.copyfile(path, dest / path.name)
+    return {}
+
+
+def _store_range_maps(run: Path, dest: Path) -> dict[str, Any]:
+    for path in sorted(run.glob("*.ply")):
+        write_surface(dest / path.name, read_surface(path))
+    return {}
+
+
+def _compare_range_maps(
+    stage: Stage, old: Path, new: Path, tol: Tolerances, ref: dict
+) -> list[Check]:
+    checks = []
+    for path in sorted(old.glob("*.ply")):
+        if not (new / path.name).is_file():
+            checks.append(_missing(stage.name, path.name))
+            continue
+        checks += _distance_checks(
+            stage.name,
+            f"{path.stem} ",
+            read_surface(path),
+            read_surface(new / path.name),
+            tol.range_map_mean_mm,
+            tol.range_map_p95_mm,
+        )
+    return checks
+
+
+def _store_albedo(run: Path, dest: Path) -> dict[str, Any]:
+    for path in sorted(run.glob("*_albedo.png")) + sorted(run.glob("*_valid.png")):
+        _reencode_png(path, dest / path.name)
+    return {}
+
+
+def _compare_albedo(stage: Stage, old: Path, new: Path, tol: Tolerances, ref: dict) -> list[Check]:
+    from slscan.fsio import read_png
+
+    checks = []
+    for path in sorted(old.glob("*_albedo.png")):
+        view = path.name[: -len("_albedo.png")]
+        valid = f"{view}_valid.png"
+        if not (new / path.name).is_file() or not (new / valid).is_file():
+            checks.append(_missing(stage.name, path.name))
+            continue
+        a, b = read_png(path), read_png(new / path.name)
+        va, vb = read_png(old / valid) > 0, read_png(new / valid) > 0
+        if a.shape != b.shape or va.shape != vb.shape:
+            checks.append(
+                Check(stage.name, f"{view} size", str(a.shape), str(b.shape), "equal", False)
+            )
+            continue
+        union = int((va | vb).sum())
+        both = va & vb
+        peak = float(np.iinfo(a.dtype).max) if a.dtype.kind == "u" else 1.0
+        checks += [
+            _at_least(
+                stage.name,
+                f"{view} PSNR dB",
+                psnr(a[both] / peak, b[both] / peak, 1.0),
+                tol.albedo_psnr_db,
+                MAX_PSNR,
+            ),
+            _at_least(
+                stage.name,
+                f"{view} valid IoU",
+                float(both.sum() / union) if union else 1.0,
+                tol.albedo_valid_iou,
+                1.0,
+            ),
+        ]
+    return checks
+
+
+def _store_registration(run: Path, dest: Path) -> dict[str, Any]:
+    from slscan.register.meshlab import load_scan_project
+
+    dest.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(run / "registration.json", dest / "registration.json")
+    scans, _ = load_scan_project(run / "aligned.mlp")
+    return {
+        "centroids": {
+            s.name: np.asarray(s.vertices, np.float64).mean(axis=0).tolist() for s in scans
+        }
+    }
+
+
+def _compare_registration(
+    stage: Stage, old: Path, new: Path, tol: Tolerances, ref: dict
+) -> list[Check]:
+    if not (new / "registration.json").is_file():
+        return [_missing(stage.name, "registration.json")]
+    a = read_json(old / "registration.json", "registration")["poses"]
+    b = read_json(new / "registration.json", "registration")["poses"]
+    centroids = ref.get("centroids", {})
+    checks = []
+    for view in sorted(set(a) | set(b)):
+        if view not in b or view not in a:
+            checks.append(
+                Check(
+                    stage.name,
+                    f"{view} pose",
+                    "registered" if view in a else "left out",
+                    "registered" if view in b else "left out",
+                    "equal",
+                    False,
+                )
+            )
+            continue
+        pa, pb = np.asarray(a[view], np.float64), np.asarray(b[view], np.float64)
+        cos = (np.trace(pb[:3, :3] @ pa[:3, :3].T) - 1.0) / 2.0
+        c = np.append(np.asarray(centroids.get(view, (0.0, 0.0, 0.0)), np.float64), 1.0)
+        checks += [
+            _at_most(
+                stage.name,
+                f"{view} rotation deg",
+                math.degrees(math.acos(float(np.clip(cos, -1, 1)))),
+                tol.rotation_deg,
+            ),
+            _at_most(
+                stage.name,
+                f"{view} shift mm",
+                float(np.linalg.norm((pb @ c - pa @ c)[:3])),
+                tol.shift_mm,
+            ),
+        ]
+    return checks
+
+
+def _store_mesh(run: Path, dest: Path) -> dict[str, Any]:
+    write_surface(dest / "mesh.ply", read_surface(run / "mesh.ply"))
+    return {}
+
+
+def _compare_mesh(stage: Stage, old: Path, new: Path, tol: Tolerances, ref: dict) -> list[Check]:
+    """A mesh made from a mesh (simplified) has the simplified tolerances, a fused one the fused."""
+    if not (new / "mesh.ply").is_file():
+        return [_missing(stage.name, "mesh.ply")]
+    a, b = read_surface(old / "mesh.ply"), read_surface(new / "mesh.ply")
+    simplified = "mesh" in stage.needs
+    return [
+        *_distance_checks(
+            stage.name,
+            "",
+            a,
+            b,
+            *(
+                (tol.simplified_mean_mm, tol.simplified_p95_mm)
+                if simplified
+                else (tol.fused_mean_mm, tol.fused_p95_mm)
+            ),
+        ),
+        _count(stage.name, "faces", len(a.faces), len(b.faces), tol.count),
+    ]
+
+
+MODEL = "model.ply"
+MODEL_TEXTURE = "model_albedo.png"
+MODEL_SEEN = "view_count.png"
+
+
+def _store_model(run: Path, dest: Path) -> dict[str, Any]:
+    from slscan.fsio import write_png
+
+    model = read_textured_model(run)
+    write_surface(dest / MODEL, model, texture_file=MODEL_TEXTURE)
+    write_png(dest / MODEL_TEXTURE, model.texture)
+    write_png(dest / MODEL_SEEN, model.seen.astype(np.uint8))
+    return {}
+
+
+def _compare_model(stage: Stage, old: Path, new: Path, tol: Tolerances, ref: dict) -> list[Check]:
+    from slscan.fsio import read_png
+
+    if not (new / "texture.json").is_file():
+        return [_missing(stage.name, "texture.json")]
+    a = replace(
+        read_surface(old / MODEL),
+        texture=read_png(old / MODEL_TEXTURE),
+        seen=read_png(old / MODEL_SEEN) > 0,
+    )
+    b = read_textured_model(new)
+    diff = texture_difference(a, b)
+    return [
+        *_distance_checks(
+            stage.name, "model ", a, b, tol.simplified_mean_mm, tol.simplified_p95_mm
+        ),
+        _at_least(
+            stage.name, "texture seen PSNR dB", diff.seen_psnr, tol.texture_psnr_db, MAX_PSNR
+        ),
+        _at_least(
+            stage.name, "texture filled PSNR dB", diff.filled_psnr, tol.filled_psnr_db, MAX_PSNR
+        ),
+    ]
+
+
+STORE: dict[str, Store] = {
+    "session": _store_session,
+    "lights": _store_json_files,
+    "range_maps": _store_range_maps,
+    "albedo": _store_albedo,
+    "aligned": _store_registration,
+    "mesh": _store_mesh,
+    "model": _store_model,
+}
+"""What a baseline keeps of each kind of result (kinds not named: only their metrics)."""
+COMPARE: dict[str, Compare] = {
+    "range_maps": _compare_range_maps,
+    "albedo": _compare_albedo,
+    "aligned": _compare_registration,
+    "mesh": _compare_mesh,
+    "model": _compare_model,
+}
+
+
+# --- the recording -----------------------------------------------------------------------------
+
+
+def recording_rows(path: Path) -> dict[str, int]:
+    """Rows per entity of a Rerun recording (recording properties left out)."""
     from rerun.chunk import RrdReader
 
     rows: dict[str, int] = {}
     try:
         chunks = RrdReader(path).stream().to_chunks()
-    except Exception as exc:  # rerun raises its own error types for foreign or broken files
-        raise SlscanError(f"{path}: not a recording this Rerun can read ({str(exc).splitlines()[0]})") from None
+    except Exception as exc:  # noqa: BLE001 - rerun raises its own error types for foreign or broken files
+        raise SlscanError(
+            f"{path}: not a recording this Rerun can read ({str(exc).splitlines()[0]})"
+        ) from None
     for chunk in chunks:
         if chunk.entity_path.startswith("/__"):
             continue  # recording properties
@@ -78,72 +546,212 @@ def _recording_rows(path: Path) -> dict[str, int]:
     return rows
 
 
-def _rerun_entity(entity: str) -> bool:
-    """Entities logged by the stages after capture (decode and later)."""
-    return entity.startswith(("/world/camera/image/decode", "/plot")) or entity.endswith("/range_map")
+def _recording_checks(old: dict[str, int], new: dict[str, int]) -> list[Check]:
+    """One check per entity whose rows differ, then one for the whole recording."""
+    differ = [e for e in sorted(set(old) | set(new)) if old.get(e, 0) != new.get(e, 0)]
+    checks = [
+        Check("recording", f"{e} rows", old.get(e, 0), new.get(e, 0), "equal", False)
+        for e in differ
+    ]
+    same = len(set(old) | set(new)) - len(differ)
+    return [
+        *checks,
+        Check("recording", "entities with equal rows", len(old), same, "all", not differ),
+    ]
 
 
-def make_baseline(recipe: Recipe, out: str | os.PathLike, *, reporter: Reporter | None = None) -> Path:
-    """Run ``recipe`` into a new baseline folder ``out`` with its recording and metrics."""
+# --- baseline and regress -----------------------------------------------------------------------
+
+
+def baseline_inputs(baseline: Path, recipe: Recipe) -> dict[str, Path]:
+    """The recorded inputs a baseline hands to its re-run, by kind."""
+    return {
+        s.provides: Path(baseline) / s.name for s, _ in recipe.steps if s.provides in INPUT_KINDS
+    }
+
+
+def make_baseline(
+    recipe: Recipe,
+    out: str | os.PathLike,
+    *,
+    reporter: Reporter | None = None,
+    overwrite: bool = False,
+    executor=None,
+    command: str | None = None,
+    tolerances: Tolerances | None = None,
+) -> Path:
+    """Run ``recipe`` into a new baseline folder ``out``: its recorded inputs, the
+    references of every later stage, and ``baseline.json``.
+
+    The inputs' stages run first and their results are stored; the whole recipe then runs
+    on the stored inputs, as :func:`regress` will, and what :func:`compare` needs of each
+    stage is kept.
+
+    overwrite : replace an existing non-empty ``out`` (only once the new baseline is complete)
+    command : the command line that made it, recorded to regenerate it
+    """
     from slscan.viewer.layouts import pipeline_blueprint
     from slscan.viewer.recording import open_recording
 
     out = Path(out)
-    if not any(s.provides in SESSION_KINDS for s, _ in recipe.steps):
+    inputs = tuple((s, c) for s, c in recipe.steps if s.provides in INPUT_KINDS)
+    if not any(s.provides == "session" for s, _ in inputs):
         raise SlscanError(f"recipe {recipe.name!r} records no capture session to re-run")
-    with atomic_output_dir(out) as tmp:
-        with open_recording(save=tmp / RECORDING, recording_name=f"baseline {recipe.name}",
-                            blueprint=pipeline_blueprint()) as rec:
-            # the captures are the fixed input of later checks: record only what is re-run
-            run_recipe(recipe, tmp, rec=rec, reporter=reporter, unrecorded=SESSION_KINDS)
-        write_json(tmp / "baseline.json", {
-            "format": BASELINE_FORMAT, "version": BASELINE_VERSION, "slscan": __version__,
-            "recipe": recipe.name, "metrics": collect_metrics(tmp),
-        })
+    scratch = Path(tempfile.mkdtemp(prefix="slscan-baseline-"))
+    try:
+        with atomic_output_dir(out, overwrite=overwrite) as tmp:
+            run_recipe(
+                replace(recipe, steps=inputs),
+                scratch / "inputs",
+                reporter=reporter,
+                executor=executor,
+            )
+            for stage, _ in inputs:
+                STORE[stage.provides](scratch / "inputs" / stage.name, tmp / stage.name)
+            run = scratch / "run"
+            run.mkdir()
+            names = [s.name for s, _ in recipe.steps]
+            with open_recording(
+                save=run / RECORDING,
+                recording_name=f"baseline {recipe.name}",
+                blueprint=pipeline_blueprint(names),
+            ) as rec:
+                run_recipe(
+                    recipe,
+                    run,
+                    rec=rec,
+                    reporter=reporter,
+                    executor=executor,
+                    given=baseline_inputs(tmp, recipe),
+                )
+            references = {}
+            for stage, _ in recipe.steps:
+                if stage.provides not in INPUT_KINDS and stage.provides in STORE:
+                    references[stage.name] = STORE[stage.provides](
+                        run / stage.name, tmp / stage.name
+                    )
+            shutil.copyfile(run / "recipe.resolved.toml", tmp / "recipe.resolved.toml")
+            write_json(
+                tmp / "baseline.json",
+                {
+                    "format": BASELINE_FORMAT,
+                    "version": BASELINE_VERSION,
+                    "slscan": __version__,
+                    "recipe": recipe.name,
+                    "command": command,
+                    "inputs": [s.name for s, _ in inputs],
+                    "tolerances": asdict(tolerances or Tolerances()),
+                    "metrics": collect_metrics(run),
+                    "references": {k: v for k, v in references.items() if v},
+                    "recording": recording_rows(run / RECORDING),
+                },
+            )
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
     return out
 
 
-def _check_baseline(baseline: Path) -> tuple[dict[str, Any], Recipe, str]:
+def baseline_command(meta: dict[str, Any], baseline: Path) -> str:
+    """The command that regenerates a baseline (as recorded in it, else a template)."""
+    return (
+        meta.get("command")
+        or f"slscan baseline RECIPE --out {shlex.quote(str(baseline))} --overwrite"
+    )
+
+
+def load_baseline(
+    baseline: str | os.PathLike, *, overrides: list[str] = ()
+) -> tuple[dict[str, Any], Recipe]:
+    """``baseline.json`` and the baseline's recipe (with ``overrides`` applied), checked."""
+    baseline = Path(baseline)
     if not baseline.is_dir():
         raise SlscanError(f"{baseline}: baseline folder not found")
-    for name in ("baseline.json", "recipe.resolved.toml", RECORDING):
+    for name in ("baseline.json", "recipe.resolved.toml"):
         if not (baseline / name).is_file():
             raise SlscanError(f"{baseline}: the baseline lacks {name}")
     meta = read_json(baseline / "baseline.json", "baseline description")
     if meta.get("format") != BASELINE_FORMAT:
         raise SlscanError(f"{baseline / 'baseline.json'}: not an slscan baseline")
     if meta.get("version") != BASELINE_VERSION:
-        raise SlscanError(f"{baseline / 'baseline.json'}: baseline version {meta.get('version')} is not supported")
-    recipe = load_recipe(baseline / "recipe.resolved.toml")
-    session_stage = next((s.name for s, _ in recipe.steps if s.provides in SESSION_KINDS), None)
-    if session_stage is None or not (baseline / session_stage / "session.json").is_file():
-        raise SlscanError(f"{baseline}: the recorded capture session ({session_stage}/session.json) is missing")
-    return meta, recipe, session_stage
+        raise SlscanError(
+            f"{baseline / 'baseline.json'}: baseline version {meta.get('version')} is not supported "
+            f"(this slscan reads version {BASELINE_VERSION}); regenerate it:  {baseline_command(meta, baseline)}"
+        )
+    try:
+        recipe = load_recipe(baseline / "recipe.resolved.toml", overrides=list(overrides))
+    except SlscanError as exc:
+        raise SlscanError(
+            f"{exc}\n(a baseline made by an older slscan? regenerate it:  "
+            f"{baseline_command(meta, baseline)})"
+        ) from None
+    given = baseline_inputs(baseline, recipe)
+    if "session" not in given or not (given["session"] / "session.json").is_file():
+        raise SlscanError(
+            f"{baseline}: the recorded capture session "
+            f"({given['session'].name + '/' if 'session' in given else ''}session.json) is missing"
+        )
+    for folder in given.values():
+        if not folder.is_dir():
+            raise SlscanError(f"{baseline}: the recorded input {folder.name}/ is missing")
+    return meta, recipe
 
 
-def _mesh_distance(a_path: Path, b_path: Path) -> float:
-    """Mean nearest-vertex distance, both ways, between two range maps (mm)."""
-    from scipy.spatial import cKDTree
+def compare(
+    baseline: str | os.PathLike, run: str | os.PathLike, *, stages: list[str] | None = None
+) -> list[Check]:
+    """Compare a re-run in folder ``run`` with ``baseline``, stage by stage, then the
+    recording (when ``run`` has one).
 
-    from slscan.decode.rangemap import read_ply
+    stages : compare only these stages (default: all)
+    """
+    baseline, run = Path(baseline), Path(run)
+    meta, recipe = load_baseline(baseline)
+    tol = Tolerances.from_json(meta.get("tolerances"), str(baseline / "baseline.json"))
+    references = meta.get("references", {})
+    checks: list[Check] = []
+    metrics = _metric_checks(meta.get("metrics", {}), collect_metrics(run), tol)
+    for stage, _ in recipe.steps:
+        if stage.provides in INPUT_KINDS or (stages is not None and stage.name not in stages):
+            continue
+        if stage.provides in COMPARE:
+            if not (run / stage.name).is_dir():
+                checks.append(_missing(stage.name, f"{stage.name}/"))
+            else:
+                checks += COMPARE[stage.provides](
+                    stage,
+                    baseline / stage.name,
+                    run / stage.name,
+                    tol,
+                    references.get(stage.name, {}),
+                )
+        checks += [c for c in metrics if c.stage == stage.name]
+    if stages is None:
+        named = {s.name for s, _ in recipe.steps}
+        checks += [c for c in metrics if c.stage not in named]
+        if (run / RECORDING).is_file():
+            checks += _recording_checks(meta.get("recording", {}), recording_rows(run / RECORDING))
+    return checks
 
-    a, b = read_ply(a_path).vertices, read_ply(b_path).vertices
-    if len(a) == 0 or len(b) == 0:
-        return 0.0 if len(a) == len(b) else float("inf")
-    return float(max(cKDTree(b).query(a)[0].mean(), cKDTree(a).query(b)[0].mean()))
 
-
-def regress(baseline: str | os.PathLike, *, work: str | os.PathLike | None = None,
-            reporter: Reporter | None = None) -> list[Check]:
-    """Re-run ``baseline``'s recorded session through its recipe and compare; never writes it.
+def regress(
+    baseline: str | os.PathLike,
+    *,
+    work: str | os.PathLike | None = None,
+    overrides: list[str] = (),
+    reporter: Reporter | None = None,
+    executor=None,
+) -> list[Check]:
+    """Re-run ``baseline``'s recipe on its recorded inputs and :func:`compare`; never writes it.
 
     work : keep the re-run here (default: a temporary folder, removed afterwards)
+    overrides : ``KEY=VALUE`` settings changed for the re-run (what would this change do?)
+    executor : where per-view stages run (:class:`slscan.executor.Executor`)
     """
     from slscan.viewer.layouts import pipeline_blueprint
     from slscan.viewer.recording import open_recording
 
     baseline = Path(baseline)
-    meta, recipe, session_stage = _check_baseline(baseline)
+    _, recipe = load_baseline(baseline, overrides=list(overrides))
     scratch = Path(work) if work else Path(tempfile.mkdtemp(prefix="slscan-regress-"))
     if scratch.resolve() == baseline.resolve():
         raise SlscanError("a regression run never writes into its baseline")
@@ -151,50 +759,39 @@ def regress(baseline: str | os.PathLike, *, work: str | os.PathLike | None = Non
         raise SlscanError(f"{scratch}: folder exists and is not empty")
     try:
         scratch.mkdir(parents=True, exist_ok=True)
-        with open_recording(save=scratch / RECORDING, recording_name=f"regress {recipe.name}",
-                            blueprint=pipeline_blueprint()) as rec:
-            run_recipe(recipe, scratch, rec=rec, reporter=reporter,
-                       given={"session": baseline / session_stage})
-        checks = []
-        current = collect_metrics(scratch)
-        for key, old in sorted(meta["metrics"].items()):
-            new = current.get(key)
-            if new is None:
-                checks.append(Check(key, old, "missing", "present", False))
-                continue
-            is_count = key.rsplit("/", 1)[-1] in ("samples", "vertices", "faces")
-            tol = COUNT_TOLERANCE * max(abs(old), 1.0) if is_count else 1e-3 + 1e-3 * abs(old)
-            checks.append(Check(key, old, new, f"±{tol:.3g}", abs(new - old) <= tol))
-        for key in sorted(set(current) - set(meta["metrics"])):
-            checks.append(Check(key, "missing", current[key], "present", False))
-        for ply in sorted(baseline.glob("*/*.ply")):
-            rel = ply.relative_to(baseline)
-            if (scratch / rel).is_file():
-                d = _mesh_distance(ply, scratch / rel)
-                checks.append(Check(f"{rel} distance mm", 0.0, d, f"≤{DISTANCE_TOLERANCE_MM}",
-                                    d <= DISTANCE_TOLERANCE_MM))
-            else:
-                checks.append(Check(str(rel), "present", "missing", "present", False))
-        old_rows, new_rows = _recording_rows(baseline / RECORDING), _recording_rows(scratch / RECORDING)
-        for entity in sorted(set(old_rows) | set(new_rows)):
-            if not _rerun_entity(entity):
-                continue  # captures are the fixed input: only re-run stages are compared
-            o, n = old_rows.get(entity, 0), new_rows.get(entity, 0)
-            checks.append(Check(f"recording {entity} rows", o, n, "equal", o == n))
-        return checks
+        with open_recording(
+            save=scratch / RECORDING,
+            recording_name=f"regress {recipe.name}",
+            blueprint=pipeline_blueprint([s.name for s, _ in recipe.steps]),
+        ) as rec:
+            run_recipe(
+                recipe,
+                scratch,
+                rec=rec,
+                reporter=reporter,
+                executor=executor,
+                given=baseline_inputs(baseline, recipe),
+            )
+        return compare(baseline, scratch)
     finally:
         if not work:
             shutil.rmtree(scratch, ignore_errors=True)
 
 
+def _fmt(v: float | str) -> str:
+    return f"{v:.6g}" if isinstance(v, (int, float, np.floating, np.integer)) else str(v)
+
+
 def format_table(checks: list[Check]) -> str:
-    width = max(len(c.name) for c in checks) if checks else 10
-
-    def fmt(v: float | str) -> str:
-        return f"{v:.6g}" if isinstance(v, (int, float, np.floating)) else str(v)
-
-    lines = [f"{'check':<{width}}  {'baseline':>12}  {'current':>12}  {'tolerance':>10}  result"]
+    """The checks as a text table: stage, metric, baseline, now, tolerance, ok."""
+    sw = max([len("stage"), *(len(c.stage) for c in checks)])
+    mw = max([len("metric"), *(len(c.metric) for c in checks)])
+    lines = [
+        f"{'stage':<{sw}}  {'metric':<{mw}}  {'baseline':>12}  {'now':>12}  {'tolerance':>10}  ok"
+    ]
     for c in checks:
-        lines.append(f"{c.name:<{width}}  {fmt(c.baseline):>12}  {fmt(c.current):>12}  {c.tolerance:>10}  "
-                     + ("ok" if c.ok else "REGRESSION"))
+        lines.append(
+            f"{c.stage:<{sw}}  {c.metric:<{mw}}  {_fmt(c.baseline):>12}  {_fmt(c.current):>12}  "
+            f"{c.tolerance:>10}  " + ("ok" if c.ok else "REGRESSION")
+        )
     return "\n".join(lines)
