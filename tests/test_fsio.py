@@ -46,14 +46,16 @@ def test_membership_does_not_wait_and_errors_surface_at_their_key():
 
 def test_leaving_the_block_cancels_reads_not_started():
     started = []
-    gate = threading.Event()
+    gate, first = threading.Event(), threading.Event()
 
     def read(key):
         started.append(key)
+        first.set()
         gate.wait(10)
         return key
 
     values = Prefetched(read, list(range(20)))
+    assert first.wait(10)  # a read is under way (on a busy machine the thread may start late)
     timer = threading.Timer(0.2, gate.set)
     timer.start()
     values.close()  # waits for the read under way, drops the others
