@@ -1,6 +1,7 @@
 """Register and fuse the Stanford bunny's 10 real range scans; compare with bun.conf and bun_zipper.
 
     .venv/bin/python benchmarks/bunny.py [--data ../shared/data] [--voxel 0.5] [--seed 7]
+        [--against REV] [--o3d-voxels 2,1.5] [--register-only]
 
 (a) Registration (gauge fixed on bun000), three starts:
 
@@ -15,6 +16,16 @@ is ~100 mm from the samples, so a 0.1 degree rotation alone moves it ~0.2 mm). T
 same after taking out the one rigid motion that best fits the whole registration onto
 bun.conf (``fit_gauge``): which scan is held still is a choice, and bun000's bun.conf pose
 has error of its own.
+
+(a2) Cost and accuracy side by side, from the perturbed start: slscan's ``register_scans``
+(this working tree and, with ``--against REV``, the toolbox of git revision REV, exported
+with ``git archive``) and Open3D's multiway registration pipeline as in its tutorial
+(``o3d_multiway``: voxel downsampling and normal estimation, point-to-plane ICP at 15 then
+1.5 voxels on every pair, odometry edges between consecutive scans, a pose graph optimised
+by ``global_optimization`` with a line process), at each voxel of ``--o3d-voxels`` (mm).
+CPU time is ``time.process_time()`` around the registration alone (all threads of the
+process; loading the scans excluded); the errors are the worst scan's, against bun.conf,
+raw (gauge on bun000) and after ``fit_gauge``.
 
 (b) Fusion of the 10 scans at the registered ("perturbed") poses: weighted TSDF
 (``fuse_scans``) and screened Poisson (pymeshlab), each compared with Stanford's
@@ -41,7 +52,12 @@ import numpy as np
 from measure import distances_to_mesh, peak_rss_bytes, surface_samples
 
 DEG, MM = 10.0, 10.0
-
+O3D_ORDER = ("chin", "bun315", "bun000", "bun045", "top3", "bun090", "top2", "ear_back",
+             "bun180", "bun270")
+"""The scans in an order where consecutive ones overlap (42-86 %, under bun.conf): the
+tutorial trusts the odometry edge between consecutive scans. In bun.conf's own order
+(bun090 -> bun180: 32 %; chin -> ear_back: 7 %) its result is off by more than 7 degrees
+at every voxel size tried, even from bun.conf itself."""
 
 
 def perturbed(poses: dict, seed: int, keep: str = "bun000") -> dict:
@@ -70,23 +86,74 @@ def stage_register(args) -> dict:
 
     scans, truth = load_stanford_dir(args.data / "stanford_bunny")
     start = {"perturbed": perturbed(truth, args.seed), "none": None, "conf": truth}[args.start]
-    t = time.perf_counter()
+    t, cpu = time.perf_counter(), time.process_time()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        result = register_scans(scans, initial_poses=start, reference="bun000")
-    seconds = time.perf_counter() - t
-    (args.work / f"poses-{args.start}.json").write_text(
-        json.dumps({k: v.tolist() for k, v in result.poses.items()})
+        if args.method == "open3d":
+            poses, edges = o3d_multiway(scans, start, args.o3d_voxel)
+            pairs, rmse, left_out = edges, [], {}
+        else:
+            result = register_scans(scans, initial_poses=start, reference="bun000")
+            poses, pairs, left_out = result.poses, len(result.pairs), result.left_out
+            rmse = [p.rmse for p in result.pairs]
+    seconds, cpu = time.perf_counter() - t, time.process_time() - cpu
+    (args.work / f"poses-{args.start}-{args.tag}.json").write_text(
+        json.dumps({k: v.tolist() for k, v in poses.items()})
     )
     return {
         "seconds": seconds,
+        "cpu": cpu,
         "peak": peak_rss_bytes(),
-        "left_out": result.left_out,
-        "pairs": len(result.pairs),
+        "left_out": left_out,
+        "pairs": pairs,
         "warnings": [str(w.message) for w in caught],
-        "rmse": [p.rmse for p in result.pairs],
+        "rmse": rmse,
         "start": {k: v.tolist() for k, v in (start or {}).items()},
     }
+
+
+def o3d_multiway(scans, start: dict, voxel: float) -> tuple[dict, int]:
+    """Open3D's multiway registration tutorial on the scans placed at their ``start`` poses:
+    world_from_scan of each scan (gauge: bun000 keeps its start pose) and the number of
+    pose-graph edges the line process kept."""
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    by_name = {s.name: s for s in scans}
+    order = [n for n in O3D_ORDER if n in by_name]
+    pcds = []
+    for name in order:
+        pcd = o3d.geometry.PointCloud(
+            o3d.utility.Vector3dVector(by_name[name].transformed_vertices(start[name]))
+        )
+        pcd = pcd.voxel_down_sample(voxel)
+        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=30))
+        pcds.append(pcd)
+    coarse, fine = 15 * voxel, 1.5 * voxel
+    graph = reg.PoseGraph()
+    odometry = np.eye(4)
+    graph.nodes.append(reg.PoseGraphNode(odometry))
+    for i in range(len(pcds)):
+        for j in range(i + 1, len(pcds)):
+            icp = reg.registration_icp(pcds[i], pcds[j], coarse, np.eye(4),
+                                       reg.TransformationEstimationPointToPlane())
+            icp = reg.registration_icp(pcds[i], pcds[j], fine, icp.transformation,
+                                       reg.TransformationEstimationPointToPlane())
+            info = reg.get_information_matrix_from_point_clouds(pcds[i], pcds[j], fine,
+                                                                icp.transformation)
+            if j == i + 1:
+                odometry = icp.transformation @ odometry
+                graph.nodes.append(reg.PoseGraphNode(np.linalg.inv(odometry)))
+            graph.edges.append(reg.PoseGraphEdge(i, j, icp.transformation, info,
+                                                 uncertain=j != i + 1))
+    option = reg.GlobalOptimizationOption(max_correspondence_distance=fine,
+                                          edge_prune_threshold=0.25, reference_node=0)
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        reg.global_optimization(graph, reg.GlobalOptimizationLevenbergMarquardt(),
+                                reg.GlobalOptimizationConvergenceCriteria(), option)
+    poses = {n: np.asarray(graph.nodes[k].pose) @ start[n] for k, n in enumerate(order)}
+    fix = start["bun000"] @ np.linalg.inv(poses["bun000"])
+    return {n: fix @ p for n, p in poses.items()}, len(graph.edges)
 
 
 def stage_fuse(args) -> dict:
@@ -96,7 +163,7 @@ def stage_fuse(args) -> dict:
     scans, conf = load_stanford_dir(args.data / "stanford_bunny")
     poses = {
         k: np.array(v)
-        for k, v in json.loads((args.work / "poses-perturbed.json").read_text()).items()
+        for k, v in json.loads((args.work / "poses-perturbed-slscan.json").read_text()).items()
     }
     if args.method == "tsdf-conf":
         poses = conf
@@ -157,7 +224,8 @@ def _compare(vertices: np.ndarray, faces: np.ndarray, data: Path) -> dict:
 # --- driver ---------------------------------------------------------------------------------------
 
 
-def _run(args, stage: str, **extra) -> dict:
+def _run(args, stage: str, *, toolbox: Path | None = None, **extra) -> dict:
+    """Run one stage in a subprocess (slscan from ``toolbox`` when given); its JSON result."""
     command = [
         sys.executable,
         __file__,
@@ -176,7 +244,11 @@ def _run(args, stage: str, **extra) -> dict:
     ]
     for k, v in extra.items():
         command += [f"--{k}", str(v)]
-    proc = subprocess.run(command, capture_output=True, text=True, check=False)
+    env = None
+    if toolbox is not None:
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+            [str(toolbox), *filter(None, [os.environ.get("PYTHONPATH")])]))
+    proc = subprocess.run(command, capture_output=True, text=True, check=False, env=env)
     if proc.returncode != 0:
         raise SystemExit(f"stage {stage} {extra} failed:\n{proc.stderr[-3000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
@@ -197,6 +269,49 @@ def _errors(poses: dict, truth: dict, scans: dict) -> dict:
     return out
 
 
+def _export_toolbox(rev: str, folder: Path) -> Path:
+    """``toolbox/`` of git revision ``rev`` written to ``folder`` (git archive: the working
+    tree and the repository are left as they are)."""
+    import io
+    import tarfile
+
+    root = Path(__file__).resolve().parent.parent
+    proc = subprocess.run(["git", "-C", str(root), "archive", rev, "toolbox"],
+                          capture_output=True, check=False)
+    if proc.returncode != 0:
+        raise SystemExit(f"--against {rev}: {proc.stderr.decode(errors='replace').strip()}")
+    folder.mkdir(parents=True, exist_ok=True)
+    with tarfile.open(fileobj=io.BytesIO(proc.stdout)) as tar:
+        tar.extractall(folder, filter="data")
+    return folder / "toolbox"
+
+
+def _print_side_by_side(side: dict, side_poses: dict, truth: dict, by_name: dict,
+                        samples: dict) -> None:
+    """Table (a2): CPU time and worst-scan errors of each registration from the perturbed start."""
+    from slscan.register.pairwise import fit_gauge
+
+    base = next((r["cpu"] for label, r in side.items() if label.startswith("Open3D")), None)
+    print(f"(a2) from the perturbed start, side by side ({os.cpu_count()} CPUs): CPU time "
+          "(process, all threads), wall time, worst scan vs bun.conf: rotation (deg) / "
+          "translation at its centroid (mm), raw and after fit_gauge")
+    print(f"{'registration':<30} {'cpu s':>7} {'x Open3D':>8} {'wall s':>7} "
+          f"{'max rot':>8} {'max tr':>7} {'fit rot':>8} {'fit tr':>7} {'scans':>6} {'edges':>6}")
+    for label, r in side.items():
+        p = {k: np.array(v) for k, v in side_poses[label].items()}
+        raw = [e for e in _errors(p, truth, by_name).values() if e is not None]
+        gauge = fit_gauge(p, truth, samples)
+        fit = [e for e in _errors({k: gauge @ v for k, v in p.items()}, truth, by_name).values()
+               if e is not None]
+        ratio = f"{r['cpu'] / base:8.2f}" if base else f"{'':>8}"
+        print(f"{label:<30} {r['cpu']:7.1f} {ratio} {r['seconds']:7.1f} "
+              f"{max(e[0] for e in raw):8.3f} {max(e[2] for e in raw):7.3f} "
+              f"{max(e[0] for e in fit):8.3f} {max(e[2] for e in fit):7.3f} "
+              f"{len(p):>3}/{len(truth):<2} {r['pairs']:6d}")
+    print("    x Open3D: CPU time over the first Open3D row's; edges: slscan's overlapping pairs, "
+          "Open3D's pose-graph edges kept")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -209,10 +324,17 @@ def main() -> None:
     parser.add_argument(
         "--faces", type=int, default=69_451, help="simplification target (bun_zipper's count)"
     )
+    parser.add_argument("--against", metavar="REV",
+                        help="also time the registration of git revision REV (exported with git archive)")
+    parser.add_argument("--o3d-voxels", default="2,1.5",
+                        help="voxel sizes (mm) of Open3D's multiway pipeline, comma-separated (default 2,1.5)")
+    parser.add_argument("--register-only", action="store_true", help="stop after the registration tables")
     parser.add_argument("--work", type=Path, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--o3d-voxel", type=float, default=2.0, help=argparse.SUPPRESS)
+    parser.add_argument("--tag", default="slscan", help=argparse.SUPPRESS)
     parser.add_argument("--stage", help=argparse.SUPPRESS)
     parser.add_argument("--start", default="perturbed", help=argparse.SUPPRESS)
-    parser.add_argument("--method", default="tsdf", help=argparse.SUPPRESS)
+    parser.add_argument("--method", default="", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.data is None or not (args.data / "stanford_bunny").is_dir():
         raise SystemExit("bunny data not found: pass --data or set SLSCAN_DATA")
@@ -233,10 +355,26 @@ def main() -> None:
             start: _run(args, "register", start=start) for start in ("perturbed", "none", "conf")
         }
         poses = {
-            start: json.loads((args.work / f"poses-{start}.json").read_text()) for start in reg
+            start: json.loads((args.work / f"poses-{start}-slscan.json").read_text())
+            for start in reg
         }
-        fused = {m: _run(args, "fuse", method=m) for m in ("tsdf", "poisson", "tsdf-conf")}
-        simp = {m: _run(args, "simplify", method=m) for m in ("fast", "quadric")}
+        runs = {"slscan (this tree)": ("slscan", reg["perturbed"])}
+        if args.against:
+            toolbox = _export_toolbox(args.against, args.work / "against")
+            runs[f"slscan ({args.against})"] = (
+                "against", _run(args, "register", toolbox=toolbox, tag="against"))
+        for voxel in [float(v) for v in args.o3d_voxels.split(",") if v.strip()]:
+            tag = f"o3d-{voxel:g}"
+            runs[f"Open3D multiway, {voxel:g} mm"] = (
+                tag, _run(args, "register", method="open3d", tag=tag, **{"o3d-voxel": voxel}))
+        side = {label: r for label, (_, r) in runs.items()}
+        side_poses = {
+            label: json.loads((args.work / f"poses-perturbed-{tag}.json").read_text())
+            for label, (tag, _) in runs.items()
+        }
+        if not args.register_only:
+            fused = {m: _run(args, "fuse", method=m) for m in ("tsdf", "poisson", "tsdf-conf")}
+            simp = {m: _run(args, "simplify", method=m) for m in ("fast", "quadric")}
 
     initial = _errors(
         {k: np.array(v) for k, v in reg["perturbed"]["start"].items()}, truth, by_name
@@ -288,6 +426,10 @@ def main() -> None:
         + " | ".join(f"{reg[s]['seconds']:19.1f} s" for s in ("perturbed", "none", "conf"))
     )
     print(
+        f"{'cpu':<9} {'':>21} | "
+        + " | ".join(f"{reg[s]['cpu']:19.1f} s" for s in ("perturbed", "none", "conf"))
+    )
+    print(
         f"{'peak':<9} {'':>21} | "
         + " | ".join(f"{reg[s]['peak'] / 2**20:17.0f} MiB" for s in ("perturbed", "none", "conf"))
     )
@@ -301,6 +443,10 @@ def main() -> None:
     for s in reg:
         if reg[s]["left_out"]:
             print(f"  {s}: left out {reg[s]['left_out']}")
+    print()
+    _print_side_by_side(side, side_poses, truth, by_name, samples)
+    if args.register_only:
+        return
     print()
     print(
         f"(b) fusion of the 10 scans at the poses registered from the perturbed start, "

@@ -528,6 +528,17 @@ COMPARE: dict[str, Compare] = {
 # --- the recording -----------------------------------------------------------------------------
 
 
+def _run_recorded(recipe: Recipe, folder: Path, name: str, given: dict, reporter, executor) -> None:
+    """Run ``recipe`` into ``folder`` on the recorded inputs ``given``, recording what it logs
+    to ``folder/recording.rrd`` under the pipeline layout."""
+    from slscan.viewer.layouts import pipeline_blueprint
+    from slscan.viewer.recording import open_recording
+
+    blueprint = pipeline_blueprint([s.name for s, _ in recipe.steps])
+    with open_recording(save=folder / RECORDING, recording_name=name, blueprint=blueprint) as rec:
+        run_recipe(recipe, folder, rec=rec, reporter=reporter, executor=executor, given=given)
+
+
 def recording_rows(path: Path) -> dict[str, int]:
     """Rows per entity of a Rerun recording (recording properties left out)."""
     from rerun.chunk import RrdReader
@@ -590,8 +601,6 @@ def make_baseline(
     overwrite : replace an existing non-empty ``out`` (only once the new baseline is complete)
     command : the command line that made it, recorded to regenerate it
     """
-    from slscan.viewer.layouts import pipeline_blueprint
-    from slscan.viewer.recording import open_recording
 
     out = Path(out)
     inputs = tuple((s, c) for s, c in recipe.steps if s.provides in INPUT_KINDS)
@@ -610,20 +619,8 @@ def make_baseline(
                 STORE[stage.provides](scratch / "inputs" / stage.name, tmp / stage.name)
             run = scratch / "run"
             run.mkdir()
-            names = [s.name for s, _ in recipe.steps]
-            with open_recording(
-                save=run / RECORDING,
-                recording_name=f"baseline {recipe.name}",
-                blueprint=pipeline_blueprint(names),
-            ) as rec:
-                run_recipe(
-                    recipe,
-                    run,
-                    rec=rec,
-                    reporter=reporter,
-                    executor=executor,
-                    given=baseline_inputs(tmp, recipe),
-                )
+            _run_recorded(recipe, run, f"baseline {recipe.name}", baseline_inputs(tmp, recipe),
+                          reporter, executor)
             references = {}
             for stage, _ in recipe.steps:
                 if stage.provides not in INPUT_KINDS and stage.provides in STORE:
@@ -747,8 +744,6 @@ def regress(
     overrides : ``KEY=VALUE`` settings changed for the re-run (what would this change do?)
     executor : where per-view stages run (:class:`slscan.executor.Executor`)
     """
-    from slscan.viewer.layouts import pipeline_blueprint
-    from slscan.viewer.recording import open_recording
 
     baseline = Path(baseline)
     _, recipe = load_baseline(baseline, overrides=list(overrides))
@@ -759,19 +754,8 @@ def regress(
         raise SlscanError(f"{scratch}: folder exists and is not empty")
     try:
         scratch.mkdir(parents=True, exist_ok=True)
-        with open_recording(
-            save=scratch / RECORDING,
-            recording_name=f"regress {recipe.name}",
-            blueprint=pipeline_blueprint([s.name for s, _ in recipe.steps]),
-        ) as rec:
-            run_recipe(
-                recipe,
-                scratch,
-                rec=rec,
-                reporter=reporter,
-                executor=executor,
-                given=baseline_inputs(baseline, recipe),
-            )
+        _run_recorded(recipe, scratch, f"regress {recipe.name}", baseline_inputs(baseline, recipe),
+                      reporter, executor)
         return compare(baseline, scratch)
     finally:
         if not work:

@@ -169,6 +169,12 @@ class RegisterConfig:
     pose_tolerance: float = 0.0
     """How far (mm) the recorded poses may be off; 0: from the scans' sample spacing.
     Small for an accurate turntable: ICP cannot then slide along a symmetric object."""
+    poses: str = ""
+    """Start from the poses in this file instead of the recorded ones: a Stanford .conf
+    (metres), an slscan registration.json or a MeshLab .mlp (mm), one pose per scan by
+    name; ``${SLSCAN_DATA}`` expands as in ``source``."""
+    conf: str = ""
+    """The .conf to read when ``source`` is a Stanford folder holding several (file name)."""
 
 
 @dataclass(frozen=True)
@@ -183,15 +189,19 @@ class SimplifyConfig:
 
 
 def _run_register(ctx: StageContext, config: RegisterConfig) -> dict[str, Any]:
-    from slscan.register.command import load_scans, save_registration
+    from slscan.register.command import load_poses, load_scans, save_registration
     from slscan.register.multiview import register_scans
 
+    if config.poses and not config.use_poses:
+        raise SlscanError("register: register.poses is set but register.use_poses is false")
     if config.source:
-        scans, poses = load_scans(expand_path(config.source))
+        scans, poses = load_scans(expand_path(config.source), conf=config.conf or None)
     elif "range_maps" in ctx.inputs:
         scans, poses = load_scans(ctx.inputs["range_maps"])
     else:
         raise SlscanError("register: set register.source, or decode range maps in an earlier stage")
+    if config.poses:
+        poses = load_poses(expand_path(config.poses), [s.name for s in scans])
     from slscan.register.frame import preview_frame, to_object_frame
     from slscan.register.multiview import MultiviewConfig
     from slscan.viewer import log_register as rlog

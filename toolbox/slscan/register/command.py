@@ -11,24 +11,35 @@ import numpy as np
 from slscan.errors import SlscanError
 from slscan.progress import ProgressBar, console
 
+SHOWN_REJECTED = 5
+"""Rejected pairs listed in ``slscan register``'s summary (registration.json has them all)."""
 
-def load_scans(path: Path) -> tuple[list, dict[str, np.ndarray] | None]:
+
+def load_scans(path: Path, *, conf: str | None = None) -> tuple[list, dict[str, np.ndarray] | None]:
     """Range scans and their poses (world_from_scan, mm) when known, from what ``path`` is.
 
     - a MeshLab project (``.mlp``), or a folder holding ``aligned.mlp``;
     - an slscan range-maps folder (``range_maps.json``): each view's pose on the rig
       (``rig_from_object``) gives ``world_from_scan = inverse(rig_from_object)``;
-    - a Stanford folder with a ``.conf`` file (e.g. ``bun.conf``; metres);
+    - a Stanford folder with a ``.conf`` file (e.g. ``bun.conf``; metres): ``conf`` names
+      it (required when the folder has several);
     - any folder of PLY meshes (no poses: features align them).
     """
     from slscan.fsio import read_json
     from slscan.register.meshlab import load_scan_project
     from slscan.register.rangescan import load_range_scan, load_stanford_dir
 
+    if conf and not path.is_dir():
+        raise SlscanError(f"{path}: a .conf ({conf}) is chosen only in a Stanford folder")
     if path.suffix == ".mlp":
         return load_scan_project(path)
     if not path.is_dir():
         raise SlscanError(f"{path}: expected a .mlp project or a folder of range maps")
+    if conf:
+        if not (path / conf).is_file():
+            found = ", ".join(p.name for p in sorted(path.glob("*.conf"))) or "none"
+            raise SlscanError(f"{path / conf}: not found (.conf files in {path}: {found})")
+        return load_stanford_dir(path, conf=conf)
     if (path / "aligned.mlp").is_file():
         return load_scan_project(path / "aligned.mlp")
     if (path / "range_maps.json").is_file():
@@ -41,6 +52,11 @@ def load_scans(path: Path) -> tuple[list, dict[str, np.ndarray] | None]:
                 poses[scan.name] = np.linalg.inv(np.asarray(entry["rig_from_object"], float))
         return scans, (poses if len(poses) == len(scans) else None)
     confs = sorted(path.glob("*.conf"))
+    if len(confs) > 1:
+        raise SlscanError(
+            f"{path}: {len(confs)} .conf files ({', '.join(c.name for c in confs)}); choose one "
+            "(--conf NAME; register.conf in a recipe)"
+        )
     if confs:
         return load_stanford_dir(path, conf=confs[0].name)
     plys = sorted(path.glob("*.ply"))
@@ -49,11 +65,58 @@ def load_scans(path: Path) -> tuple[list, dict[str, np.ndarray] | None]:
     return [load_range_scan(p) for p in plys], None
 
 
+def load_poses(path: Path, names: list[str]) -> dict[str, np.ndarray]:
+    """Start poses (world_from_scan, mm) by scan name, from a file, for the scans ``names``.
+
+    path : a Stanford ``.conf`` (``bmesh FILE tx ty tz qx qy qz qw``; metres, as Stanford's),
+        an slscan ``registration.json`` (its ``poses``, mm) or a MeshLab ``.mlp`` (a mesh's
+        name is its file stem; mm)
+
+    Raises
+    ------
+    SlscanError
+        An unreadable file, or one whose names do not match the scans: naming the file, the
+        names it has that match no scan, and the scans it has no pose for.
+    """
+    from slscan.fsio import read_json
+    from slscan.register.meshlab import read_mlp
+    from slscan.register.rangescan import load_bun_conf
+
+    if not path.is_file():
+        raise SlscanError(f"{path}: pose file not found")
+    suffix = path.suffix.lower()
+    if suffix == ".conf":
+        poses = load_bun_conf(path)
+    elif suffix == ".mlp":
+        poses = {file.stem: np.asarray(m, float) for file, m in read_mlp(path, check_files=False)}
+    elif suffix == ".json":
+        data = read_json(path, "registration result")
+        try:
+            poses = {str(k): np.asarray(v, float).reshape(4, 4) for k, v in data["poses"].items()}
+        except (KeyError, TypeError, AttributeError, ValueError):
+            raise SlscanError(f"{path}: expected a 'poses' object of scan name -> 4x4 matrix") from None
+    else:
+        raise SlscanError(f"{path}: expected a .conf, a registration.json or a .mlp pose file")
+    unknown = [n for n in poses if n not in names]
+    missing = [n for n in names if n not in poses]
+    if unknown or missing:
+        problems = ([f"names {', '.join(unknown)} that match no scan"] if unknown else []) + (
+            [f"no pose for scans {', '.join(missing)}"] if missing else [])
+        raise SlscanError(f"{path}: {'; '.join(problems)} (the scans are {', '.join(names)})")
+    return {n: poses[n] for n in names}
+
+
+def _number(x: float) -> float | None:
+    """``x``, or None (JSON null) when it is not finite."""
+    return float(x) if np.isfinite(x) else None
+
+
 def save_registration(folder: Path, scans, result, *, overwrite: bool = False, frame=None) -> Path:
     """Write a registration: the aligned set (each registered scan as PLY + ``aligned.mlp``,
     atomically) and ``registration.json`` (reference, poses, residual per pair, scans left
-    out, and with ``frame`` — a :class:`~slscan.register.frame.ObjectFrame` — the object
-    frame the poses are in). Returns the project's path."""
+    out, pairs rejected with the reason, and with ``frame`` — a
+    :class:`~slscan.register.frame.ObjectFrame` — the object frame the poses are in).
+    Returns the project's path."""
     from slscan.fsio import write_json
     from slscan.register.meshlab import write_scan_project
 
@@ -65,6 +128,9 @@ def save_registration(folder: Path, scans, result, *, overwrite: bool = False, f
         "pairs": [{"source": p.source, "target": p.target, "fitness": p.fitness, "rmse_mm": p.rmse}
                   for p in result.pairs],
         "left_out": result.left_out,
+        "rejected": [{"source": r.source, "target": r.target, "reason": r.reason,
+                      "fitness": _number(r.fitness), "rmse_mm": _number(r.rmse)}
+                     for r in result.rejected],
         **({"frame": frame.to_json()} if frame is not None else {}),
     })
     return project
@@ -72,13 +138,18 @@ def save_registration(folder: Path, scans, result, *, overwrite: bool = False, f
 
 def _cmd_register(args: argparse.Namespace) -> int:
     from slscan.register.frame import preview_frame, to_object_frame
-    from slscan.register.multiview import register_scans
+    from slscan.register.multiview import MultiviewConfig, register_scans
     from slscan.viewer import log_register as rlog
     from slscan.viewer.recording import recording_from_args
 
-    scans, poses = load_scans(args.scans)
+    if args.pose_tolerance is not None and not args.pose_tolerance > 0:
+        raise SlscanError(f"--pose-tolerance must be > 0 mm, got {args.pose_tolerance}")
+    scans, poses = load_scans(args.scans, conf=args.conf)
+    if args.poses is not None:
+        poses = load_poses(args.poses, [s.name for s in scans])
     if args.no_poses:
         poses = None
+    config = MultiviewConfig(pose_tolerance=args.pose_tolerance)
     t0 = time.perf_counter()
     from slscan.viewer.layouts import register_blueprint
 
@@ -88,7 +159,8 @@ def _cmd_register(args: argparse.Namespace) -> int:
         rlog.log_registration_start(rec, scans, start.apply(poses) if start else poses)
         n_pairs = len(scans) * (len(scans) - 1) // 2
         with ProgressBar(n_pairs + 1, "registering", args.quiet) as bar:
-            result = register_scans(scans, initial_poses=poses, reference=args.reference, progress=bar.step)
+            result = register_scans(scans, initial_poses=poses, reference=args.reference, config=config,
+                                    progress=bar.step)
         result, frame = to_object_frame(scans, result)
         rlog.log_registration_result(rec, result)
     project = save_registration(args.out, scans, result, overwrite=args.overwrite, frame=frame)
@@ -97,6 +169,14 @@ def _cmd_register(args: argparse.Namespace) -> int:
     out.print(f"[green]aligned[/] {len(result.poses)} of {len(scans)} scans in {time.perf_counter() - t0:.1f} s; "
               f"{len(result.pairs)} overlapping pairs, median residual {np.median(rmse) if rmse else float('nan'):.3f} mm "
               f"-> {project}", highlight=False)
+    if result.rejected:
+        n = len(result.rejected)
+        out.print(f"{n} candidate pair{'s' * (n != 1)} rejected (all in registration.json):",
+                  highlight=False)
+        for r in result.rejected[:SHOWN_REJECTED]:
+            out.print(f"  [yellow]rejected[/] {r.source}-{r.target}: {r.reason}", highlight=False)
+        if len(result.rejected) > SHOWN_REJECTED:
+            out.print(f"  ... and {len(result.rejected) - SHOWN_REJECTED} more", highlight=False)
     for name, reason in result.left_out.items():
         out.print(f"[yellow]left out[/] {name}: {reason}", highlight=False)
     up = (f"the turntable axis of {len(frame.turntable_views)} views" if frame.up_from == "turntable"
@@ -166,15 +246,28 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
                     "(or from geometric features when there are none), point-to-plane ICP on every "
                     "overlapping pair, then a pose graph. Scans that match nothing are reported and "
                     "left out. Writes each scan as PLY, aligned.mlp (MeshLab) and registration.json "
-                    "(poses and a residual per pair).",
+                    "(poses, a residual per pair, the pairs rejected and why).",
         epilog="examples:\n  slscan register demo-run/decode --out aligned\n"
-               "  slscan register ../shared/data/stanford_bunny --out bunny-aligned --no-poses",
+               "  slscan register ../shared/data/stanford_bunny --out bunny-aligned --no-poses\n"
+               "  slscan register demo-run/decode --poses aligned/registration.json --pose-tolerance 5 "
+               "--out aligned2",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("scans", type=Path, help="range-maps folder (slscan decode), Stanford folder (.conf), "
                                             "folder of PLYs, or a .mlp project")
     p.add_argument("--out", required=True, type=Path, help="folder for the aligned set")
-    p.add_argument("--no-poses", action="store_true", help="ignore recorded poses; align from features")
+    start = p.add_mutually_exclusive_group()
+    start.add_argument("--no-poses", action="store_true", help="ignore recorded poses; align from features")
+    start.add_argument("--poses", type=Path, metavar="FILE",
+                       help="start from these poses instead of the recorded ones: a Stanford .conf "
+                            "(metres), an slscan registration.json or a MeshLab .mlp (mm); poses by "
+                            "scan name, one for every scan")
+    p.add_argument("--pose-tolerance", type=float, metavar="MM",
+                   help="how far (mm) the start poses may be off: the first ICP round's reach; a "
+                        "pair ICP moves by more than twice this is rejected (default: 30 sample "
+                        "spacings, at most 1/8 of the scans' size)")
+    p.add_argument("--conf", metavar="NAME",
+                   help="the .conf to read in a Stanford folder (needed when it holds several)")
     p.add_argument("--reference", help="scan that keeps its pose (default: the first)")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

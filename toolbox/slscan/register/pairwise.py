@@ -292,12 +292,42 @@ def coarse_align(
 # --- fine alignment ----------------------------------------------------------------------------
 
 
+@dataclass(frozen=True, eq=False)
+class ScanClouds:
+    """A scan's samples prepared for ICP once (see :func:`scan_clouds`), for scans met in
+    many pairs.
+
+    spacing : mm, :func:`median_edge_length`; extent : mm, :func:`scan_extent`
+    min_quality : the quality threshold the samples passed
+    levels : {voxel (mm): open3d PointCloud, scan frame, downsampled to it (0: all samples)}
+    """
+
+    spacing: float
+    extent: float
+    min_quality: float
+    levels: dict[float, o3d.geometry.PointCloud] = field(repr=False)
+
+
+def scan_clouds(
+    scan: RangeScan, voxels: Sequence[float], *, min_quality: float = 0.05
+) -> ScanClouds:
+    """Downsample ``scan`` once to each of ``voxels`` (mm), for :func:`refine_icp`."""
+    full = scan_point_cloud(scan, min_quality=min_quality)
+    return ScanClouds(
+        median_edge_length(scan),
+        scan_extent(scan),
+        float(min_quality),
+        {float(v): downsample(full, v) for v in {0.0, *voxels}},
+    )
+
+
 def refine_icp(
     source: RangeScan,
     target: RangeScan,
     init: np.ndarray,
     *,
     config: PairwiseConfig = PairwiseConfig(),
+    clouds: tuple[ScanClouds, ScanClouds] | None = None,
 ) -> PairwiseResult:
     """Multi-scale ICP from ``init`` (target_from_source), coarse to fine voxel sizes.
 
@@ -305,21 +335,31 @@ def refine_icp(
     its nearest target sample within the level's distance, and minimises the
     point-to-plane (or symmetric) distance under a robust kernel. The last level runs
     at full resolution. The result's fitness and RMSE are measured at the finest level.
+
+    clouds : the two scans' :func:`scan_clouds` (same ``min_quality`` as ``config``),
+        when already computed; levels they lack are downsampled here
     """
     init = np.asarray(init, np.float64)
     if init.shape != (4, 4):
         raise SlscanError(f"ICP: expected a 4x4 initial transform, got shape {init.shape}")
-    spacing = max(median_edge_length(source), median_edge_length(target))
-    src_full = scan_point_cloud(source, min_quality=config.min_quality)
-    tgt_full = scan_point_cloud(target, min_quality=config.min_quality)
+    if clouds is None or any(c.min_quality != config.min_quality for c in clouds):
+        clouds = (
+            scan_clouds(source, (), min_quality=config.min_quality),
+            scan_clouds(target, (), min_quality=config.min_quality),
+        )
+    spacing = max(clouds[0].spacing, clouds[1].spacing)
+    src_full, tgt_full = clouds[0].levels[0.0], clouds[1].levels[0.0]
     if len(src_full.points) < 10 or len(tgt_full.points) < 10:
         return _failure(f"too few usable samples in {source.name!r} or {target.name!r}", init)
     transform = init.copy()
     distance = math.nan
     result = None
-    extent = min(scan_extent(source), scan_extent(target))
+    extent = min(clouds[0].extent, clouds[1].extent)
     for voxel, distance, iterations in _levels(config, spacing, extent):
-        src, tgt = downsample(src_full, voxel), downsample(tgt_full, voxel)
+        src, tgt = (
+            c.levels[float(voxel)] if float(voxel) in c.levels else downsample(full, voxel)
+            for c, full in zip(clouds, (src_full, tgt_full))
+        )
         scale = voxel if voxel > 0 else spacing
         result = _reg.registration_icp(
             src,
@@ -372,6 +412,7 @@ def register_pair(
     init: np.ndarray | None = None,
     config: PairwiseConfig = PairwiseConfig(),
     features: tuple[ScanFeatures, ScanFeatures] | None = None,
+    clouds: tuple[ScanClouds, ScanClouds] | None = None,
 ) -> PairwiseResult:
     """Align ``source`` onto ``target``: coarse, then :func:`refine_icp`.
 
@@ -383,6 +424,7 @@ def register_pair(
         (:func:`coarse_align`)
     config : PairwiseConfig
     features : precomputed :func:`scan_features` of (source, target), used without ``init``
+    clouds : precomputed :func:`scan_clouds` of (source, target), for the ICP
 
     Returns
     -------
@@ -394,7 +436,7 @@ def register_pair(
         if not coarse:
             return coarse
         init = coarse.transform
-    return refine_icp(source, target, init, config=config)
+    return refine_icp(source, target, init, config=config, clouds=clouds)
 
 
 def _failure(

@@ -361,13 +361,17 @@ def load_bun_conf(path: str | os.PathLike, *, units: str = "m") -> dict[str, np.
     SlscanError
         Missing file, a malformed ``bmesh`` line, or no ``bmesh`` line (naming the file).
     """
-    path = Path(path)
+    return {Path(file).stem: pose for _, file, pose in _conf_entries(Path(path), units)}
+
+
+def _conf_entries(path: Path, units: str) -> list[tuple[int, str, np.ndarray]]:
+    """(line number, FILE as written, (4, 4) world_from_scan in mm) of each ``bmesh`` line."""
     scale = _unit_scale(units, path)
     try:
         text = path.read_text()
     except FileNotFoundError:
         raise SlscanError(f"{path}: pose file not found") from None
-    poses: dict[str, np.ndarray] = {}
+    entries: list[tuple[int, str, np.ndarray]] = []
     for number, line in enumerate(text.splitlines(), 1):
         parts = line.split()
         if not parts or parts[0] != "bmesh":
@@ -384,10 +388,10 @@ def load_bun_conf(path: str | os.PathLike, *, units: str = "m") -> dict[str, np.
         pose = np.eye(4)
         pose[:3, :3] = quaternion_matrix(q).T
         pose[:3, 3] = t
-        poses[Path(parts[1]).stem] = pose
-    if not poses:
+        entries.append((number, parts[1], pose))
+    if not entries:
         raise SlscanError(f"{path}: no 'bmesh' line; expected a Stanford .conf pose file")
-    return poses
+    return entries
 
 
 def quaternion_matrix(q: np.ndarray) -> np.ndarray:
@@ -405,10 +409,23 @@ def quaternion_matrix(q: np.ndarray) -> np.ndarray:
 def load_stanford_dir(
     folder: str | os.PathLike, *, conf: str = "bun.conf", units: str = "m"
 ) -> tuple[list[RangeScan], dict[str, np.ndarray]]:
-    """Every scan a Stanford ``.conf`` names (in its order), and their poses (mm)."""
+    """Every scan a Stanford ``.conf`` names (in its order), and their poses (mm).
+
+    Scan files are found relative to the folder; a ``bmesh`` line naming a file that is
+    not there is an error naming the ``.conf``, the line and the file.
+    """
     folder = Path(folder)
-    poses = load_bun_conf(folder / conf, units=units)
-    scans = [load_stanford_scan(folder / f"{name}.ply", units=units) for name in poses]
+    path = folder / conf
+    entries = _conf_entries(path, units)
+    missing = [f"{path}:{number}: {file}" for number, file, _ in entries
+               if not (folder / file).is_file()]
+    if missing:
+        raise SlscanError(
+            f"{'; '.join(missing)}: scan file not found in {folder} (the .conf names "
+            f"{'it' if len(missing) == 1 else 'them'}; fix the line or add the file)"
+        )
+    poses = {Path(file).stem: pose for _, file, pose in entries}
+    scans = [load_stanford_scan(folder / file, units=units) for _, file, _ in entries]
     return scans, poses
 
 

@@ -13,6 +13,8 @@ Entity tree (the upright object frame of the aligned set, mm, y up; see
     object/model/simplified         Mesh3D of the simplified model   [stage = simplified]
     plot/register/rmse/<a>-<b>     point-to-plane RMS of a pair (mm)   [stage]
     plot/register/overlap/<a>-<b>  fraction of a's samples on b         [stage]
+    plot/register/rejected          number of candidate pairs rejected   [stage]
+    log/register                    TextLog: each rejected pair and why  [stage]
 
 The ``stage`` timeline counts :data:`STAGES`: scrub it to see the scans jump from their
 initial to their registered poses.
@@ -31,7 +33,7 @@ from slscan.viewer.recording import STAGE_TIMELINE
 
 if TYPE_CHECKING:
     from slscan.fuse import Mesh
-    from slscan.register.multiview import PairResidual
+    from slscan.register.multiview import PairResidual, RejectedPair
     from slscan.register.rangescan import RangeScan
 
 STAGES = {"initial": 0, "registered": 1, "fused": 2, "simplified": 3}
@@ -42,6 +44,8 @@ MODEL_PATH = f"{OBJECT_PATH}/model"
 MAX_LOGGED_FACES = 2_000_000
 """Meshes with more faces are logged as a uniform subset of their faces (display only)."""
 MODEL_COLOR = (200, 200, 190)
+PLOT_PATH = "plot/register"
+LOG_PATH = "log/register"
 
 
 def scan_color(index: int) -> tuple[int, int, int]:
@@ -133,6 +137,22 @@ def log_pair_residuals(
         rec.log(f"plot/register/overlap/{key}", rr.Scalars(float(pair.fitness)))
 
 
+def log_rejected_pairs(
+    rec: rr.RecordingStream | None, rejected: Sequence[RejectedPair], *, stage: str = "registered"
+) -> None:
+    """How many candidate pairs were rejected (a scalar at ``plot/register/rejected``) and a
+    WARN line at ``log/register`` for each, with its reason."""
+    if rec is None:
+        return
+    _set_stage(rec, stage)
+    rec.log(f"{PLOT_PATH}/rejected", rr.Scalars(float(len(rejected))))
+    for r in rejected:
+        numbers = (f" (fitness {r.fitness:.3f}, RMSE {r.rmse:.3g} mm)"
+                   if np.isfinite(r.fitness) and np.isfinite(r.rmse) else "")
+        rec.log(LOG_PATH, rr.TextLog(f"pair {r.source}-{r.target} rejected: {r.reason}{numbers}",
+                                     level="WARN"))
+
+
 def log_registration_start(
     rec: rr.RecordingStream | None, scans: Sequence[RangeScan], poses: Mapping[str, np.ndarray] | None
 ) -> None:
@@ -144,9 +164,10 @@ def log_registration_start(
 
 def log_registration_result(rec: rr.RecordingStream | None, result) -> None:
     """After registering (a :class:`~slscan.register.multiview.MultiviewResult`): the poses,
-    the pair residuals, and the scans left out hidden."""
+    the pair residuals, the rejected pairs, and the scans left out hidden."""
     log_scan_poses(rec, result.poses, stage="registered")
     log_pair_residuals(rec, result.pairs)
+    log_rejected_pairs(rec, result.rejected)
     log_scans_left_out(rec, result.left_out)
 
 
