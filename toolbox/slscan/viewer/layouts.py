@@ -164,9 +164,17 @@ def register_blueprint() -> rrb.Blueprint:
         rrb.Spatial3DView(origin="object", contents=["+ $origin/model/simplified"], name="Simplified"),
         name="Model",
     )
-    residuals = rrb.Vertical(
-        rrb.TimeSeriesView(origin="plot/register/rmse", name="Pair RMS (mm)"),
-        rrb.TimeSeriesView(origin="plot/register/overlap", name="Pair overlap"),
+    residuals = rrb.Tabs(
+        rrb.Vertical(
+            rrb.TimeSeriesView(origin="plot/register/rmse", name="Pair RMS (mm)"),
+            rrb.TimeSeriesView(origin="plot/register/overlap", name="Pair overlap"),
+            name="Pairs",
+        ),
+        rrb.Vertical(
+            rrb.TimeSeriesView(origin="plot/register/rejected", name="Rejected pairs"),
+            rrb.TextLogView(origin="log/register", name="Registration log"),
+            name="Rejected",
+        ),
     )
     return stage_blueprint(
         rrb.Horizontal(scans, rrb.Vertical(models, residuals, row_shares=[2, 1]), column_shares=[3, 2],

@@ -167,6 +167,12 @@ def log_registration_result(rec: rr.RecordingStream | None, result) -> None:
     the pair residuals, the rejected pairs, and the scans left out hidden."""
     log_scan_poses(rec, result.poses, stage="registered")
     log_pair_residuals(rec, result.pairs)
+    if rec is not None:  # one summary line, so the log says what happened even when all went well
+        _set_stage(rec, "registered")
+        left = f", left out {', '.join(result.left_out)}" if result.left_out else ""
+        rec.log(LOG_PATH, rr.TextLog(
+            f"registered {len(result.poses)} scans (reference {result.reference}): "
+            f"{len(result.pairs)} pairs kept, {len(result.rejected)} rejected{left}", level="INFO"))
     log_rejected_pairs(rec, result.rejected)
     log_scans_left_out(rec, result.left_out)
 
