@@ -1,4 +1,6 @@
-"""Regenerate the pictures in docs/images from a demo session: .venv/bin/python docs/figures.py SESSION
+"""Regenerate the pictures in docs/images from a full-size capture session of the figurine
+(1440x960, as ``slscan capture --out SESSION`` writes by default; the demo captures at half
+size, which the crops below do not fit): .venv/bin/python docs/figures.py SESSION
 
 The scan_*.png of docs/scanning.md need no session (they scan the virtual rig, and open the
 projector window on a private Xvfb): .venv/bin/python docs/figures.py scan"""
