@@ -31,19 +31,19 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).parent))
 
-from reconstruction import true_surface_distance  # noqa: E402
+from reconstruction import true_surface_distance
 
-from slscan.capture.driver import measure_latency, scan  # noqa: E402
-from slscan.capture.session import load_session  # noqa: E402
-from slscan.decode.pipeline import decode_view  # noqa: E402
-from slscan.fsio import read_png  # noqa: E402
-from slscan.virtual.device import (  # noqa: E402
+from slscan.capture.driver import measure_latency, scan
+from slscan.capture.session import load_session
+from slscan.decode.pipeline import decode_view
+from slscan.fsio import read_png
+from slscan.virtual.device import (
     VirtualCaptureConfig,
     scan_devices,
     scan_plan,
     virtual_devices,
 )
-from slscan.virtual.devices import ScreenLoopCamera  # noqa: E402
+from slscan.virtual.devices import ScreenLoopCamera
 
 
 def _scan(kind: str, config: VirtualCaptureConfig, out: Path, x_display: str | None):

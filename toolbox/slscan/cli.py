@@ -285,6 +285,12 @@ class _StageReporter:
         else:
             _console().print(f"[cyan]{run.stage:<9}[/] unchanged, not run again ({summary})")
 
+    def note(self, text: str) -> None:
+        """A stage runs again because its outputs changed; leftovers of a killed run were removed."""
+        from rich.markup import escape
+
+        _console().print(f"[yellow]{escape(text)}[/]", highlight=False)
+
 
 def _cmd_run(args: argparse.Namespace) -> int:
     from slscan.recipe.runner import load_recipe
@@ -377,6 +383,8 @@ def _cmd_info(args: argparse.Namespace) -> int:
     from slscan.capture.session import load_session
 
     session = load_session(args.session)
+    if not session.views:
+        raise SlscanError(f"{session.root / 'session.json'}: the session has no views; expected at least one")
     console = Console()
     console.print(f"[bold]{session.root}[/]  ({session.device.get('kind', 'unknown device')})")
     console.print(
@@ -522,7 +530,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "run", help="run a recipe (a named pipeline in TOML), resuming where it can",
         description="Run the stages of a recipe in order into one folder (OUT/<stage>/). A stage "
-                    "whose settings and inputs are unchanged since the last run is not run again. "
+                    "whose settings and inputs are unchanged since the last run, and whose files are "
+                    "still the ones it wrote (OUT/<stage>.stage.json lists them: size, time, SHA-256), "
+                    "is not run again; one whose files were changed, truncated, deleted or added to "
+                    "runs again, with a line naming the file. Temporaries left by a killed run "
+                    "(.NAME.partial-PID-...) are removed. "
                     "The recipe with every default filled in is written to OUT/recipe.resolved.toml.",
         epilog="stages:\n" + describe_stages() + "\n\nexamples:\n"
                "  slscan run recipes/demo.toml --out demo-run\n"
@@ -648,13 +660,70 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except SlscanError as exc:
-        from rich.markup import escape
-
-        _console().print(f"[red]slscan: error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
+        _print_error(str(exc))
         return 2
     except KeyboardInterrupt:
         _console().print("[red]slscan: interrupted[/]")
         return 130
+    except Exception as exc:  # noqa: BLE001 - the one place where every error becomes one line
+        known = _known_error(exc)
+        if known is not None:
+            if args.verbose:
+                _console().print_exception()
+            _print_error(known)
+            return 2
+        if args.verbose:
+            _console().print_exception()
+        _print_error(f"internal error, a bug in slscan: {type(exc).__name__}: {_first_line(exc)} "
+                     f"(re-run with -v for the traceback and please report it)")
+        return EXIT_BUG
+
+
+EXIT_BUG = 70
+"""Exit status for a bug (an unexpected exception), as sysexits' EX_SOFTWARE; 2 is a bad input."""
+
+
+def _print_error(message: str) -> None:
+    from rich.markup import escape
+
+    message = " ".join(message.split())  # one line, however the library worded it
+    _console().print(f"[red]slscan: error:[/] {escape(message)}", highlight=False, soft_wrap=True)
+
+
+def _first_line(exc: BaseException) -> str:
+    return next((line.strip() for line in str(exc).splitlines() if line.strip()), "")
+
+
+def _known_error(exc: Exception) -> str | None:
+    """The one-line message for an error caused by the input or the machine, not by slscan:
+    a file that cannot be read or written (``OSError``, naming it; a full disk with the
+    space left), memory, and what OpenCV and the file parsers raise on bad files.
+    None for anything else (a bug)."""
+    import json
+    import tomllib
+
+    if isinstance(exc, OSError):
+        from slscan.fsio import WRITE_ERRNOS, write_error
+
+        if exc.errno in WRITE_ERRNOS and exc.filename:
+            return str(write_error(exc.filename, exc, kept=False))
+        reason = (exc.strerror or _first_line(exc) or type(exc).__name__).lower()
+        names = [str(n) for n in (exc.filename, exc.filename2) if n]
+        return f"{' -> '.join(names)}: {reason}" if names else reason
+    if isinstance(exc, MemoryError):
+        return "out of memory: the inputs are too large for this machine (try fewer views or a reduced size)"
+    if isinstance(exc, json.JSONDecodeError):
+        return f"not valid JSON ({exc.msg} at line {exc.lineno}): {_first_line(exc)}"
+    if isinstance(exc, tomllib.TOMLDecodeError):
+        return f"not valid TOML: {_first_line(exc)}"
+    if isinstance(exc, UnicodeDecodeError):
+        return f"a file is not text where text was expected ({exc.reason} at byte {exc.start})"
+    cv2 = sys.modules.get("cv2")
+    if cv2 is not None and isinstance(exc, cv2.error):
+        detail = _first_line(exc)
+        detail = detail.split(" error: ", 1)[-1]  # drop OpenCV's source path and line
+        return f"OpenCV could not process an input ({detail})"
+    return None
 
 
 if __name__ == "__main__":

@@ -1,16 +1,22 @@
 """File helpers shared by every stage: atomic output folders and files, PNG and JSON I/O.
 
 Nothing half-written is left where a later stage would trust it: outputs are written to
-a temporary name beside the target and renamed into place only when complete.
+a temporary name beside the target, flushed to disk (``fsync``), checked where its size
+is known, and renamed into place only when complete. A full disk or a failing device
+(``ENOSPC``, ``EDQUOT``, ``EIO``) is one :class:`SlscanError` naming the file and the free
+space left (:func:`write_error`); the temporary is removed and nothing is renamed.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
+import re
 import shutil
 import tempfile
+import time
 from collections.abc import Callable, Hashable, Iterator, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from pathlib import Path
@@ -33,6 +39,248 @@ def _make_public(path: Path, mode: int) -> None:
     os.chmod(path, mode & ~_umask())
 
 
+WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EIO, errno.EFBIG})
+"""Errors that mean the data did not reach the disk: full disk, quota, device error, too big."""
+
+PARTIAL = ".partial-"
+"""In the names of temporaries (files and folders) before they are renamed into place."""
+
+
+@contextlib.contextmanager
+def native_stderr_silenced() -> Iterator[None]:
+    """Silence what C libraries print straight to file descriptor 2 (Open3D's RPly prints
+    "RPly: Error reading ..." for every bad PLY) while a file is read or written: slscan
+    says what went wrong in its own one line. Python's own ``sys.stderr`` is flushed first;
+    output of other threads during the call is lost, so keep the block short."""
+    import sys
+
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError, AttributeError):  # no real fd 2 (embedded, pytest capture)
+        yield
+        return
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def human_size(n: float) -> str:
+    """``1536`` → ``1.5 KiB``."""
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if abs(n) < 1024 or unit == "TiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    raise AssertionError  # unreachable
+
+
+def _mount_point(path: Path) -> Path:
+    path = Path(os.path.abspath(path))
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    while not os.path.ismount(path) and path != path.parent:
+        path = path.parent
+    return path
+
+
+def write_error(
+    path: str | os.PathLike, exc: OSError | None = None, *, needed: int | None = None,
+    written: int | None = None, kept: bool = True,
+) -> SlscanError:
+    """The one-line error for an output that did not reach the disk whole.
+
+    ``exc`` is the OSError (``ENOSPC``, ``EIO``, …), or None when a writer reported success
+    but the file came out short (``written`` of ``needed`` bytes). The line names the file,
+    the reason, the size needed where known, and the space left on the file's filesystem;
+    ``kept``: and that nothing was renamed into place (the atomic writers' promise).
+    """
+    mount = _mount_point(Path(path).parent)
+    path = final_path(path)
+    try:
+        left = shutil.disk_usage(mount).free
+        free = f"{human_size(left)} free on {mount}"
+    except OSError:
+        left, free = None, f"free space on {mount} unknown"
+    size = f"{human_size(needed)} needed, " if needed is not None else ""
+    if exc is not None:
+        reason = (exc.strerror or str(exc)).lower()
+    else:  # the writer said it succeeded
+        short = needed is None or left is None or left < needed - (written or 0) + (1 << 20)
+        reason = "the file came out short" + (", the disk is probably full" if short else "")
+        size = f"{human_size(written or 0)} written of {size}" if needed is not None else size
+    kept_note = "; nothing was replaced" if kept else ""
+    return SlscanError(f"{path}: could not write it: {reason} ({size}{free}){kept_note}")
+
+
+def final_path(path: str | os.PathLike) -> Path:
+    """``path`` with each temporary folder or file in it named as it will be once renamed
+    (``run/.decode.partial-x1y2/view.ply`` → ``run/decode/view.ply``), for messages."""
+    parts = [part[1:part.index(PARTIAL)] if part.startswith(".") and PARTIAL in part else part
+             for part in Path(path).parts]
+    return Path(*parts) if parts else Path(path)
+
+
+def _final_name(name: str | os.PathLike | None, tmp: Path, target: Path) -> Path:
+    """The final path of ``name`` written under the temporary ``tmp`` of ``target``."""
+    if not name:
+        return target
+    try:
+        rel = Path(os.fsdecode(name)).relative_to(tmp)
+    except ValueError:
+        return Path(os.fsdecode(name))
+    return target / rel if str(rel) != "." else target
+
+
+def fsync_path(path: Path, *, directory: bool = False) -> None:
+    """Flush ``path`` (a file, or a folder's entries) to the disk.
+
+    A folder's flush is best effort (some filesystems refuse it); a file's ``EIO`` or
+    ``ENOSPC`` (deferred allocation, network filesystems) is raised."""
+    try:
+        fd = os.open(path, os.O_RDONLY | (getattr(os, "O_DIRECTORY", 0) if directory else 0))
+    except OSError:
+        if directory:
+            return
+        raise
+    try:
+        os.fsync(fd)
+    except OSError as exc:
+        if not directory and exc.errno in WRITE_ERRNOS:
+            raise OSError(exc.errno, exc.strerror, os.fspath(path)) from None
+    finally:
+        os.close(fd)
+
+
+def _fsync_tree(root: Path) -> None:
+    for folder, _, files in os.walk(root):
+        for name in files:
+            path = Path(folder) / name
+            if not path.is_symlink():
+                fsync_path(path)
+        fsync_path(Path(folder), directory=True)
+
+
+def _inside_partial(path: Path) -> bool:
+    """Whether ``path`` lies in a temporary folder (whose own rename is flushed later)."""
+    return any(PARTIAL in part for part in path.parts)
+
+
+LEGACY_LEFTOVER_AGE_S = 3600.0
+"""A leftover temporary with no owner in its name (slscan 0.1 and earlier) is removed once
+it is this old (seconds since last modified)."""
+
+_LEFTOVER_RE = re.compile(r"\.(?P<name>.+)\.(?:partial-(?:(?P<pid>\d+)-)?[a-z0-9_]+(?:\.[^.]*)?|old-(?P<old>\d+))")
+
+
+def _partial_prefix(target: Path) -> str:
+    """``.NAME.partial-PID-``: the writer's process id names who owns a temporary."""
+    return f".{target.name}{PARTIAL}{os.getpid()}-"
+
+
+def _process_start(pid: int) -> float | None:
+    """When process ``pid`` started (seconds since the epoch; Linux), or None if unknown."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+        boot = next(float(line.split()[1]) for line in Path("/proc/stat").read_text().splitlines()
+                    if line.startswith("btime "))
+        return boot + int(fields[19]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, StopIteration):
+        return None
+
+
+def _owner_alive(pid: int, changed: float) -> bool:
+    """Whether the writer ``pid`` of a temporary last changed at ``changed`` (its ctime,
+    which no one can set back) may still run here.
+
+    A zombie counts as gone (it writes nothing more), and so does a process with that id
+    that started after the temporary was last changed: the id was recycled (in a container
+    each run may even get the same id as the killed one)."""
+    if pid <= 0:
+        return False
+    start = _process_start(pid)
+    if start is not None and start > changed + 2.0:  # 2 s: the boot time is whole seconds
+        return False
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    except (OverflowError, ValueError, OSError):
+        return False
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()[:1]
+    except OSError:
+        return True
+    return state != ["Z"]
+
+
+def stale_leftovers(folder: str | os.PathLike, *, name: str | None = None) -> list[Path]:
+    """The temporaries in ``folder`` (of output ``name``, or of any) whose writer is gone.
+
+    A temporary is named for its writer's process id (``.NAME.partial-PID-XXXXXXXX``); it
+    is stale when no process with that id runs here any more (a ``kill -9``, a power cut),
+    or when the one that does started after the temporary last changed (the id was reused).
+    A live writer's temporary (another ``slscan`` writing the same output at the same time,
+    or another thread of this process) is never stale. A recycled process id only delays
+    the clean-up to a later run. Temporaries of older versions, with no id in their name,
+    are stale once :data:`LEGACY_LEFTOVER_AGE_S` old. The process id is only meaningful on
+    this machine: two machines writing one output on a shared disk at the same time may
+    remove each other's temporaries (the writer that loses then fails; the output that
+    lands is whole).
+    """
+    folder = Path(folder)
+    found = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return []
+    for entry in entries:
+        m = _LEFTOVER_RE.fullmatch(entry.name)
+        if m is None or (name is not None and m["name"] != name):
+            continue
+        pid = m["pid"] or m["old"]
+        if pid is not None:
+            try:
+                stale = not _owner_alive(int(pid), entry.stat(follow_symlinks=False).st_ctime)
+            except OSError:
+                continue
+        else:
+            try:
+                stale = time.time() - entry.stat(follow_symlinks=False).st_mtime > LEGACY_LEFTOVER_AGE_S
+            except OSError:
+                continue
+        if stale:
+            found.append(Path(entry.path))
+    return sorted(found)
+
+
+def remove_stale_leftovers(folder: str | os.PathLike, *, name: str | None = None) -> list[Path]:
+    """Remove :func:`stale_leftovers` of ``folder``; returns what was removed (best effort)."""
+    removed = []
+    for path in stale_leftovers(folder, name=name):
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            with contextlib.suppress(OSError):
+                path.unlink()
+        if not os.path.lexists(path):
+            removed.append(path)
+    return removed
+
+
+def glob_results(folder: str | os.PathLike, pattern: str) -> list[Path]:
+    """``sorted(folder.glob(pattern))`` without hidden entries: pathlib's ``*`` matches a
+    leading dot, so ``*.ply`` would also find a temporary ``.view_000.ply.partial-….ply``."""
+    return sorted(p for p in Path(folder).glob(pattern) if not p.name.startswith("."))
+
+
 @contextlib.contextmanager
 def atomic_output_dir(path: str | os.PathLike, *, overwrite: bool = False) -> Iterator[Path]:
     """Yield a temporary folder beside ``path``; rename it to ``path`` when the block succeeds.
@@ -48,11 +296,20 @@ def atomic_output_dir(path: str | os.PathLike, *, overwrite: bool = False) -> It
     parent = target.parent if str(target.parent) else Path(".")
     try:
         parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.partial-", dir=parent))
+        remove_stale_leftovers(parent, name=target.name)  # a run killed while writing it
+        tmp = Path(tempfile.mkdtemp(prefix=_partial_prefix(target), dir=parent))
     except OSError as exc:
+        if exc.errno in WRITE_ERRNOS:
+            raise write_error(target, exc) from None
         raise SlscanError(f"{target}: cannot write here ({exc.strerror})") from None
     try:
         yield tmp
+        _fsync_tree(tmp)  # a deferred write error surfaces here, before the rename
+    except OSError as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if exc.errno in WRITE_ERRNOS:
+            raise write_error(_final_name(exc.filename, tmp, target), exc) from None
+        raise
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -64,32 +321,60 @@ def atomic_output_dir(path: str | os.PathLike, *, overwrite: bool = False) -> It
     tmp.rename(target)
     if old is not None:
         shutil.rmtree(old, ignore_errors=True)
+    if not _inside_partial(parent):
+        fsync_path(parent, directory=True)
 
 
 @contextlib.contextmanager
-def atomic_output_file(path: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary file name beside ``path``; rename it to ``path`` on success."""
+def atomic_output_file(path: str | os.PathLike, *, size: int | None = None) -> Iterator[Path]:
+    """Yield a temporary file name beside ``path``; rename it to ``path`` on success.
+
+    Before the rename the file is flushed to the disk and, when ``size`` (bytes) is given,
+    its size is checked. A full disk or a device error, in the block or in the flush, is
+    a :func:`write_error`; on any error the temporary is removed and ``path`` is left as
+    it was.
+    """
     target = Path(path)
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
-        fd, name = tempfile.mkstemp(prefix=f".{target.name}.partial-", suffix=target.suffix, dir=target.parent)
+        remove_stale_leftovers(target.parent, name=target.name)
+        fd, name = tempfile.mkstemp(prefix=_partial_prefix(target), suffix=target.suffix, dir=target.parent)
         os.close(fd)
     except OSError as exc:
+        if exc.errno in WRITE_ERRNOS:
+            raise write_error(target, exc, needed=size) from None
         raise SlscanError(f"{target}: cannot write here ({exc.strerror})") from None
     tmp = Path(name)
     try:
         yield tmp
+        if size is not None and (written := tmp.stat().st_size) != size:
+            raise write_error(target, needed=size, written=written)
+        fsync_path(tmp)
+        _make_public(tmp, 0o666)
+        os.replace(tmp, target)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        if exc.errno in WRITE_ERRNOS:
+            raise write_error(_final_name(exc.filename, tmp, target), exc, needed=size) from None
+        raise
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
-    _make_public(tmp, 0o666)
-    os.replace(tmp, target)
+    if not _inside_partial(target.parent):
+        fsync_path(target.parent, directory=True)
+
+
+def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically, flushed and size-checked (see :func:`atomic_output_file`)."""
+    path = Path(path)
+    with atomic_output_file(path, size=len(data)) as tmp, open(tmp, "wb") as fh:
+        fh.write(data)
+    return path
 
 
 def write_json(path: str | os.PathLike, data: Any) -> None:
     """Write ``data`` as indented JSON, atomically."""
-    with atomic_output_file(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=2) + "\n")
+    write_bytes(path, (json.dumps(data, indent=2) + "\n").encode())
 
 
 def read_json(path: str | os.PathLike, what: str = "JSON file") -> Any:
@@ -103,7 +388,7 @@ def read_json(path: str | os.PathLike, what: str = "JSON file") -> Any:
 
 
 def write_png(path: str | os.PathLike, image: np.ndarray) -> None:
-    """Write an RGB or grey ``image`` (uint8 or uint16) as a lossless PNG."""
+    """Write an RGB or grey ``image`` (uint8 or uint16) as a lossless PNG, atomically."""
     if image.dtype not in (np.uint8, np.uint16):
         raise SlscanError(f"{path}: PNG needs uint8 or uint16 pixels, got {image.dtype}")
     image = np.ascontiguousarray(image)
@@ -111,9 +396,11 @@ def write_png(path: str | os.PathLike, image: np.ndarray) -> None:
         bgr = cv2.cvtColor(image, cv2.COLOR_RGBA2BGRA if image.shape[2] == 4 else cv2.COLOR_RGB2BGR)
     else:
         bgr = image
-    ok = cv2.imwrite(str(path), bgr, [cv2.IMWRITE_PNG_COMPRESSION, 3])
+    # encoded in memory and written by us: cv2.imwrite does not report a short write
+    ok, data = cv2.imencode(".png", bgr, [cv2.IMWRITE_PNG_COMPRESSION, 3])
     if not ok:
-        raise SlscanError(f"{path}: could not write PNG")
+        raise SlscanError(f"{path}: could not encode the PNG")
+    write_bytes(path, data.tobytes())
 
 
 def read_png(path: str | os.PathLike) -> np.ndarray:

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from slscan.errors import SlscanError
-from slscan.fsio import atomic_output_file
+from slscan.fsio import atomic_output_file, write_error
 
 PLY_TYPES = {
     "char": "i1",
@@ -299,8 +299,65 @@ def write_triangle_ply(
     header.append(f"element vertex {len(vertices)}")
     header += [f"property {_PLY_NAMES[vertices.dtype[f].str[1:]]} {f}" for f in vertices.dtype.names]
     header += [f"element face {len(faces)}", "property list uchar int vertex_indices", "end_header"]
-    with atomic_output_file(path) as tmp, open(tmp, "wb") as fh:
-        fh.write(("\n".join(header) + "\n").encode("ascii"))
+    head = ("\n".join(header) + "\n").encode("ascii")
+    size = len(head) + vertices.nbytes + records.nbytes
+    with atomic_output_file(path, size=size) as tmp, open(tmp, "wb") as fh:
+        fh.write(head)
         fh.write(vertices.tobytes())
         fh.write(records.tobytes())
     return path
+
+
+def check_written_ply(written: str | os.PathLike, target: str | os.PathLike, *, vertices: int,
+                      faces: int) -> None:
+    """Check a triangle-mesh PLY another library just wrote, before it is renamed into place.
+
+    Its header must say ``vertices`` and ``faces``, and a binary file must be exactly as
+    long as the header says (faces are triangles); an ASCII file must have a line per
+    vertex and per face. Writers such as Open3D's report success when their writes
+    failed (a full disk); this turns the short file into :func:`slscan.fsio.write_error`
+    naming ``target``.
+    """
+    written = Path(written)
+    with open(written, "rb") as fh:
+        data = fh.read(1 << 16)
+        end = data.find(b"end_header")
+        newline = data.find(b"\n", end) if end >= 0 else -1
+        actual = written.stat().st_size
+        if not data.startswith(b"ply") or newline < 0:
+            raise write_error(target, written=actual)
+        elements: list[tuple[str, int, list[list[str]]]] = []
+        fmt = None
+        for line in data[:end].decode("ascii", "replace").splitlines()[1:]:
+            parts = line.split()
+            if parts[:1] == ["format"] and len(parts) > 1:
+                fmt = parts[1]
+            elif parts[:1] == ["element"] and len(parts) == 3 and parts[2].isdigit():
+                elements.append((parts[1], int(parts[2]), []))
+            elif parts[:1] == ["property"] and elements:
+                elements[-1][2].append(parts[1:])
+        counts = {name: n for name, n, _ in elements}
+        if counts.get("vertex") != vertices or counts.get("face", 0) != faces:
+            raise SlscanError(f"{target}: the mesh writer wrote {counts.get('vertex')} vertices and "
+                              f"{counts.get('face', 0)} faces, expected {vertices} and {faces}")
+        if fmt == "ascii":
+            fh.seek(newline + 1)
+            lines = sum(1 for line in fh if line.strip())
+            if lines < vertices + faces:
+                raise write_error(target, written=actual)
+            return
+    try:
+        body = 0
+        for _, n, props in elements:
+            record = 0
+            for prop in props:
+                if prop[0] == "list":  # count, then three indices (triangles)
+                    record += np.dtype(PLY_TYPES[prop[1]]).itemsize + 3 * np.dtype(PLY_TYPES[prop[2]]).itemsize
+                else:
+                    record += np.dtype(PLY_TYPES[prop[0]]).itemsize
+            body += n * record
+    except (KeyError, IndexError):
+        raise SlscanError(f"{target}: the mesh writer wrote a PLY header slscan cannot check") from None
+    needed = newline + 1 + body
+    if actual != needed:
+        raise write_error(target, needed=needed, written=actual)

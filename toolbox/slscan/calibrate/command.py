@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
+
 from slscan.errors import SlscanError
 from slscan.progress import ProgressBar as _ProgressBar
 from slscan.progress import console as _console

@@ -300,7 +300,10 @@ def _read_matrix(
         node = fs.getNode(name)
         if node.isNone() or node.empty():
             continue
-        mat = node.mat()
+        try:
+            mat = node.mat()
+        except cv2.error:
+            mat = None
         if mat is None:
             raise SlscanError(f"{path}: field {name!r} is not a matrix")
         mat = np.asarray(mat, float)
@@ -308,6 +311,8 @@ def _read_matrix(
             raise SlscanError(
                 f"{path}: field {name!r} has {mat.size} values, expected {int(np.prod(shape))}"
             )
+        if not np.isfinite(mat).all():
+            raise SlscanError(f"{path}: field {name!r} holds non-finite numbers (NaN or inf)")
         return mat.reshape(shape)
     raise SlscanError(f"{path}: missing field {names[0]!r}")
 
@@ -342,7 +347,11 @@ def import_opencv_xml(
     path = Path(path)
     if not path.is_file():
         raise SlscanError(f"{path}: calibration XML not found")
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except (cv2.error, SystemError) as exc:  # OpenCV's parser raises on malformed XML
+        reason = str(exc.__cause__ or exc).strip().splitlines()[-1][:200]
+        raise SlscanError(f"{path}: not a readable OpenCV FileStorage XML ({reason})") from None
     if not fs.isOpened():
         raise SlscanError(f"{path}: not an OpenCV FileStorage file")
     try:
@@ -417,4 +426,8 @@ def export_opencv_xml(calibration: Calibration, path: str | os.PathLike) -> Path
         fs.write("roration", projector_from_camera[:3, :3].copy())
         fs.write("translation", projector_from_camera[:3, 3].reshape(3, 1).copy())
         fs.release()
+        if not tmp.read_bytes().rstrip().endswith(b"</opencv_storage>"):  # OpenCV does not report short writes
+            from slscan.fsio import write_error
+
+            raise write_error(path, written=tmp.stat().st_size)
     return path

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from slscan.errors import SlscanError
-from slscan.fsio import atomic_output_file, write_png
+from slscan.fsio import write_bytes, write_png
 from slscan.texture.views import TextureView
 
 GLTF_FROM_WORLD = np.diag([0.001, 0.001, 0.001, 1.0])
@@ -88,8 +88,7 @@ def write_glb(path: str | os.PathLike, atlas, texture: np.ndarray, normals: np.n
     mesh = _textured_trimesh(vertices, atlas.faces, atlas.uvs, texture, normals)
     path = Path(path)
     data = name_glb(mesh.export(file_type="glb"), name or path.stem)
-    with atomic_output_file(path) as tmp:
-        tmp.write_bytes(data)
+    write_bytes(path, data)
     return path
 
 
@@ -137,10 +136,8 @@ def write_obj(path: str | os.PathLike, atlas, texture: np.ndarray, normals: np.n
         raise SlscanError(f"{path}: trimesh wrote no usemtl line")
     mtl = MTL_TEMPLATE.format(material=material, image=image_name).encode()
     write_png(path.parent / image_name, texture)
-    with atomic_output_file(path.parent / f"{stem}.mtl") as tmp:
-        tmp.write_bytes(mtl)
-    with atomic_output_file(path) as tmp:
-        tmp.write_text(text)
+    write_bytes(path.parent / f"{stem}.mtl", mtl)
+    write_bytes(path, text.encode())
     return path
 
 

@@ -13,7 +13,6 @@ from pathlib import Path
 
 import rerun.blueprint as rrb
 
-from slscan.fsio import atomic_output_file
 from slscan.viewer.recording import VIEW_TIMELINE
 
 APPLICATION_ID = "slscan"
@@ -210,11 +209,18 @@ LAYOUTS: dict[str, Callable[[], rrb.Blueprint]] = {
 
 def save_layouts(out_dir: str | os.PathLike) -> list[Path]:
     """Write every layout in :data:`LAYOUTS` as ``out_dir/<name>.rbl``; return the paths."""
+    import tempfile
+
+    from slscan.fsio import write_bytes
+
     out = Path(out_dir)
     paths = []
-    for name, build in LAYOUTS.items():
-        path = out / f"{name}.rbl"
-        with atomic_output_file(path) as tmp:
-            build().save(APPLICATION_ID, tmp)
-        paths.append(path)
+    # Rerun's Blueprint.save hangs when its write fails (a full disk): each layout is saved
+    # in the system's temporary folder, then copied to ``out`` flushed and size-checked
+    with tempfile.TemporaryDirectory(prefix="slscan-layouts-") as scratch:
+        for name, build in LAYOUTS.items():
+            path = out / f"{name}.rbl"
+            build().save(APPLICATION_ID, Path(scratch) / path.name)
+            write_bytes(path, (Path(scratch) / path.name).read_bytes())
+            paths.append(path)
     return paths

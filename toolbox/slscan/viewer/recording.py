@@ -158,6 +158,24 @@ def open_recording(
         if tmp is not None:
             if not os.path.getsize(tmp):
                 raise SlscanError(f"{save}: Rerun wrote nothing (is the folder writable?)")
+            _check_rrd(tmp, save)
+
+
+RRD_FOOTER = b"RRF2FOOT"
+"""The end of a complete .rrd (Rerun 0.41's RRF2 format): a recording cut off by a full
+disk lacks it. Rerun only logs its write errors, so this is how slscan finds out."""
+
+
+def _check_rrd(written: Path, save: str | os.PathLike) -> None:
+    from slscan.fsio import write_error
+
+    size = os.path.getsize(written)
+    with open(written, "rb") as fh:
+        head = fh.read(4)
+        fh.seek(max(size - 64, 0))
+        tail = fh.read()
+    if head == b"RRF2" and RRD_FOOTER not in tail:
+        raise write_error(save, written=size)
 
 
 def add_recording_arguments(parser: argparse.ArgumentParser) -> None:

@@ -81,7 +81,7 @@ def log_result(rec: rr.RecordingStream, path: str | os.PathLike) -> rrb.Blueprin
     if kind == "run":
         from slscan.viewer.log_texture import log_texture_result
 
-        for folder in sorted(p for p in path.iterdir() if p.is_dir()):
+        for folder in sorted(p for p in path.iterdir() if p.is_dir() and not p.name.startswith(".")):
             markers = ("session.json", "range_maps.json", "texture.json")
             sub = result_kind(folder) if any((folder / m).is_file() for m in markers) else None
             if sub == "session":
