@@ -52,7 +52,7 @@ import numpy as np
 
 from slscan import __version__
 from slscan.errors import SlscanError
-from slscan.fsio import atomic_output_dir, read_json, write_json
+from slscan.fsio import atomic_output_dir, glob_results, read_json, write_json
 from slscan.recipe.runner import Recipe, Reporter, load_recipe, run_recipe
 from slscan.recipe.stages import Stage
 from slscan.recipe.surfaces import (
@@ -186,7 +186,7 @@ def collect_metrics(run_dir: Path) -> dict[str, float]:
     """Comparable numbers of a recipe run: per decode stage and view, per albedo stage and
     view, and the texture stage's metrics (charts, utilisation, observed share, seam error)."""
     metrics: dict[str, float] = {}
-    for folder in sorted(p for p in Path(run_dir).iterdir() if p.is_dir()):
+    for folder in sorted(p for p in Path(run_dir).iterdir() if p.is_dir() and not p.name.startswith(".")):
         for name, what in (
             ("range_maps.json", "range-maps summary"),
             ("albedo.json", "albedo summary"),
@@ -309,13 +309,13 @@ def _store_session(run: Path, dest: Path) -> dict[str, Any]:
 
 def _store_json_files(run: Path, dest: Path) -> dict[str, Any]:
     dest.mkdir(parents=True, exist_ok=True)
-    for path in sorted(run.glob("*.json")):
+    for path in glob_results(run, "*.json"):
         shutil.copyfile(path, dest / path.name)
     return {}
 
 
 def _store_range_maps(run: Path, dest: Path) -> dict[str, Any]:
-    for path in sorted(run.glob("*.ply")):
+    for path in glob_results(run, "*.ply"):
         write_surface(dest / path.name, read_surface(path))
     return {}
 
@@ -324,7 +324,7 @@ def _compare_range_maps(
     stage: Stage, old: Path, new: Path, tol: Tolerances, ref: dict
 ) -> list[Check]:
     checks = []
-    for path in sorted(old.glob("*.ply")):
+    for path in glob_results(old, "*.ply"):
         if not (new / path.name).is_file():
             checks.append(_missing(stage.name, path.name))
             continue
@@ -340,7 +340,7 @@ def _compare_range_maps(
 
 
 def _store_albedo(run: Path, dest: Path) -> dict[str, Any]:
-    for path in sorted(run.glob("*_albedo.png")) + sorted(run.glob("*_valid.png")):
+    for path in glob_results(run, "*_albedo.png") + glob_results(run, "*_valid.png"):
         _reencode_png(path, dest / path.name)
     return {}
 
@@ -349,7 +349,7 @@ def _compare_albedo(stage: Stage, old: Path, new: Path, tol: Tolerances, ref: di
     from slscan.fsio import read_png
 
     checks = []
-    for path in sorted(old.glob("*_albedo.png")):
+    for path in glob_results(old, "*_albedo.png"):
         view = path.name[: -len("_albedo.png")]
         valid = f"{view}_valid.png"
         if not (new / path.name).is_file() or not (new / valid).is_file():
