@@ -33,6 +33,7 @@ References
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
@@ -44,7 +45,8 @@ from pathlib import Path
 import numpy as np
 
 from slscan.errors import SlscanError
-from slscan.fsio import atomic_output_file
+from slscan.fsio import atomic_output_file, native_stderr_silenced
+from slscan.meshes import check_finite_vertices
 from slscan.register.rangescan import RangeScan
 
 log = logging.getLogger(__name__)
@@ -340,8 +342,8 @@ class TsdfVolume:
     def __init__(
         self, voxel_size: float, *, truncation: float = 4.0, block_count: int = 10_000
     ) -> None:
-        if voxel_size <= 0:
-            raise SlscanError(f"voxel size must be positive, got {voxel_size} mm")
+        if not (math.isfinite(voxel_size) and voxel_size > 0):
+            raise SlscanError(f"voxel size must be a positive number of mm, got {voxel_size}")
         if truncation < 1:
             raise SlscanError(f"truncation must be at least 1 voxel, got {truncation}")
         self.voxel_size = float(voxel_size)
@@ -610,8 +612,8 @@ def fuse_scans(
     if config.weighting not in ("quality", "uniform"):
         raise SlscanError(f"weighting {config.weighting!r}: expected 'quality' or 'uniform'")
     voxel = float(config.voxel_size)
-    if voxel <= 0:
-        raise SlscanError(f"voxel size must be positive, got {voxel} mm")
+    if not (math.isfinite(voxel) and voxel > 0):
+        raise SlscanError(f"voxel size must be a positive number of mm, got {voxel}")
     pixel = config.pixel_size or voxel
     limit = config.max_memory_gib * 2**30
     if isinstance(scans, Sequence):
@@ -756,19 +758,84 @@ def write_mesh(mesh: Mesh, path: str | os.PathLike) -> Path:
     if mesh.colors is not None and len(mesh.colors) == mesh.n_vertices:
         m.vertex_colors = o3d.utility.Vector3dVector(np.asarray(mesh.colors, np.float64) / 255.0)
     with atomic_output_file(path) as tmp:
-        ok = o3d.io.write_triangle_mesh(
-            str(tmp),
-            m,
-            write_ascii=False,
-            compressed=False,
-            write_vertex_normals=mesh.normals is not None,
-            write_vertex_colors=mesh.colors is not None,
-        )
-        if not ok:
+        with _open3d_quiet():  # a failed write is reported below, in one line
+            ok = o3d.io.write_triangle_mesh(
+                str(tmp),
+                m,
+                write_ascii=False,
+                compressed=False,
+                write_vertex_normals=mesh.normals is not None,
+                write_vertex_colors=mesh.colors is not None,
+            )
+        if not ok and path.suffix.lower() not in MESH_SUFFIXES:
             raise SlscanError(
                 f"{path}: could not write the mesh (unsupported suffix {path.suffix!r}?)"
             )
+        _check_written_mesh(tmp, path, mesh, ok)
     return path
+
+
+MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off", ".gltf", ".glb")
+"""Mesh formats open3d writes."""
+
+
+def _check_written_mesh(tmp: Path, path: Path, mesh: Mesh, ok: bool) -> None:
+    """Open3D reports success when its writes failed (a full disk): check the file it wrote
+    before it is renamed into place (:func:`slscan.ply.check_written_ply`; other formats
+    are read back and their triangles counted)."""
+    import open3d as o3d
+
+    from slscan.fsio import write_error
+    from slscan.ply import check_written_ply
+
+    if not ok:
+        raise write_error(path, written=tmp.stat().st_size if tmp.exists() else 0)
+    if path.suffix.lower() == ".ply":
+        check_written_ply(tmp, path, vertices=mesh.n_vertices, faces=len(mesh.faces))
+        return
+    with _open3d_quiet():
+        back = o3d.io.read_triangle_mesh(str(tmp))
+    if len(back.triangles) != len(mesh.faces):
+        raise write_error(path, written=tmp.stat().st_size)
+
+
+def _ply_header_counts(path: Path) -> dict[str, int]:
+    """Element counts of a PLY's header ({"vertex": n, "face": m}), read without the body."""
+    with open(path, "rb") as f:
+        head = f.read(1 << 16)
+    counts = {}
+    for line in head.split(b"end_header")[0].splitlines():
+        words = line.split()
+        if len(words) == 3 and words[0] == b"element" and words[2].isdigit():
+            counts[words[1].decode("latin-1")] = int(words[2])
+    return counts
+
+
+def _check_ply_read(path: Path, n_vertices: int, n_triangles: int) -> None:
+    """Refuse a PLY open3d read only part of (open3d keeps what it read of a truncated or
+    unreadable file): slscan's own reader then names what is wrong."""
+    counts = _ply_header_counts(path)
+    if n_vertices == counts.get("vertex", n_vertices) and n_triangles >= counts.get("face", 0):
+        return
+    from slscan.ply import read_ply_elements
+
+    vertex = read_ply_elements(path).get("vertex") or {}  # raises naming a truncated file
+    if all(k in vertex for k in "xyz"):
+        check_finite_vertices(np.stack([vertex[k] for k in "xyz"], axis=1), path)
+    raise SlscanError(
+        f"{path}: read {n_vertices} of {counts.get('vertex')} vertices and {n_triangles} triangles of "
+        f"{counts.get('face')} faces; expected a whole, readable PLY"
+    )
+
+
+@contextlib.contextmanager
+def _open3d_quiet():
+    """No Open3D warnings and no RPly lines (printed by C to fd 2) while a mesh file is read
+    or written: slscan checks the result and says what went wrong in one line."""
+    import open3d as o3d
+
+    with native_stderr_silenced(), o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        yield
 
 
 def read_mesh(path: str | os.PathLike) -> Mesh:
@@ -778,9 +845,13 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
     path = Path(path)
     if not path.is_file():
         raise SlscanError(f"{path}: mesh file not found")
-    m = o3d.io.read_triangle_mesh(str(path))
+    with _open3d_quiet():  # a bad file is named below, in one line
+        m = o3d.io.read_triangle_mesh(str(path))
+    if path.suffix.lower() == ".ply":
+        _check_ply_read(path, len(m.vertices), len(m.triangles))
     if len(m.triangles) == 0:
         raise SlscanError(f"{path}: no triangles read; expected a triangle mesh")
+    check_finite_vertices(np.asarray(m.vertices), path)
     normals = np.asarray(m.vertex_normals, np.float32) if m.has_vertex_normals() else None
     colors = (
         np.round(np.asarray(m.vertex_colors) * 255).astype(np.uint8)

@@ -10,6 +10,21 @@ import numpy as np
 from slscan.errors import SlscanError
 
 
+def check_finite_vertices(vertices: np.ndarray, path: str | os.PathLike) -> None:
+    """Refuse a mesh whose vertices hold NaN or infinite coordinates, naming the file, how
+    many vertices are bad and the first one's index.
+
+    vertices : (n, 3) float
+    """
+    bad = ~np.isfinite(np.asarray(vertices, np.float64)).all(axis=1)
+    if bad.any():
+        n = int(bad.sum())
+        raise SlscanError(
+            f"{path}: {n} vert{'ices' if n != 1 else 'ex'} with non-finite coordinates (NaN or inf), "
+            f"the first at index {int(np.argmax(bad))}; expected finite x, y, z"
+        )
+
+
 def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals (n, 3) float64; zero for unreferenced vertices.
 

@@ -28,6 +28,7 @@ import numpy as np
 
 from slscan.errors import SlscanError
 from slscan.fuse import Mesh
+from slscan.meshes import check_finite_vertices
 
 log = logging.getLogger(__name__)
 
@@ -69,13 +70,14 @@ def simplify_mesh(
     Raises
     ------
     SlscanError
-        An unknown method or a target below 4 faces.
+        An unknown method, a target below 4 faces, or vertices holding NaN or inf.
     """
     if method not in METHODS:
         raise SlscanError(f"simplification method {method!r}: expected one of {METHODS}")
     target = int(target_faces)
     if target < 4:
         raise SlscanError(f"target face count must be at least 4, got {target_faces}")
+    check_finite_vertices(mesh.vertices, "the mesh to simplify")
     if mesh.n_faces <= target:
         return mesh
     if method == "fast":

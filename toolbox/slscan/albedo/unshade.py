@@ -40,7 +40,7 @@ from slscan.colour import albedo_png, srgb8
 from slscan.decode.rangemap import RangeMap, read_ply
 from slscan.errors import SlscanError
 from slscan.executor import LOCAL, Executor
-from slscan.fsio import atomic_output_dir, read_json, write_json, write_png
+from slscan.fsio import atomic_output_dir, glob_results, read_json, write_json, write_png
 
 log = logging.getLogger(__name__)
 
@@ -283,7 +283,7 @@ def albedo_view(
         seconds,
     )
     if result.valid.sum() == 0:
-        log.warning(
+        log.info(
             "%s: no pixel has %d usable lights; the albedo image is empty",
             view.name,
             config.min_lights,
@@ -362,7 +362,7 @@ def range_map_files(range_maps_dir: str | os.PathLike) -> dict[str, Path]:
             raise SlscanError(
                 f"{index}: expected a 'views' list of {{view, file}} entries"
             ) from None
-    return {p.stem: p for p in sorted(folder.glob("*.ply"))}
+    return {p.stem: p for p in glob_results(folder, "*.ply")}
 
 
 def load_range_map(range_maps_dir: str | os.PathLike, view: ViewRecord) -> tuple[RangeMap, str]:
@@ -376,6 +376,25 @@ def load_range_map(range_maps_dir: str | os.PathLike, view: ViewRecord) -> tuple
     range_map = read_ply(path)
     _check_range_map(range_map, view, str(path))
     return range_map, str(path)
+
+
+def _left_out_by_decode(range_maps_dir: str | os.PathLike) -> dict[str, str]:
+    """Views decode found unusable (``left_out`` of ``range_maps.json``): name → reason."""
+    index = Path(range_maps_dir) / "range_maps.json"
+    if not index.is_file():
+        return {}
+    meta = read_json(index, "range-map index")
+    left_out = meta.get("left_out", {}) if isinstance(meta, dict) else {}
+    return {str(k): str(v) for k, v in left_out.items()} if isinstance(left_out, dict) else {}
+
+
+def _why_unusable(result: ViewAlbedo) -> str | None:
+    """Why a view's albedo is unusable, in words, or None when it is usable."""
+    if not result.valid.any():
+        return "no pixel has enough usable lights (its lit images are dark or saturated)"
+    if not np.nanmax(result.albedo[result.valid]) > 0:
+        return "its lit images are black over the range map (no lit pixels)"
+    return None
 
 
 def _albedo_task(task: tuple) -> tuple[ViewAlbedo, RangeMap, str]:
@@ -447,18 +466,34 @@ def albedo_session(
                     f"{session.root / view.name / r.file}: lit by light {r.light}, which the light calibration "
                     f"lacks (it has {len(lights.lights)} lights)"
                 )
-    for view in session.views:  # a missing or mismatched range map fails before any work
+    left_out = _left_out_by_decode(range_maps_dir)
+    views = [view for view in session.views if view.name not in left_out]
+    for name, why in left_out.items():
+        log.warning("%s: left out (decode found the view unusable: %s)", name, why)
+    if not views:
+        raise SlscanError(f"{range_maps_dir}: no view has a range map (decode left every view out)")
+    for view in views:  # a missing or mismatched range map fails before any work
         load_range_map(range_maps_dir, view)
     results = []
     entries = []
+    unusable = {}
     with atomic_output_dir(out, overwrite=overwrite) as tmp:
         tasks = [
-            (session, view.name, range_maps_dir, lights, config, tmp) for view in session.views
+            (session, view.name, range_maps_dir, lights, config, tmp) for view in views
         ]
         done = executor.map(_albedo_task, tasks)
-        for index, (view, (result, range_map, source)) in enumerate(zip(session.views, done)):
+        for index, (view, (result, range_map, source)) in enumerate(zip(views, done)):
             if rec is not None:
                 _log_view(rec, session, view, result, range_map, lights, index)
+            if progress:
+                progress(view.name)
+            why = _why_unusable(result)
+            if why:
+                unusable[view.name] = why
+                log.warning("%s: unusable view, left out: %s", view.name, why)
+                for suffix in ("_albedo.png", "_valid.png", ".ply"):
+                    (tmp / f"{view.name}{suffix}").unlink(missing_ok=True)
+                continue
             entries.append(
                 {
                     "view": view.name,
@@ -473,8 +508,9 @@ def albedo_session(
                 }
             )
             results.append(result)
-            if progress:
-                progress(view.name)
+        if not entries:
+            reasons = "; ".join(f"{name}: {why}" for name, why in unusable.items())
+            raise SlscanError(f"{session.root}: no usable view for albedo ({reasons})")
         write_json(
             tmp / "albedo.json",
             {

@@ -17,6 +17,7 @@ from __future__ import annotations
 import os
 import shutil
 import struct
+import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -228,10 +229,15 @@ class GroundTruth:
         return true_x
 
     def save(self, path: str | os.PathLike) -> None:
-        np.savez_compressed(
-            path, point=self.point, normal=self.normal, albedo=self.albedo,
-            projector_uv=self.projector_uv, visibility=self.visibility,
-        )
+        from slscan.fsio import atomic_output_file
+
+        path = Path(path)
+        path = path if path.suffix == ".npz" else path.with_name(path.name + ".npz")  # as numpy names it
+        with atomic_output_file(path) as tmp:  # flushed and checked; a full disk names the file
+            np.savez_compressed(
+                tmp, point=self.point, normal=self.normal, albedo=self.albedo,
+                projector_uv=self.projector_uv, visibility=self.visibility,
+            )
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> GroundTruth:
@@ -247,18 +253,53 @@ class GroundTruth:
             raise SlscanError(f"{path}: not a readable ground-truth file ({exc})") from None
 
 
-def png_header(path: Path) -> tuple[int, int, int, int]:
-    """(width, height, channels, bit_depth) from a PNG's IHDR without decoding pixels."""
+def png_header(path: Path, *, check_chunks: bool = False) -> tuple[int, int, int, int]:
+    """(width, height, channels, bit_depth) from a PNG's IHDR without decoding pixels.
+
+    With ``check_chunks``, also walk the file's chunks and check each one's CRC up to
+    ``IEND`` (no decompression): a truncated or corrupted file is refused, naming it.
+    """
     try:
         with open(path, "rb") as f:
             head = f.read(29)
+            if check_chunks and len(head) == 29:
+                _check_png_chunks(path, f)
     except FileNotFoundError:
         raise SlscanError(f"{path}: image not found") from None
+    except IsADirectoryError:
+        raise SlscanError(f"{path}: is a folder; expected a PNG image") from None
+    except OSError as exc:
+        raise SlscanError(f"{path}: cannot read the image ({exc.strerror})") from None
     if len(head) < 29 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
         raise SlscanError(f"{path}: not a PNG file")
     width, height, depth, color_type = struct.unpack(">IIBB", head[16:26])
+    if width == 0 or height == 0:
+        raise SlscanError(f"{path}: PNG header gives a {width}x{height} image")
     channels = {0: 1, 2: 3, 4: 2, 6: 4, 3: 3}.get(color_type, 0)
     return width, height, channels, depth
+
+
+def _check_png_chunks(path: Path, f) -> None:
+    """Walk the chunks of PNG file ``f`` (positioned anywhere) from the signature to ``IEND``,
+    checking lengths and CRCs; raise naming ``path`` when it is truncated or corrupted."""
+    size = os.fstat(f.fileno()).st_size
+    f.seek(8)
+    has_data = False
+    while True:
+        head = f.read(8)
+        if len(head) < 8:
+            raise SlscanError(f"{path}: PNG file is truncated (no IEND chunk)")
+        length, kind = struct.unpack(">I4s", head)
+        if f.tell() + length + 4 > size:  # checked before reading: a damaged length may be huge
+            raise SlscanError(f"{path}: PNG file is truncated (in a {kind.decode('latin-1')!r} chunk)")
+        body = f.read(length + 4)
+        if zlib.crc32(kind + body[:length]) != struct.unpack(">I", body[length:])[0]:
+            raise SlscanError(f"{path}: PNG file is corrupted (bad CRC in a {kind.decode('latin-1')!r} chunk)")
+        has_data |= kind == b"IDAT"
+        if kind == b"IEND":
+            break
+    if not has_data:
+        raise SlscanError(f"{path}: PNG file has no image data (IDAT chunk)")
 
 
 def _check_image(path: Path, shape: tuple, depth: int, session: Session) -> None:
@@ -285,7 +326,7 @@ def validate_session(session: Session) -> None:
                     and not 0 <= rec.light < len(session.calibration.lights)):
                 raise SlscanError(f"{session.root / view.name / rec.file}: light {rec.light} is not in the rig")
             path = session.image_path(view, rec)
-            w, h, channels, depth = png_header(path)
+            w, h, channels, depth = png_header(path, check_chunks=True)
             shape = (h, w) if channels == 1 else (h, w, channels)
             _check_image(path, shape, depth, session)
 
@@ -313,6 +354,23 @@ def _check_consistent(session: Session, meta_path: Path) -> None:
             )
 
 
+def _check_inside(session: Session, meta_path: Path) -> None:
+    """Every file the session names must resolve (symlinks followed) inside its folder."""
+    root = session.root.resolve()
+    outside = []
+    for view in session.views:
+        names = [rec.file for rec in view.images] + ([view.ground_truth] if view.ground_truth else [])
+        for name in names:
+            if not (session.root / view.name / name).resolve().is_relative_to(root):
+                outside.append(f"{view.name}/{name}")
+    if outside:
+        shown = ", ".join(outside[:3]) + (f" and {len(outside) - 3} more" if len(outside) > 3 else "")
+        raise SlscanError(
+            f"{meta_path}: {len(outside)} image file(s) resolve outside the session folder: {shown}; "
+            "expected files inside it"
+        )
+
+
 def load_session(path: str | os.PathLike, *, validate: bool = True) -> Session:
     """Read ``session.json`` in folder ``path`` (and check its images unless ``validate=False``)."""
     root = Path(path)
@@ -322,6 +380,8 @@ def load_session(path: str | os.PathLike, *, validate: bool = True) -> Session:
     if not root.is_dir():
         raise SlscanError(f"{root}: capture-session folder not found")
     d = read_json(meta_path, "capture-session metadata (session.json)")
+    if not isinstance(d, dict):
+        raise SlscanError(f"{meta_path}: expected a JSON object (an slscan capture session)")
     if d.get("format") != SESSION_FORMAT:
         raise SlscanError(f"{meta_path}: not an slscan capture session (format {d.get('format')!r})")
     if d.get("version") != SESSION_VERSION:
@@ -373,6 +433,7 @@ def load_session(path: str | os.PathLike, *, validate: bool = True) -> Session:
     if session.channels not in (1, 3) or session.bit_depth not in (8, 16):
         raise SlscanError(f"{meta_path}: camera must have 1 or 3 channels and 8 or 16 bits")
     _check_consistent(session, meta_path)
+    _check_inside(session, meta_path)
     if validate:
         validate_session(session)
     return session

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from slscan import __version__
-from slscan.capture.session import Session, ViewRecord, load_session
+from slscan.capture.session import SESSION_FILE, Session, ViewRecord, load_session
 from slscan.decode.graycode import decode_gray
 from slscan.decode.hybrid import DEFAULT_ESTIMATOR, ESTIMATORS, decode_hybrid, hybrid_pattern_ids
 from slscan.decode.masks import saturation
@@ -188,11 +188,21 @@ def decode_view(
     )
     seconds["mesh"] = time.perf_counter() - t
     if len(range_map.faces) == 0:
-        log.warning("%s: the range map has no faces (%d samples)", view.name, len(samples))
+        log.info("%s: the range map has no faces (%d samples)", view.name, len(samples))
     return ViewDecode(
         view=view.name, method=method, samples=samples, points=points, range_map=range_map,
         mask=mask, codes=codes, code_max=code_max, saturated=saturated, white=white, seconds=seconds,
     )
+
+
+def _why_unusable(result: ViewDecode) -> str:
+    """Why a view gave an empty range map, in words (for the warning naming it)."""
+    clipped = float(result.saturated.mean()) if result.saturated.size else 0.0
+    if clipped > 0.5:
+        return f"{clipped:.0%} of its pixels are saturated (clipped); lower the exposure"
+    if not result.mask.any():
+        return "no lit pixels (nothing decodable: is the projector on and the object in view?)"
+    return f"its {len(result.samples)} decoded samples give no range-map faces"
 
 
 def _decode_task(task: tuple) -> ViewDecode:
@@ -227,7 +237,10 @@ def decode_session(
 
     if not isinstance(session, Session):
         session = load_session(session)
+    if not session.views:
+        raise SlscanError(f"{session.root / SESSION_FILE}: the session has no views; expected at least one")
     results = []
+    unusable = {}
     with atomic_output_dir(out, overwrite=overwrite) as tmp:
         entries = []
         tasks = [(session, view.name, config, planes, tmp) for view in session.views]
@@ -240,18 +253,27 @@ def decode_session(
                 rlog.log_stripes(rec, result.samples, view_index=index)
                 rlog.log_range_map(rec, rm.vertices, rm.faces, rm.normals, rm.colors, view_index=index)
                 rlog.log_metrics(rec, result.metrics, view_index=index)
+            if progress:
+                progress(view.name)
+            if len(result.range_map.faces) == 0:
+                unusable[view.name] = _why_unusable(result)
+                log.warning("%s: unusable view, left out: %s", view.name, unusable[view.name])
+                (tmp / f"{view.name}.ply").unlink(missing_ok=True)
+                continue
             entries.append({
                 "view": view.name, "file": f"{view.name}.ply", "method": result.method,
                 "rig_from_object": None if view.rig_from_object is None else view.rig_from_object.tolist(),
                 "metrics": result.metrics, "seconds": result.seconds,
             })
             results.append(result)
-            if progress:
-                progress(view.name)
+        if not entries:
+            reasons = "; ".join(f"{name}: {why}" for name, why in unusable.items())
+            raise SlscanError(f"{session.root}: no usable view ({reasons})")
         write_json(tmp / "range_maps.json", {
             "format": RANGE_MAPS_FORMAT, "version": RANGE_MAPS_VERSION, "written_by": f"slscan {__version__}",
             "session": str(Path(session.root).resolve()), "frame": "rig (camera) frame, mm",
             "light_planes": repr(planes) if planes is not None else "session calibration",
             "config": asdict(config), "views": entries,
+            **({"left_out": unusable} if unusable else {}),
         })
     return results

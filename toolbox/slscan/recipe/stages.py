@@ -175,6 +175,9 @@ class RegisterConfig:
     name; ``${SLSCAN_DATA}`` expands as in ``source``."""
     conf: str = ""
     """The .conf to read when ``source`` is a Stanford folder holding several (file name)."""
+    allow_outside: bool = False
+    """Let a ``source`` .mlp name scans outside its folder (as ``--allow-outside`` does);
+    they are reported. False: such a project is refused."""
 
 
 @dataclass(frozen=True)
@@ -195,7 +198,8 @@ def _run_register(ctx: StageContext, config: RegisterConfig) -> dict[str, Any]:
     if config.poses and not config.use_poses:
         raise SlscanError("register: register.poses is set but register.use_poses is false")
     if config.source:
-        scans, poses = load_scans(expand_path(config.source), conf=config.conf or None)
+        scans, poses = load_scans(expand_path(config.source), conf=config.conf or None,
+                                  allow_outside=config.allow_outside)
     elif "range_maps" in ctx.inputs:
         scans, poses = load_scans(ctx.inputs["range_maps"])
     else:

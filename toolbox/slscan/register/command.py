@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import time
 from pathlib import Path
 
@@ -15,7 +16,9 @@ SHOWN_REJECTED = 5
 """Rejected pairs listed in ``slscan register``'s summary (registration.json has them all)."""
 
 
-def load_scans(path: Path, *, conf: str | None = None) -> tuple[list, dict[str, np.ndarray] | None]:
+def load_scans(
+    path: Path, *, conf: str | None = None, allow_outside: bool = False
+) -> tuple[list, dict[str, np.ndarray] | None]:
     """Range scans and their poses (world_from_scan, mm) when known, from what ``path`` is.
 
     - a MeshLab project (``.mlp``), or a folder holding ``aligned.mlp``;
@@ -24,24 +27,26 @@ def load_scans(path: Path, *, conf: str | None = None) -> tuple[list, dict[str, 
     - a Stanford folder with a ``.conf`` file (e.g. ``bun.conf``; metres): ``conf`` names
       it (required when the folder has several);
     - any folder of PLY meshes (no poses: features align them).
+
+    A project's mesh files outside its folder are read only with ``allow_outside``.
     """
-    from slscan.fsio import read_json
+    from slscan.fsio import glob_results, read_json
     from slscan.register.meshlab import load_scan_project
     from slscan.register.rangescan import load_range_scan, load_stanford_dir
 
     if conf and not path.is_dir():
         raise SlscanError(f"{path}: a .conf ({conf}) is chosen only in a Stanford folder")
     if path.suffix == ".mlp":
-        return load_scan_project(path)
+        return load_scan_project(path, allow_outside=allow_outside)
     if not path.is_dir():
         raise SlscanError(f"{path}: expected a .mlp project or a folder of range maps")
     if conf:
         if not (path / conf).is_file():
-            found = ", ".join(p.name for p in sorted(path.glob("*.conf"))) or "none"
+            found = ", ".join(p.name for p in glob_results(path, "*.conf")) or "none"
             raise SlscanError(f"{path / conf}: not found (.conf files in {path}: {found})")
         return load_stanford_dir(path, conf=conf)
     if (path / "aligned.mlp").is_file():
-        return load_scan_project(path / "aligned.mlp")
+        return load_scan_project(path / "aligned.mlp", allow_outside=allow_outside)
     if (path / "range_maps.json").is_file():
         summary = read_json(path / "range_maps.json", "range-maps summary")
         scans, poses = [], {}
@@ -51,7 +56,7 @@ def load_scans(path: Path, *, conf: str | None = None) -> tuple[list, dict[str, 
             if entry.get("rig_from_object") is not None:
                 poses[scan.name] = np.linalg.inv(np.asarray(entry["rig_from_object"], float))
         return scans, (poses if len(poses) == len(scans) else None)
-    confs = sorted(path.glob("*.conf"))
+    confs = glob_results(path, "*.conf")
     if len(confs) > 1:
         raise SlscanError(
             f"{path}: {len(confs)} .conf files ({', '.join(c.name for c in confs)}); choose one "
@@ -59,7 +64,7 @@ def load_scans(path: Path, *, conf: str | None = None) -> tuple[list, dict[str, 
         )
     if confs:
         return load_stanford_dir(path, conf=confs[0].name)
-    plys = sorted(path.glob("*.ply"))
+    plys = glob_results(path, "*.ply")
     if not plys:
         raise SlscanError(f"{path}: no range maps found (expected .ply files, range_maps.json, a .conf or a .mlp)")
     return [load_range_scan(p) for p in plys], None
@@ -144,7 +149,7 @@ def _cmd_register(args: argparse.Namespace) -> int:
 
     if args.pose_tolerance is not None and not args.pose_tolerance > 0:
         raise SlscanError(f"--pose-tolerance must be > 0 mm, got {args.pose_tolerance}")
-    scans, poses = load_scans(args.scans, conf=args.conf)
+    scans, poses = load_scans(args.scans, conf=args.conf, allow_outside=args.allow_outside)
     if args.poses is not None:
         poses = load_poses(args.poses, [s.name for s in scans])
     if args.no_poses:
@@ -191,8 +196,10 @@ def _cmd_fuse(args: argparse.Namespace) -> int:
     from slscan.viewer.layouts import register_blueprint
     from slscan.viewer.recording import recording_from_args
 
+    if not (math.isfinite(args.voxel) and args.voxel > 0):
+        raise SlscanError(f"--voxel must be a positive number of mm, got {args.voxel}")
     _check_mesh_out(args.out, args.overwrite)
-    scans, poses = load_scans(args.aligned)
+    scans, poses = load_scans(args.aligned, allow_outside=args.allow_outside)
     if poses is None:
         raise SlscanError(f"{args.aligned}: the scans have no poses; run `slscan register` first")
     t0 = time.perf_counter()
@@ -269,6 +276,8 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--conf", metavar="NAME",
                    help="the .conf to read in a Stanford folder (needed when it holds several)")
     p.add_argument("--reference", help="scan that keeps its pose (default: the first)")
+    p.add_argument("--allow-outside", action="store_true",
+                   help="read mesh files a .mlp names outside its folder (each is named in a warning)")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_recording_arguments(p)
@@ -286,6 +295,8 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, type=Path, help="mesh file to write (PLY)")
     p.add_argument("--voxel", type=float, default=0.57, help="voxel size, mm (default 0.57, the paper's)")
     p.add_argument("--method", choices=("tsdf", "poisson"), default="tsdf", help="default: tsdf")
+    p.add_argument("--allow-outside", action="store_true",
+                   help="read mesh files the .mlp names outside its folder (each is named in a warning)")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_recording_arguments(p)

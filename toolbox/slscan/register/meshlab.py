@@ -384,17 +384,21 @@ def write_scan_project(
     return folder / project_name
 
 
-def read_mlp(path: str | os.PathLike, *, check_files: bool = True) -> list[tuple[Path, np.ndarray]]:
+def read_mlp(
+    path: str | os.PathLike, *, check_files: bool = True, allow_outside: bool = False
+) -> list[tuple[Path, np.ndarray]]:
     """Read a MeshLab project: [(mesh file path, (4, 4) float64 transform)], in order.
 
     Relative file names are resolved against the project's folder. A mesh without a
     ``MLMatrix44`` gets the identity. Rasters are read by :func:`read_mlp_rasters`.
+    With ``check_files``, mesh files that resolve (symlinks followed) outside the
+    project's folder are refused unless ``allow_outside``, and then named in a warning.
 
     Raises
     ------
     SlscanError
-        Missing or malformed project, a bad matrix, or (with ``check_files``) mesh files
-        that do not exist (all of them named).
+        Missing or malformed project, a bad or non-finite matrix, or (with ``check_files``)
+        mesh files that do not exist or lie outside the project's folder (all of them named).
     """
     path = Path(path)
     root = _parse_project(path)
@@ -417,6 +421,8 @@ def read_mlp(path: str | os.PathLike, *, check_files: bool = True) -> list[tuple
                     f"{path}: MLMatrix44 of {filename!r} has {len(values)} numbers; expected 16"
                 )
             matrix = np.array(values).reshape(4, 4)
+            if not np.isfinite(matrix).all():
+                raise SlscanError(f"{path}: MLMatrix44 of {filename!r} holds non-finite numbers")
         file = Path(filename)
         out.append((file if file.is_absolute() else path.parent / file, matrix))
     if check_files:
@@ -425,10 +431,28 @@ def read_mlp(path: str | os.PathLike, *, check_files: bool = True) -> list[tuple
             raise SlscanError(
                 f"{path}: the project names mesh files that do not exist: {', '.join(missing)}"
             )
+        _check_outside(path, [f for f, _ in out], "mesh", allow_outside)
     return out
 
 
-def read_mlp_rasters(path: str | os.PathLike, *, check_files: bool = True) -> list[Raster]:
+def _check_outside(path: Path, files: Sequence[Path], what: str, allow_outside: bool) -> None:
+    """Refuse (or, with ``allow_outside``, warn about) ``files`` of project ``path`` that
+    resolve outside its folder."""
+    base = path.parent.resolve()
+    outside = [str(f) for f in files if not Path(f).resolve().is_relative_to(base)]
+    if not outside:
+        return
+    if not allow_outside:
+        raise SlscanError(
+            f"{path}: the project names {what} files outside its folder: {', '.join(outside)} "
+            "(pass --allow-outside to read them)"
+        )
+    log.warning("%s: reading %s files outside the project's folder: %s", path, what, ", ".join(outside))
+
+
+def read_mlp_rasters(
+    path: str | os.PathLike, *, check_files: bool = True, allow_outside: bool = False
+) -> list[Raster]:
     """Read the rasters of a MeshLab project, in order (the inverse of ``rasters=`` in :func:`write_mlp`).
 
     Each ``Raster.image`` is the file name as the project has it (relative to the
@@ -465,16 +489,20 @@ def read_mlp_rasters(path: str | os.PathLike, *, check_files: bool = True) -> li
             raise SlscanError(
                 f"{path}: the project names image files that do not exist: {', '.join(missing)}"
             )
+        _check_outside(path, [path.parent / r.image for r in out], "image", allow_outside)
     return out
 
 
-def load_scan_project(path: str | os.PathLike) -> tuple[list[RangeScan], dict[str, np.ndarray]]:
+def load_scan_project(
+    path: str | os.PathLike, *, allow_outside: bool = False
+) -> tuple[list[RangeScan], dict[str, np.ndarray]]:
     """Scans and world_from_scan poses (mm) of a MeshLab project of range scans.
 
-    Scans are named by their file stems, which must be distinct.
+    Scans are named by their file stems, which must be distinct. Mesh files outside the
+    project's folder are read only with ``allow_outside`` (see :func:`read_mlp`).
     """
     scans, poses = [], {}
-    for file, matrix in read_mlp(path):
+    for file, matrix in read_mlp(path, allow_outside=allow_outside):
         scan = load_range_scan(file)
         if scan.name in poses:
             raise SlscanError(f"{path}: two meshes are named {scan.name!r}")

@@ -27,7 +27,7 @@ import numpy as np
 from scipy import ndimage
 
 from slscan.errors import SlscanError
-from slscan.meshes import vertex_normals
+from slscan.meshes import check_finite_vertices, vertex_normals
 from slscan.ply import fan_triangles, read_ply_elements, write_triangle_ply
 
 log = logging.getLogger(__name__)
@@ -326,6 +326,7 @@ def load_stanford_scan(
     )
     grid = grid.astype(np.int64).reshape(int(rows), int(cols))
     points = np.stack([vertex[k] for k in "xyz"], axis=1).astype(np.float64) * scale
+    check_finite_vertices(points, path)
     if len(points) == 0 or np.any(grid >= len(points)):
         raise SlscanError(
             f"{path}: range_grid indexes {grid.max() + 1} vertices, the file has {len(points)}"
@@ -594,6 +595,7 @@ def load_range_scan(
     points = np.stack([vertex[k] for k in "xyz"], axis=1).astype(np.float64) * scale
     if len(points) == 0:
         raise SlscanError(f"{path}: the PLY has no vertices; expected a range scan mesh")
+    check_finite_vertices(points, path)
     face_el = ply.get("face")
     faces = np.zeros((0, 3), np.int64)
     if face_el is not None:

@@ -25,11 +25,18 @@ preview.png when Blender is found (bash .ci/setup installs it in .venv-blender).
 def _cmd_texture(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
+    from slscan.errors import SlscanError
+    from slscan.texture.atlas import MAX_SIZE, MIN_SIZE
     from slscan.texture.pipeline import TextureConfig, texture_model
     from slscan.viewer.log_texture import texture_blueprint
     from slscan.viewer.recording import recording_from_args
 
-    config = TextureConfig(size=args.size, preview=not args.no_preview)
+    if args.size is not None and not MIN_SIZE <= args.size <= MAX_SIZE:
+        raise SlscanError(
+            f"--size must be {MIN_SIZE} to {MAX_SIZE} texels, got {args.size} "
+            "(leave it out to size the atlas from the face count)"
+        )
+    config = TextureConfig(size=args.size or 0, preview=not args.no_preview)
     if args.padding is not None:
         config = replace(config, bake=replace(config.bake, padding=args.padding))
     with (recording_from_args(args, recording_name=f"texture {args.model.name}", blueprint=texture_blueprint()) as rec,
@@ -66,7 +73,8 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
                    help="registration.json, aligned.mlp or their folder (default: recorded poses)")
     p.add_argument("--session", type=Path, help="capture session (default: the one albedo.json names)")
     p.add_argument("--out", required=True, type=Path, help="folder to write")
-    p.add_argument("--size", type=int, default=0, help="atlas size in texels (default: from the face count)")
+    p.add_argument("--size", type=int, default=None,
+                   help="atlas size in texels, 64 to 16384 (default: from the face count)")
     p.add_argument("--padding", type=int, default=None, help="texels of padding around charts (default 4)")
     p.add_argument("--no-preview", action="store_true", help="do not render preview.png with Blender")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")

@@ -1,0 +1,426 @@
+"""Bad inputs end in one ``slscan: error:`` line naming the file and what was expected,
+exit 2, and write nothing (or, where the input is usable, in a warning naming the problem)."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from slscan.cli import main
+from slscan.virtual.device import VirtualCaptureConfig, capture_session
+from slscan.virtual.sensor import Sensor
+
+# --- inputs built once ------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def session_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A noise-free 2-view Gray-code capture of the figurine at a fifth of the paper's size."""
+    config = VirtualCaptureConfig(
+        scene="object", views=2, patterns="gray", camera_scale=0.2, projector_scale=0.2,
+        lit_images=False, sensor=Sensor(noise=False),
+    )
+    path = tmp_path_factory.mktemp("bad_inputs") / "session"
+    capture_session(config, path)
+    return path
+
+
+@pytest.fixture
+def session(session_dir: Path, tmp_path: Path) -> Path:
+    """A private copy of the session, free to doctor."""
+    return Path(shutil.copytree(session_dir, tmp_path / "session"))
+
+
+def sphere(n: int = 12) -> tuple[np.ndarray, np.ndarray]:
+    """A UV sphere of radius 50 mm: (v, 3) float64 vertices, (f, 3) int faces."""
+    theta, phi = np.meshgrid(np.linspace(0.2, np.pi - 0.2, n), np.linspace(0, 2 * np.pi, 2 * n, endpoint=False))
+    v = 50 * np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], -1).reshape(-1, 3)
+    faces = []
+    for i in range(2 * n):
+        for j in range(n - 1):
+            a, b = i * n + j, ((i + 1) % (2 * n)) * n + j
+            faces += [(a, b, a + 1), (b, b + 1, a + 1)]
+    return v, np.array(faces)
+
+
+def write_ply(path: Path, vertices: np.ndarray, faces: np.ndarray, *, binary: bool = False) -> Path:
+    """A plain triangle-mesh PLY (float x, y, z; uchar/int vertex_indices)."""
+    head = (
+        f"ply\nformat {'binary_little_endian' if binary else 'ascii'} 1.0\n"
+        f"element vertex {len(vertices)}\nproperty float x\nproperty float y\nproperty float z\n"
+        f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n"
+    )
+    if binary:
+        tri = np.empty(len(faces), np.dtype([("n", "u1"), ("i", "<i4", (3,))]))
+        tri["n"], tri["i"] = 3, faces
+        body = np.asarray(vertices, "<f4").tobytes() + tri.tobytes()
+    else:
+        body = "".join(f"{x} {y} {z}\n" for x, y, z in vertices).encode()
+        body += "".join(f"3 {a} {b} {c}\n" for a, b, c in faces).encode()
+    path.write_bytes(head.encode() + body)
+    return path
+
+
+def nan_sphere(tmp_path: Path, name: str = "nan.ply", *, binary: bool = False) -> Path:
+    v, f = sphere()
+    v[[5, 9]] = [np.nan, 0, 0], [np.inf, 1, 1]
+    return write_ply(tmp_path / name, v, f, binary=binary)
+
+
+def write_mlp(path: Path, files: list[str], matrix: str = "1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1") -> Path:
+    meshes = "".join(
+        f'<MLMesh label="{Path(f).stem}" filename="{f}"><MLMatrix44>{matrix}</MLMatrix44></MLMesh>' for f in files
+    )
+    path.write_text(f"<!DOCTYPE MeshLabDocument>\n<MeshLabProject><MeshGroup>{meshes}</MeshGroup></MeshLabProject>\n")
+    return path
+
+
+def run(argv: list, capsys) -> tuple[int, str, str]:
+    """Run the CLI; return (exit code, the error line or '', all of stderr, one line per record)."""
+    code = main([str(a) for a in argv])
+    err = " ".join(capsys.readouterr().err.split())
+    errors = re.findall(r"slscan: error:", err)
+    assert len(errors) <= 1, err
+    line = err[err.index("slscan: error:"):] if errors else ""
+    return code, line, err
+
+
+def assert_refused(argv: list, capsys, *expected: str, nothing_at: Path | None = None) -> str:
+    code, line, err = run(argv, capsys)
+    assert code == 2, err
+    assert line, err
+    assert "Traceback" not in err
+    for text in expected:
+        assert text in line, line
+    if nothing_at is not None:
+        assert not nothing_at.exists(), f"{nothing_at} was written"
+        assert not list(nothing_at.parent.glob(f".{nothing_at.name}*")), "a partial output was left"
+    return line
+
+
+def edit_session(session: Path, change) -> None:
+    meta = session / "session.json"
+    d = json.loads(meta.read_text())
+    change(d)
+    meta.write_text(json.dumps(d))
+
+
+# --- capture sessions -------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("command", ["info", "decode"])
+@pytest.mark.parametrize("where", ["relative", "absolute", "symlink", "view-name"])
+def test_image_outside_the_session_is_refused(session, tmp_path, capsys, command, where):
+    outside = tmp_path / "outside.png"
+    shutil.copy(session / "view_000" / "00_white.png", outside)
+    if where == "relative":
+        edit_session(session, lambda d: d["views"][0]["images"][0].update(file="../../outside.png"))
+    elif where == "absolute":
+        edit_session(session, lambda d: d["views"][0]["images"][0].update(file=str(outside)))
+    elif where == "symlink":
+        (session / "view_000" / "00_white.png").unlink()
+        os.symlink(outside, session / "view_000" / "00_white.png")
+    else:
+        shutil.copytree(session / "view_000", tmp_path / "elsewhere")
+        edit_session(session, lambda d: d["views"][0].update(name="../elsewhere"))
+    argv = [command, session] + (["--out", tmp_path / "out"] if command == "decode" else [])
+    assert_refused(argv, capsys, "session.json", "outside the session folder", nothing_at=tmp_path / "out")
+
+
+@pytest.mark.parametrize("command", ["info", "decode"])
+@pytest.mark.parametrize(
+    ("damage", "expected"),
+    [
+        ("folder", "is a folder; expected a PNG image"),
+        ("truncated", "PNG file is truncated"),
+        ("corrupted", "PNG file is corrupted"),
+        ("not-png", "not a PNG file"),
+    ],
+)
+def test_damaged_png_is_refused(session, tmp_path, capsys, command, damage, expected):
+    png = session / "view_001" / "02_gray-col-00.png"
+    data = png.read_bytes()
+    png.unlink()
+    if damage == "folder":
+        png.mkdir()
+    elif damage == "truncated":
+        png.write_bytes(data[: len(data) // 2])
+    elif damage == "corrupted":
+        png.write_bytes(data[:60] + bytes(b ^ 0xFF for b in data[60:70]) + data[70:])
+    else:
+        png.write_bytes(b"GIF89a" + data[6:])
+    argv = [command, session] + (["--out", tmp_path / "out"] if command == "decode" else [])
+    assert_refused(argv, capsys, "02_gray-col-00.png", expected, nothing_at=tmp_path / "out")
+
+
+@pytest.mark.parametrize("command", ["info", "decode"])
+def test_session_without_views_is_refused(session, tmp_path, capsys, command):
+    edit_session(session, lambda d: d.update(views=[]))
+    argv = [command, session] + (["--out", tmp_path / "out"] if command == "decode" else [])
+    assert_refused(argv, capsys, "session.json", "no views", nothing_at=tmp_path / "out")
+
+
+@pytest.mark.parametrize("text", ['{"format": "slscan.capture-session", "vers', "", "[1, 2]"])
+def test_malformed_session_json_is_refused(session, tmp_path, capsys, text):
+    (session / "session.json").write_text(text)
+    assert_refused(["decode", session, "--out", tmp_path / "out"], capsys, "session.json", nothing_at=tmp_path / "out")
+
+
+def _blank(session: Path, view: str, value: int) -> None:
+    import cv2
+
+    for png in (session / view).glob("*.png"):
+        image = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(png), np.full_like(image, value))
+
+
+@pytest.mark.parametrize(("value", "why"), [(0, "no lit pixels"), (255, "saturated")])
+def test_unusable_view_is_a_warning_naming_it(session, tmp_path, capsys, caplog, value, why):
+    _blank(session, "view_001", value)
+    code, _, err = run(["decode", session, "--out", tmp_path / "out"], capsys)
+    assert code == 0, err
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert any(re.search(rf"view_001: unusable view, left out: .*{why}", w) for w in warnings), warnings
+    views = json.loads((tmp_path / "out" / "range_maps.json").read_text())["views"]
+    assert [v["view"] for v in views] == ["view_000"]
+
+
+def test_no_usable_view_is_an_error(session, tmp_path, capsys):
+    _blank(session, "view_000", 0)
+    _blank(session, "view_001", 255)
+    assert_refused(["decode", session, "--out", tmp_path / "out"], capsys, "no usable view",
+                   nothing_at=tmp_path / "out")
+
+
+@pytest.fixture(scope="module")
+def lit_session_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Like ``session_dir``, with the 6 ring-light images (for albedo)."""
+    config = VirtualCaptureConfig(
+        scene="object", views=2, patterns="gray", camera_scale=0.2, projector_scale=0.2,
+        lit_images=True, sensor=Sensor(noise=False),
+    )
+    path = tmp_path_factory.mktemp("bad_inputs_lit") / "session"
+    capture_session(config, path)
+    return path
+
+
+@pytest.mark.parametrize("blank", ["lit", "all"])
+def test_albedo_warns_about_an_unusable_view_and_leaves_it_out(lit_session_dir, tmp_path, capsys, caplog, blank):
+    import cv2
+
+    session = Path(shutil.copytree(lit_session_dir, tmp_path / "session"))
+    for png in (session / "view_001").glob("*lit*.png" if blank == "lit" else "*.png"):
+        image = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(png), np.zeros_like(image))
+    assert main(["decode", str(session), "--out", str(tmp_path / "dec"), "--quiet"]) == 0
+    caplog.clear()
+    code, _, err = run(["albedo", session, "--range-maps", tmp_path / "dec", "--out", tmp_path / "alb", "--quiet"],
+                          capsys)
+    assert code == 0, err
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    expected = "unusable view, left out: its lit images are black" if blank == "lit" else "left out (decode found"
+    assert any(w.startswith("view_001: " + expected) for w in warnings), warnings
+    views = json.loads((tmp_path / "alb" / "albedo.json").read_text())["views"]
+    assert [v["view"] for v in views] == ["view_000"]
+    assert not list((tmp_path / "alb").glob("view_001*"))
+
+
+def test_raw_captures_unchanged_by_refused_commands(session, tmp_path, capsys):
+    before = {p: p.read_bytes() for p in session.rglob("*") if p.is_file()}
+    (session / "view_001" / "03_gray-col-00-inv.png").write_bytes(before[session / "view_001" / "03_gray-col-00-inv.png"][:100])
+    before[session / "view_001" / "03_gray-col-00-inv.png"] = (session / "view_001" / "03_gray-col-00-inv.png").read_bytes()
+    assert_refused(["decode", session, "--out", tmp_path / "out"], capsys, "truncated")
+    assert {p: p.read_bytes() for p in session.rglob("*") if p.is_file()} == before
+
+
+# --- meshes -----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_register_refuses_non_finite_vertices(tmp_path, capsys, binary):
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    write_ply(scans / "a.ply", *sphere())
+    nan_sphere(scans, "b.ply", binary=binary)
+    assert_refused(["register", scans, "--out", tmp_path / "out"], capsys,
+                   "b.ply", "2 vertices with non-finite coordinates", "first at index 5",
+                   nothing_at=tmp_path / "out")
+
+
+def test_fuse_refuses_non_finite_vertices(tmp_path, capsys):
+    write_ply(tmp_path / "a.ply", *sphere())
+    nan_sphere(tmp_path, "b.ply")
+    project = write_mlp(tmp_path / "aligned.mlp", ["a.ply", "b.ply"])
+    assert_refused(["fuse", project, "--out", tmp_path / "fused.ply", "--voxel", "4"], capsys,
+                   "b.ply", "non-finite", nothing_at=tmp_path / "fused.ply")
+
+
+def test_fuse_refuses_a_non_finite_pose(tmp_path, capsys):
+    write_ply(tmp_path / "a.ply", *sphere())
+    project = write_mlp(tmp_path / "aligned.mlp", ["a.ply"], matrix="1 0 0 nan 0 1 0 0 0 0 1 0 0 0 0 1")
+    assert_refused(["fuse", project, "--out", tmp_path / "fused.ply", "--voxel", "4"], capsys,
+                   "aligned.mlp", "a.ply", "non-finite", nothing_at=tmp_path / "fused.ply")
+
+
+@pytest.mark.parametrize("voxel", ["nan", "inf", "0", "-1"])
+def test_fuse_refuses_a_bad_voxel_size(tmp_path, capsys, voxel):
+    write_ply(tmp_path / "a.ply", *sphere())
+    project = write_mlp(tmp_path / "aligned.mlp", ["a.ply"])
+    assert_refused(["fuse", project, "--out", tmp_path / "fused.ply", "--voxel", voxel], capsys,
+                   "--voxel", "positive", nothing_at=tmp_path / "fused.ply")
+
+
+def test_mlp_mesh_outside_its_folder_needs_allow_outside(tmp_path, capsys, caplog):
+    write_ply(tmp_path / "a.ply", *sphere())
+    (tmp_path / "project").mkdir()
+    project = write_mlp(tmp_path / "project" / "aligned.mlp", ["../a.ply"])
+    out = tmp_path / "fused.ply"
+    assert_refused(["fuse", project, "--out", out, "--voxel", "4"], capsys,
+                   "aligned.mlp", "a.ply", "outside", "--allow-outside", nothing_at=out)
+    code, _, err = run(["fuse", project, "--out", out, "--voxel", "4", "--allow-outside", "--quiet"], capsys)
+    assert code == 0, err
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert any("outside the project's folder" in w and "a.ply" in w for w in warnings), warnings
+    assert out.is_file()
+
+
+def test_register_mlp_outside_its_folder_needs_allow_outside(tmp_path, capsys):
+    write_ply(tmp_path / "a.ply", *sphere())
+    write_ply(tmp_path / "b.ply", *sphere())
+    (tmp_path / "project").mkdir()
+    project = write_mlp(tmp_path / "project" / "aligned.mlp", [str(tmp_path / "a.ply"), "../b.ply"])
+    assert_refused(["register", project, "--out", tmp_path / "out"], capsys,
+                   "aligned.mlp", "a.ply", "b.ply", "--allow-outside", nothing_at=tmp_path / "out")
+
+
+def test_a_recipe_reads_an_mlp_outside_its_folder_only_with_allow_outside(tmp_path, capsys):
+    write_ply(tmp_path / "a.ply", *sphere())
+    write_ply(tmp_path / "b.ply", *sphere())
+    (tmp_path / "project").mkdir()
+    project = write_mlp(tmp_path / "project" / "aligned.mlp", ["../a.ply", "../b.ply"])
+    recipe = tmp_path / "r.toml"
+    recipe.write_text(f'[recipe]\nstages = ["register"]\n[register]\nsource = "{project}"\n')
+    assert_refused(["run", recipe, "--out", tmp_path / "run", "--quiet"], capsys,
+                   "aligned.mlp", "a.ply", "outside", nothing_at=tmp_path / "run" / "register")
+    code, _, err = run(["run", recipe, "--out", tmp_path / "run", "--quiet",
+                        "--set", "register.allow_outside=true"], capsys)
+    assert code == 0, err
+    assert (tmp_path / "run" / "register" / "registration.json").is_file()
+
+
+@pytest.mark.parametrize("method", ["fast", "quadric"])
+def test_simplify_refuses_non_finite_vertices(tmp_path, capsys, method):
+    source = nan_sphere(tmp_path)
+    assert_refused(["simplify", source, "--out", tmp_path / "s.ply", "--faces", "100", "--method", method], capsys,
+                   "nan.ply", "2 vertices with non-finite coordinates", "first at index 5",
+                   nothing_at=tmp_path / "s.ply")
+
+
+@pytest.mark.parametrize("binary", [False, True])
+@pytest.mark.parametrize("command", ["simplify", "register"])
+def test_truncated_ply_is_refused(tmp_path, capsys, binary, command):
+    v, f = sphere()
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    write_ply(scans / "a.ply", v, f)
+    ply = write_ply(scans / "b.ply", v, f, binary=binary)
+    ply.write_bytes(ply.read_bytes()[:-200])
+    out = tmp_path / ("s.ply" if command == "simplify" else "out")
+    argv = [command, ply if command == "simplify" else scans, "--out", out]
+    assert_refused(argv, capsys, "b.ply", "truncated", nothing_at=out)
+
+
+BOMB = "".join(
+    f'<!ENTITY l{i + 1} "{f"&l{i};" * 10}">' for i in range(8)
+)
+XML_BOMB = f'<!DOCTYPE b [<!ENTITY l0 "lol">{BOMB}]>\n<MeshLabProject><MeshGroup><MLMesh label="&l8;" filename="a.ply"/></MeshGroup></MeshLabProject>'
+XML_EXTERNAL = (
+    '<!DOCTYPE x [<!ENTITY e SYSTEM "file:///etc/passwd">]>\n'
+    '<MeshLabProject><MeshGroup><MLMesh label="x" filename="&e;"/></MeshGroup></MeshLabProject>'
+)
+
+
+@pytest.mark.parametrize(
+    "text",
+    ["<MeshLabProject><MeshGroup><MLMesh", "", "<other/>", XML_BOMB, XML_EXTERNAL],
+    ids=["truncated", "empty", "other-root", "entity-expansion", "external-entity"],
+)
+def test_malformed_mlp_is_refused(tmp_path, capsys, text):
+    (tmp_path / "aligned.mlp").write_text(text)
+    assert_refused(["fuse", tmp_path / "aligned.mlp", "--out", tmp_path / "f.ply"], capsys, "aligned.mlp",
+                   nothing_at=tmp_path / "f.ply")
+
+
+@pytest.mark.parametrize("size", ["0", "-4", "3"])
+def test_texture_refuses_a_bad_size(tmp_path, capsys, size):
+    model = write_ply(tmp_path / "model.ply", *sphere())
+    (tmp_path / "albedo").mkdir()
+    assert_refused(["texture", model, "--views", tmp_path / "albedo", "--out", tmp_path / "tex", "--size", size],
+                   capsys, "--size", nothing_at=tmp_path / "tex")
+
+
+# --- recipes ----------------------------------------------------------------------------
+
+RECIPE = """[recipe]
+name = "t"
+stages = ["capture"]
+
+[capture]
+scene = "tile"
+"""
+
+
+@pytest.mark.parametrize(
+    ("recipe", "overrides", "expected"),
+    [
+        (RECIPE, ["capture.camera_scale=nan"], "[capture].camera_scale: expected a finite number, got nan"),
+        (RECIPE, ["capture.camera_scale=-inf"], "[capture].camera_scale: expected a finite number"),
+        (RECIPE.replace('scene = "tile"', 'scene = "tile"\ncamera_scale = nan'), [],
+         "[capture].camera_scale: expected a finite number"),
+        (RECIPE.replace('stages = ["capture"]', 'stages = "capture"'), [], "recipe.stages: expected a list of stage names"),
+        (RECIPE.replace('stages = ["capture"]', "stages = [1]"), [], "recipe.stages: expected a list of stage names"),
+        (RECIPE[:-10], [], "not valid TOML"),
+    ],
+    ids=["set-nan", "set-inf", "toml-nan", "stages-string", "stages-int", "truncated"],
+)
+def test_bad_recipe_values_are_refused(tmp_path, capsys, recipe, overrides, expected):
+    path = tmp_path / "r.toml"
+    path.write_text(recipe)
+    argv = ["run", path, "--out", tmp_path / "out"] + [x for o in overrides for x in ("--set", o)]
+    assert_refused(argv, capsys, expected, nothing_at=tmp_path / "out")
+
+
+# --- calibration ------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "<?xml version=\"1.0\"?>\n<opencv_storage>\n<cam_int type_id=\"opencv-matrix\"><rows>3</rows>",
+        "not xml at all",
+        (
+            '<?xml version="1.0"?>\n<opencv_storage>\n<cam_int type_id="opencv-matrix"><rows>3</rows><cols>3</cols>'
+            "<dt>d</dt><data>nan 0 1 0 1 1 0 0 1</data></cam_int></opencv_storage>\n"
+        ),
+    ],
+    ids=["truncated", "not-xml", "nan"],
+)
+def test_malformed_calibration_xml_is_refused(session, tmp_path, capsys, text):
+    xml = tmp_path / "calib.xml"
+    xml.write_text(text)
+    assert_refused(["calibrate", session, "--import-xml", xml, "--out", tmp_path / "cal.json"], capsys,
+                   "calib.xml", nothing_at=tmp_path / "cal.json")
+
+
+@pytest.mark.parametrize("text", ['{"format": "slscan.calibration", "ver', "[]"])
+def test_malformed_calibration_json_is_refused(session, tmp_path, capsys, text):
+    cal = tmp_path / "cal.json"
+    cal.write_text(text)
+    assert_refused(["decode", session, "--calibration", cal, "--out", tmp_path / "out"], capsys, "cal.json",
+                   nothing_at=tmp_path / "out")
