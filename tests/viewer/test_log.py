@@ -132,22 +132,19 @@ def test_exception_keeps_previous_file(tmp_path, rig):
 
 
 def test_bad_url_and_path(tmp_path):
-    with pytest.raises(SlscanError, match="not a Rerun viewer URL"):
-        with open_recording(connect="http://localhost:9876"):
-            pass
+    with pytest.raises(SlscanError, match="not a Rerun viewer URL"), open_recording(connect="http://localhost:9876"):
+        pass
     with pytest.raises(SlscanError, match="is a folder"), open_recording(save=tmp_path):
         pass
     blocker = tmp_path / "file"
     blocker.write_text("")
-    with pytest.raises(SlscanError, match="cannot write here"):
-        with open_recording(save=blocker / "sub" / "x.rrd"):
-            pass
+    with pytest.raises(SlscanError, match="cannot write here"), open_recording(save=blocker / "sub" / "x.rrd"):
+        pass
 
 
 def test_bad_capture_image_is_reported(tmp_path):
-    with open_recording(save=tmp_path / "x.rrd") as rec:
-        with pytest.raises(SlscanError, match="float"):
-            log_capture(rec, np.zeros((4, 4)), view_index=0, frame_index=0, label="x")
+    with open_recording(save=tmp_path / "x.rrd") as rec, pytest.raises(SlscanError, match="float"):
+        log_capture(rec, np.zeros((4, 4)), view_index=0, frame_index=0, label="x")
 
 
 def test_layouts(tmp_path):

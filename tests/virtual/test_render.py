@@ -120,7 +120,7 @@ def test_green_lines_on_a_flat_tile_land_where_the_pinhole_model_predicts(small_
     for _, col in desc.params["lines"]:
         for row in range(30, small_rig.camera.height - 30, 3):
             x = _predicted_line_x(small_rig, plane_point, plane_normal, float(col), row)
-            x0 = int(round(x))
+            x0 = round(x)
             if not (10 < x0 < small_rig.camera.width - 10) or not geom.proj_lit[row, x0 - 5 : x0 + 6].all():
                 continue
             xs = np.arange(x0 - 5, x0 + 6)

@@ -226,7 +226,7 @@ def builtin_object(*, detail: float = 1.0) -> Scene:
             verts = verts + relief * _relief(verts)[:, None] * normals
         parts.append((verts, tris, part))
 
-    n = max(16, int(round(300 * detail)))
+    n = max(16, round(300 * detail))
     v, t = _uv_sphere(n // 2, n)
     body_r = np.array([100.0, 120.0, 85.0])
     wobble = 1 + 0.07 * np.sin(3 * np.arctan2(v[:, 2], v[:, 0])) * np.cos(2 * v[:, 1])
