@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import operator
+import os
+import sys
+import time
 
 import numpy as np
 import pytest
@@ -18,6 +21,55 @@ def test_map_keeps_the_order():
     items = list(range(7))
     assert list(Executor(workers=1).map(operator.neg, items)) == [-i for i in items]
     assert list(Executor(workers=2).map(operator.neg, items)) == [-i for i in items]
+
+
+def _where(item):
+    time.sleep(0.05)
+    return item, os.getpid()
+
+
+def _has(name):
+    return os.getpid(), name in sys.modules
+
+
+def _die_in_a_helper(item):
+    parent, value = item
+    if os.getpid() != parent:
+        os._exit(3)
+    return value
+
+
+def _fail_on_three(item):
+    if item == 3:
+        raise ValueError("item 3")
+    return item
+
+
+def test_helpers_are_kept_and_this_process_takes_part():
+    ex = Executor(workers=2)
+    first = list(ex.map(_where, range(8)))
+    second = list(ex.map(_where, range(8)))
+    assert [i for i, _ in first] == list(range(8)) == [i for i, _ in second]
+    pids = {pid for _, pid in first}
+    assert os.getpid() in pids and len(pids) == 2  # this process and one helper
+    assert {pid for _, pid in second} == pids  # the same helper: started once, imports paid once
+
+
+def test_start_has_the_helpers_import_the_stage_modules():
+    ex = Executor(workers=2)
+    list(ex.map(_where, range(2)))  # the pool runs already
+    assert "wave" not in sys.modules
+    ex.start(4, ["wave"])
+    loaded = [has for pid, has in ex.map(_has, ["wave"] * 6) if pid != os.getpid()]
+    assert loaded and all(loaded)  # the first item always goes to the helper
+
+
+def test_an_error_in_a_helper_or_here_reaches_the_caller_and_the_pool_goes_on():
+    with pytest.raises(ValueError, match="item 3"):
+        list(Executor(workers=2).map(_fail_on_three, range(7)))
+    with pytest.raises(SlscanError, match="worker process died"):
+        list(Executor(workers=2).map(_die_in_a_helper, [(os.getpid(), i) for i in range(6)]))
+    assert list(Executor(workers=2).map(operator.neg, range(5))) == [0, -1, -2, -3, -4]
 
 
 def test_bad_settings_are_refused():

@@ -25,6 +25,7 @@ VIEWER = "slscan.viewer"
 SHARED = frozenset(
     {
         "slscan",  # the package: __version__
+        "slscan._open3d",  # `import open3d` without Dash and Plotly (run by the package)
         "slscan.errors",
         "slscan.fsio",
         "slscan.ply",

@@ -353,3 +353,19 @@ def test_session_view_missing_an_image_is_an_error(tile_session):
     grey = dataclasses.replace(tile_session, channels=1)
     with pytest.raises(SlscanError, match="RGB"):
         decode_hybrid(grey, view)
+
+
+def test_plateau_keeps_pixels_with_band_either_side():
+    from slscan.decode.hybrid import PLATEAU_WIDTH, _plateau
+
+    rng = np.random.default_rng(5)
+    half = PLATEAU_WIDTH // 2
+    for fill in (0.5, 0.9, 0.99):
+        band = rng.random((23, 61)) < fill
+        padded = np.pad(band, ((0, 0), (half, half)), constant_values=False)  # outside: no band
+        expected = np.ones_like(band)
+        for shift in range(PLATEAU_WIDTH):
+            expected &= padded[:, shift:shift + band.shape[1]]
+        np.testing.assert_array_equal(_plateau(band), expected)
+    assert not _plateau(np.ones((3, PLATEAU_WIDTH - 1), bool)).any()  # too narrow, image edges
+    assert _plateau(np.ones((3, PLATEAU_WIDTH + 2), bool))[:, half:-half].all()

@@ -1,19 +1,29 @@
 """One executor for per-view work: local processes by default, a Dask cluster on request.
 
-Per-view stages (decode, albedo) hand their views to :func:`map_views`. With one view or
-``workers=1`` the work runs in this process; otherwise in a pool of local processes
-(``spawn``-started, so no thread of this process — Rerun's, open3d's — is forked), or on
-a Dask distributed cluster when a scheduler address is given (``tcp://HOST:PORT``).
-Results come back in input order; logging to Rerun stays in the calling process.
+Per-view stages (decode, albedo) hand their views to :meth:`Executor.map`. With one view or
+``workers=1`` the work runs in this process. Otherwise this process works through the
+views together with ``workers - 1`` helper processes (``spawn``-started, so no thread of
+this process — Rerun's, open3d's — is forked), or the views go to a Dask distributed
+cluster when a scheduler address is given (``tcp://HOST:PORT``). Results come back in
+input order; logging to Rerun stays in the calling process.
+
+The helper processes are started once and kept for the rest of the run (every stage of
+a recipe reuses them), so each pays its imports (NumPy, SciPy, OpenCV, Open3D: about a
+second of CPU) once, not once per stage; :meth:`Executor.start` starts them early, each
+importing the stage's modules, while this process reads its inputs.
 """
 
 from __future__ import annotations
 
+import atexit
+import importlib
 import logging
 import multiprocessing
 import os
+import threading
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
@@ -28,7 +38,8 @@ class Executor:
     """Where per-view work runs.
 
     scheduler : Dask scheduler address (``tcp://HOST:PORT``), or None for local processes
-    workers : local processes at most (default: the machine's cores); ignored with Dask
+    workers : local processes at most, this one included (default: the machine's cores);
+        ignored with Dask
     """
 
     scheduler: str | None = None
@@ -40,20 +51,143 @@ class Executor:
         if self.scheduler is not None and "://" not in self.scheduler:
             raise SlscanError(f"--scheduler {self.scheduler!r}: expected an address like tcp://HOST:8786")
 
+    def _local_workers(self) -> int:
+        return self.workers or os.cpu_count() or 1
+
+    def start(self, items: int, modules: Sequence[str] = ()) -> None:
+        """Start the helper processes that :meth:`map` over ``items`` items will use now,
+        each importing ``modules`` (e.g. the stage's module), so that their start-up
+        overlaps this process's own work. Nothing to do for Dask or a single worker."""
+        helpers = min(items, self._local_workers()) - 1
+        if self.scheduler is None and helpers > 0:
+            _helpers(self._local_workers() - 1, helpers, tuple(modules))
+
     def map(self, fn: Callable[..., T], items: Sequence[Any]) -> Iterator[T]:
-        """``fn(item)`` for every item, yielded in order as they are ready in order."""
+        """``fn(item)`` for every item, yielded in input order as they are ready."""
         items = list(items)
         if self.scheduler is not None:
             yield from _map_dask(self.scheduler, fn, items)
             return
-        workers = min(len(items), self.workers or os.cpu_count() or 1)
-        if workers <= 1:
+        helpers = min(len(items), self._local_workers()) - 1
+        if helpers <= 0:
             for item in items:
                 yield fn(item)
             return
-        context = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
-            yield from pool.map(fn, items)
+        yield from _map_shared(_helpers(self._local_workers() - 1, helpers, ()), helpers, fn, items)
+
+
+_lock = threading.Lock()
+_pool: ProcessPoolExecutor | None = None
+_pool_size = 0
+
+
+def _preload(modules: tuple[str, ...]) -> None:
+    """A helper process's initializer: import what its stage needs, once."""
+    for name in modules:
+        importlib.import_module(name)
+
+
+def _nothing() -> None:
+    """A task that makes the pool start a process (it starts them on demand; the
+    initializer imports)."""
+
+
+def _helpers(count: int, spawn: int, modules: tuple[str, ...]) -> ProcessPoolExecutor:
+    """The run's pool of at most ``count`` helper processes (the one already running when
+    it has that size and is sound, else a new one importing ``modules``), with ``spawn``
+    of them started now; the pool starts more when it is given more work."""
+    global _pool, _pool_size
+    with _lock:
+        if _pool is not None and _pool_size != count:
+            _pool.shutdown(wait=True, cancel_futures=True)
+            _pool = None
+        if _pool is None:
+            _pool = ProcessPoolExecutor(max_workers=count, mp_context=multiprocessing.get_context("spawn"),
+                                        initializer=_preload, initargs=(modules,))
+            _pool_size = count
+            for _ in range(spawn):  # the pool starts a process per task while none is idle
+                _pool.submit(_nothing)
+        elif modules:  # the running processes (or new ones) import them now, not on their first item
+            for _ in range(spawn):
+                _pool.submit(_preload, modules)
+        return _pool
+
+
+def _discard(pool: ProcessPoolExecutor) -> None:
+    """Forget a pool whose process died (the next map starts a new one)."""
+    global _pool
+    with _lock:
+        if _pool is pool:
+            _pool = None
+    pool.shutdown(wait=False, cancel_futures=True)
+
+
+def shutdown() -> None:
+    """Stop the helper processes (at exit; a later :meth:`Executor.map` starts new ones)."""
+    global _pool
+    with _lock:
+        if _pool is not None:
+            _pool.shutdown(wait=True, cancel_futures=True)
+            _pool = None
+
+
+atexit.register(shutdown)
+
+
+def _map_shared(pool: ProcessPoolExecutor, helpers: int, fn: Callable[..., T], items: list[Any]) -> Iterator[T]:
+    """``fn`` over ``items`` by ``helpers`` pool processes taking items from the front
+    and this process taking them from the back, yielded in input order.
+
+    A helper is handed its next item as soon as it finishes one (from the pool's
+    callback, while this process works on its own), never queued more than that: a
+    helper still starting up holds back one item at most.
+    """
+    lock = threading.RLock()  # a callback on a finished future runs at once, in add_done_callback
+    futures: dict[int, Future] = {}
+    done: dict[int, T] = {}
+    front, back, busy = 0, len(items), 0  # items[front:back] are not taken yet
+
+    def feed(finished: Future | None = None) -> None:
+        nonlocal front, busy
+        with lock:
+            busy -= finished is not None
+            while front < back and busy < helpers:
+                try:
+                    future = pool.submit(fn, items[front])
+                except RuntimeError:  # the pool is shutting down (at exit)
+                    return
+                futures[front] = future
+                front += 1
+                busy += 1
+                future.add_done_callback(feed)
+
+    try:
+        for index in range(len(items)):
+            feed()
+            while True:
+                with lock:
+                    if index in done or (index in futures and futures[index].done()) or front >= back:
+                        break
+                    back -= 1
+                    mine = back
+                done[mine] = fn(items[mine])
+            if index in done:
+                result = done.pop(index)
+            else:
+                with lock:
+                    future = futures.pop(index)
+                try:
+                    result = future.result()
+                except BrokenProcessPool:
+                    _discard(pool)
+                    raise SlscanError("a worker process died (out of memory?); "
+                                      "run again with fewer --workers") from None
+            yield result
+    finally:
+        with lock:
+            back = front  # hand out nothing more
+            for future in futures.values():
+                future.cancel()
 
 
 def _map_dask(address: str, fn: Callable[..., T], items: list[Any]) -> Iterator[T]:
@@ -80,7 +214,8 @@ LOCAL = Executor()
 def add_executor_arguments(parser) -> None:
     """Add ``--workers N`` and ``--scheduler tcp://HOST:PORT`` to an argparse parser."""
     group = parser.add_argument_group("scale-out", "per-view stages run in parallel over views")
-    group.add_argument("--workers", type=int, metavar="N", help="local worker processes (default: one per core)")
+    group.add_argument("--workers", type=int, metavar="N", help="processes working on views, this one included (default: one per core); "
+                            "the others start once per run and are reused by every stage")
     group.add_argument("--scheduler", metavar="tcp://HOST:PORT",
                        help="run per-view work on this Dask distributed cluster instead "
                             "(its workers must see the same files)")

@@ -439,6 +439,7 @@ def albedo_session(
     config = config or AlbedoConfig()
     if not isinstance(session, Session):
         session = load_session(session)
+    executor.start(len(session.views), [__name__, "open3d"])  # they import while we check
     lights_source = "session rig description"
     if lights is None:
         if session.calibration is None or not session.calibration.lights:

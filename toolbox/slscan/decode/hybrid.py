@@ -83,7 +83,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.ndimage import minimum_filter1d
 
 from slscan.capture.session import ImageRecord, Session, ViewRecord
 from slscan.decode.masks import (
@@ -298,7 +297,9 @@ def find_line_peaks(
 
 def _plateau(band: np.ndarray) -> np.ndarray:
     """Pixels (h, w) bool of ``band`` with ``PLATEAU_WIDTH // 2`` band pixels either side along x."""
-    eroded = minimum_filter1d(band.astype(np.uint8), PLATEAU_WIDTH, axis=1, mode="constant")
+    # a minimum over PLATEAU_WIDTH pixels along x, outside the image counting as no band
+    eroded = cv2.erode(band.astype(np.uint8), np.ones((1, PLATEAU_WIDTH), np.uint8),
+                       borderType=cv2.BORDER_CONSTANT, borderValue=0)
     return eroded.astype(bool)
 
 

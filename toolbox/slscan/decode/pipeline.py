@@ -239,6 +239,7 @@ def decode_session(
         session = load_session(session)
     if not session.views:
         raise SlscanError(f"{session.root / SESSION_FILE}: the session has no views; expected at least one")
+    executor.start(len(session.views), [__name__])  # helper processes import while we set up
     results = []
     unusable = {}
     with atomic_output_dir(out, overwrite=overwrite) as tmp:
