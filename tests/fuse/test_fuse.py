@@ -9,8 +9,10 @@ from synthetic_poses import looking_from
 
 from slscan.errors import SlscanError
 from slscan.fuse import (
+    BLOCK_RESOLUTION,
     FuseConfig,
     Mesh,
+    TsdfVolume,
     canonical_order,
     estimate_blocks,
     fuse_scans,
@@ -120,6 +122,62 @@ def test_fusion_checks_its_input(sphere_views):
         fuse_scans(scans, poses, config=FuseConfig(weighting="loud"))
     with pytest.raises(SlscanError, match="voxel size"):
         fuse_scans(scans, poses, config=FuseConfig(voxel_size=0))
+
+
+def _voxels(volume):
+    """World centres (k, 512, 3), tsdf and weight (k, 512) of every allocated block's voxels."""
+    hashmap = volume.grid.hashmap()
+    buf = hashmap.active_buf_indices().numpy().astype(np.int64)
+    keys = hashmap.key_tensor().numpy()[buf].astype(np.float64)
+    k = np.arange(BLOCK_RESOLUTION, dtype=np.float64)
+    lattice = np.stack(np.meshgrid(k, k, k, indexing="ij")[::-1], -1).reshape(-1, 3)  # x fastest
+    centres = (keys[:, None, :] * BLOCK_RESOLUTION + lattice) * volume.voxel_size
+    res3 = BLOCK_RESOLUTION**3
+    tsdf = volume.grid.attribute("tsdf").numpy().reshape(-1, res3)[buf]
+    weight = volume.grid.attribute("weight").numpy().reshape(-1, res3)[buf]
+    return centres, tsdf, weight
+
+
+def test_every_voxel_gets_the_weighted_average_of_its_observations(sphere_views):
+    # each voxel of the blocks near a scan: the height map sampled at its centre (bilinear
+    # height and quality weight), truncated, averaged with the earlier scans' by weight
+    scans, poses = sphere_views
+    volume = TsdfVolume(1.0, truncation=3.0)
+    trunc = 3.0
+    maps = [height_map(s, poses[s.name], pixel=1.0) for s in scans[:3]]
+    for depth in maps:
+        volume.integrate(depth, chunk_blocks=7)  # chunks end inside the block list
+    centres, tsdf, weight = _voxels(volume)
+    points = centres.reshape(-1, 3)
+    num = np.zeros(len(points))
+    den = np.zeros(len(points))
+    count = np.zeros(len(points), int)
+    for depth in maps:
+        sdf, w = depth.sample(points)
+        ok = (w > 0) & (sdf >= -trunc)
+        num[ok] += np.minimum(sdf[ok] / trunc, 1.0) * w[ok]
+        den[ok] += w[ok]
+        count += ok
+    seen = den > 0
+    assert seen.mean() > 0.3 and (~seen).any()
+    # voxels a scan's blocks hold but no scan saw keep the initial values
+    np.testing.assert_array_equal(weight.reshape(-1)[~seen], 0.0)
+    np.testing.assert_array_equal(tsdf.reshape(-1)[~seen], 1.0)
+    np.testing.assert_allclose(weight.reshape(-1)[seen], den[seen], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(tsdf.reshape(-1)[seen], num[seen] / den[seen], atol=2e-5)
+    assert (count >= 2).sum() > 10_000  # overlapping scans were averaged
+
+
+def test_the_estimated_grid_is_never_regrown(sphere_views):
+    # open3d doubles (and copies) its hash map whenever one activation's keys, present or
+    # not, would overflow it: only missing blocks are activated, so an estimate holds
+    scans, poses = sphere_views
+    blocks = estimate_blocks(scans, poses, voxel_size=1.0)
+    volume = TsdfVolume(1.0, block_count=blocks)
+    for s in scans:
+        volume.integrate(height_map(s, poses[s.name], pixel=1.0))
+    assert blocks * 0.9 < volume.n_blocks <= blocks
+    assert volume.grid.hashmap().capacity() == blocks
 
 
 def test_height_map_sees_the_scan(sphere_views):

@@ -15,14 +15,19 @@ front of the surface, towards the sensor). Voxels with ``sdf >= -truncation`` ar
 updated with ``tsdf = min(sdf / truncation, 1)`` and the observation's weight, the scan's
 per-vertex quality interpolated at the ray hit (for Stanford scans: cos(view angle) ×
 a ramp to 0 at the scan's boundary [1]_) — or 1 with ``weighting="uniform"``. open3d's
-own ``integrate`` takes pinhole depth images and counts observations with weight 1, so
-the update is done here, in numpy, on the grid's attribute buffers, a bounded chunk of
-blocks at a time.
+own ``integrate`` takes pinhole depth images and counts observations with weight 1 (its
+kernel adds exactly 1 per call; no weight per pixel or per call), so the update is done
+here, in numpy, in place on the grid's own attribute buffers (no copies of the grid),
+``chunk_blocks`` blocks at a time: every step a whole-array operation on the chunk's
+voxels, small enough to stay in the CPU's cache, the four pixels around each voxel
+fetched with one gather each from shifted views of the map, the blocks' tsdf and weight
+rows gathered and written back whole.
 
 Memory stays bounded: scans are integrated one at a time (an iterable is consumed
 lazily), the blocks a sequence of scans will need are counted before the grid is made
-(and checked against ``max_memory_gib``), and voxels are updated in chunks of
-``chunk_blocks`` blocks.
+(and checked against ``max_memory_gib``), only blocks not yet in the grid are activated
+(open3d doubles and copies its hash map whenever the keys of one activation, present or
+not, would overflow it), and voxels are updated in chunks of ``chunk_blocks`` blocks.
 
 References
 ----------
@@ -99,8 +104,9 @@ class FuseConfig:
     """{"quality", "uniform"}: an observation weighs the scan's vertex quality there, or 1."""
     min_weight: float = 0.1
     """Voxels with less accumulated weight are not meshed (open3d's weight threshold)."""
-    chunk_blocks: int = 4096
-    """Blocks updated at once (memory of the update: about chunk_blocks × 512 × 60 bytes)."""
+    chunk_blocks: int = 256
+    """Blocks updated at once (memory of the update: about chunk_blocks × 512 × 60 bytes;
+    small enough to stay in the CPU's cache, which is faster than larger chunks)."""
     max_memory_gib: float = 10.0
     """Refuse (SlscanError) when the voxel grid would need more than this."""
 
@@ -161,6 +167,17 @@ class HeightMap:
         r, c = np.nonzero(np.isfinite(self.height))
         local = np.stack([c * self.pixel, r * self.pixel, self.height[r, c].astype(np.float64)], 1)
         return local @ self.frame + self.origin
+
+    def bordered(self) -> tuple[np.ndarray, np.ndarray]:
+        """Flat (rows * cols,) float32 copies of ``height`` and ``weight`` whose border
+        pixels see no surface (NaN), so that a point clipped onto the border samples
+        nothing."""
+        height = self.height.astype(np.float32, copy=True)
+        weight = self.weight.astype(np.float32, copy=True)
+        for a in (height, weight):
+            a[[0, -1], :] = np.nan
+            a[:, [0, -1]] = np.nan
+        return height.reshape(-1), weight.reshape(-1)
 
     def sample(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Signed distance along d (mm) and weight at world ``points`` (k, 3).
@@ -278,6 +295,29 @@ def height_map(
     return HeightMap(frame=frame, origin=origin, pixel=float(pixel), height=height, weight=weight)
 
 
+def _bilinear(
+    v00: np.ndarray, v01: np.ndarray, v10: np.ndarray, v11: np.ndarray,
+    i: np.ndarray, fx: np.ndarray, fy: np.ndarray,
+) -> np.ndarray:
+    """Bilinear interpolation of a flat map at cells ``i`` (top-left pixel index) and
+    fractions ``fx``, ``fy``, given the map as four views shifted to the cell's corners
+    (float32, same shape as ``i``; NaN when any corner is NaN)."""
+    top = np.take(v01, i)
+    left = np.take(v00, i)
+    top -= left
+    top *= fx
+    top += left
+    bottom = np.take(v11, i)
+    left = np.take(v10, i, out=left)
+    bottom -= left
+    bottom *= fx
+    bottom += left
+    bottom -= top
+    bottom *= fy
+    top += bottom
+    return top
+
+
 # --- block bookkeeping ----------------------------------------------------------------------------
 
 
@@ -285,16 +325,15 @@ def _block_keys(points: np.ndarray, block_size: float, reach: float) -> np.ndarr
     """Unique int64 keys of the blocks within ``reach`` (per axis) of ``points``."""
     steps = math.ceil(2 * reach / block_size) + 1
     offsets = np.linspace(-reach, reach, steps)
-    keys = []
-    for dx in offsets:
-        for dy in offsets:
-            for dz in offsets:
-                b = np.floor((points + (dx, dy, dz)) / block_size).astype(np.int64)
-                keys.append(
-                    np.unique(
-                        ((b[:, 0] + 2**20) << 42) | ((b[:, 1] + 2**20) << 21) | (b[:, 2] + 2**20)
-                    )
-                )
+    # per axis, the (shifted) block coordinate of every point moved by every offset
+    axes = [
+        [
+            (np.floor((points[:, a] + off) / block_size).astype(np.int64) + 2**20) << shift
+            for off in offsets
+        ]
+        for a, shift in ((0, 42), (1, 21), (2, 0))
+    ]
+    keys = [np.unique(x | y | z) for x in axes[0] for y in axes[1] for z in axes[2]]
     return np.unique(np.concatenate(keys))
 
 
@@ -331,6 +370,11 @@ def grid_memory_bytes(n_blocks: int) -> int:
 
 # --- fusion ---------------------------------------------------------------------------------------
 
+_VOXEL_LATTICE = np.stack(
+    np.meshgrid(*(np.arange(BLOCK_RESOLUTION, dtype=np.float64),) * 3, indexing="ij")[::-1], -1
+).reshape(-1, 3)
+"""(512, 3) voxel offsets (x, y, z) within a block, x fastest (open3d's storage order)."""
+
 
 class TsdfVolume:
     """A sparse weighted-TSDF volume (open3d VoxelBlockGrid) that integrates range scans one by one.
@@ -355,62 +399,94 @@ class TsdfVolume:
     def n_blocks(self) -> int:
         return int(self.grid.hashmap().size())
 
-    def integrate(self, depth: HeightMap, *, chunk_blocks: int = 4096) -> None:
+    def integrate(self, depth: HeightMap, *, chunk_blocks: int = 256) -> None:
         """Add one scan's height map to the volume (see the module docstring)."""
-        import open3d.core as o3c
-
         points = depth.surface_points()
         if len(points) == 0:
             return
         trunc = self.truncation * self.voxel_size
-        res = BLOCK_RESOLUTION
-        keys = _block_keys(points, self.voxel_size * res, trunc)
+        res3 = BLOCK_RESOLUTION**3
+        coords = _key_coords(_block_keys(points, self.voxel_size * BLOCK_RESOLUTION, trunc))
         del points
-        coords = _key_coords(keys)
-        coords_t = o3c.Tensor(coords)
-        hashmap = self.grid.hashmap()
-        new_buf, new_mask = hashmap.activate(coords_t)
-        new_buf = new_buf.numpy()[new_mask.numpy().astype(bool)].astype(np.int64)
-        buf, found = hashmap.find(coords_t)
-        found = found.numpy().astype(bool)
-        buf = buf.numpy()[found].astype(np.int64)
-        coords = coords[found]
-        # attribute buffers may move when the hash map grows: take views after activation
-        tsdf = self.grid.attribute("tsdf").numpy().reshape(-1)
-        weight = self.grid.attribute("weight").numpy().reshape(-1)
-        weight.reshape(-1, res**3)[new_buf] = 0.0
-        tsdf.reshape(-1, res**3)[new_buf] = 1.0
+        buf = self._blocks(coords)
         # voxel (x, y, z) of a block sits at (block * res + (x, y, z)) * voxel_size; in the
-        # map's frame that is a per-block offset plus a per-voxel lattice (x fastest)
-        scale = np.array([1.0 / depth.pixel, 1.0 / depth.pixel, 1.0])
-        frame = depth.frame * scale[:, None]
-        base = ((coords.astype(np.float64) * (res * self.voxel_size)) - depth.origin) @ frame.T
-        k = np.arange(res)
-        lattice = np.stack(np.meshgrid(k, k, k, indexing="ij")[::-1], -1).reshape(
-            -1, 3
-        )  # x fastest
-        lattice = ((lattice * self.voxel_size) @ frame.T).astype(np.float32)
+        # map's frame (pixels across, mm along d) that is a per-block offset plus a
+        # per-voxel lattice (x fastest, as open3d stores them)
+        frame = depth.frame * np.array([1.0 / depth.pixel, 1.0 / depth.pixel, 1.0])[:, None]
+        base = (coords * (BLOCK_RESOLUTION * self.voxel_size) - depth.origin) @ frame.T
+        lattice = (_VOXEL_LATTICE * self.voxel_size) @ frame.T
+        rows_px, cols_px = depth.height.shape
+        height, weight_px = depth.bordered()
+        # the four pixels around a point as views: one gather each, no index arithmetic
+        h00, h01, h10, h11 = (height[k:] for k in (0, 1, cols_px, cols_px + 1))
+        w00, w01, w10, w11 = (weight_px[k:] for k in (0, 1, cols_px, cols_px + 1))
+        cols = np.int32(cols_px)
+        x_max = np.float32(cols_px - 2)
+        y_max = np.float32(rows_px - 2)
+        lattice = lattice.T.astype(np.float32)
+        tsdf = self.grid.attribute("tsdf").numpy().reshape(-1, res3)
+        weight = self.grid.attribute("weight").numpy().reshape(-1, res3)
         inv_trunc = np.float32(1.0 / trunc)
         for start in range(0, len(buf), chunk_blocks):
-            stop = min(len(buf), start + chunk_blocks)
-            local = base[start:stop, None, :].astype(np.float32) + lattice[None]
-            local = local.reshape(-1, 3)
-            sdf, w = depth.sample_local(
-                np.ascontiguousarray(local[:, 0]),
-                np.ascontiguousarray(local[:, 1]),
-                np.ascontiguousarray(local[:, 2]),
-            )
-            ok = np.flatnonzero((w > 0) & (sdf >= -trunc))
-            if len(ok) == 0:
+            rows = buf[start : start + chunk_blocks]
+            b = base[start : start + chunk_blocks].astype(np.float32)
+            x = b[:, 0:1] + lattice[0]
+            y = b[:, 1:2] + lattice[1]
+            sdf = b[:, 2:3] + lattice[2]
+            # outside the map: clipped onto its border, whose pixels see no surface (NaN)
+            np.clip(x, 0, x_max, out=x)
+            np.clip(y, 0, y_max, out=y)
+            i = x.astype(np.int32)
+            r0 = y.astype(np.int32)
+            x -= i
+            y -= r0
+            r0 *= cols
+            i += r0
+            del r0
+            h = _bilinear(h00, h01, h10, h11, i, x, y)
+            w = _bilinear(w00, w01, w10, w11, i, x, y)
+            sdf -= h
+            ok = sdf >= -trunc  # False where NaN: a pixel without surface
+            ok &= w > 0
+            if not ok.any():
                 continue
-            i = buf[start + ok // res**3] * res**3 + ok % res**3
-            obs = np.minimum(sdf[ok] * inv_trunc, np.float32(1.0))
-            w = w[ok]
-            old_w = weight[i]
-            total = old_w + w
-            tsdf[i] = (tsdf[i] * old_w + obs * w) / total
-            weight[i] = total
+            w[~ok] = 0.0
+            sdf *= inv_trunc
+            np.minimum(sdf, np.float32(1.0), out=sdf)
+            t_old = tsdf[rows]
+            w_old = weight[rows]
+            total = w_old + w
+            t_new = t_old * w_old
+            sdf *= w
+            t_new += sdf
+            np.divide(t_new, total, out=t_old, where=ok)
+            tsdf[rows] = t_old
+            weight[rows] = total
         self.n_scans += 1
+
+    def _blocks(self, coords: np.ndarray) -> np.ndarray:
+        """Buffer indices (int64) of the blocks at ``coords`` (k, 3), allocated where new.
+
+        Only the missing blocks are activated: open3d grows (doubles and copies) its hash
+        map whenever the keys of one activation, present or not, would overflow it.
+        """
+        import open3d.core as o3c
+
+        hashmap = self.grid.hashmap()
+        coords_t = o3c.Tensor(np.ascontiguousarray(coords, dtype=np.int32))
+        buf, found = hashmap.find(coords_t)
+        missing = ~found.numpy().astype(bool)
+        if missing.any():
+            new_buf, new_mask = hashmap.activate(
+                o3c.Tensor(np.ascontiguousarray(coords[missing], dtype=np.int32))
+            )
+            new_buf = new_buf.numpy()[new_mask.numpy().astype(bool)].astype(np.int64)
+            res3 = BLOCK_RESOLUTION**3
+            # attribute buffers move when the hash map grows: views taken after activation
+            self.grid.attribute("weight").numpy().reshape(-1, res3)[new_buf] = 0.0
+            self.grid.attribute("tsdf").numpy().reshape(-1, res3)[new_buf] = 1.0
+            buf, found = hashmap.find(coords_t)
+        return buf.numpy().astype(np.int64)
 
     def extract_mesh(self, *, min_weight: float = 0.1) -> Mesh:
         """Marching-cubes surface of the volume (open3d ``extract_triangle_mesh``).
