@@ -256,6 +256,40 @@ def test_shadow_rays_against_the_range_map(rig):
     np.testing.assert_allclose(surface.points[both], geom.point[both], atol=0.05)
 
 
+@pytest.mark.parametrize("dist", [(0.0,) * 5, (-0.2, 0.1, 0.001, -0.002, 0.0)])
+def test_rasterise_casts_only_the_window_and_misses_nothing(rig, monkeypatch, dist):
+    """The range map cast through its pixel window only equals the cast through every
+    pixel, with and without lens distortion."""
+    from dataclasses import replace
+
+    from slscan.albedo import surface as surface_module
+
+    camera = replace(rig.camera, dist=dist)
+    vertices = transform_points(turntable_pose(rig, 0.0), scene_with().vertices) * [1, 1, 1.6]
+    triangles = scene_with().triangles
+    mesh = RangeMap(
+        vertices,
+        triangles,
+        vertex_normals(vertices, triangles).astype(np.float32),
+        np.zeros((len(vertices), 3), np.uint8),
+        np.ones(len(vertices), np.float32),
+        np.zeros(len(vertices), np.int32),
+        np.zeros(len(vertices), np.int32),
+    )
+    rows, cols = surface_module.pixel_window(mesh, camera)
+    share = (rows.stop - rows.start) * (cols.stop - cols.start) / (camera.width * camera.height)
+    assert 0.01 < share < surface_module.WINDOW_SHARE  # the window's own rays are cast
+    windowed = rasterise(mesh, camera)
+    frame = (slice(0, camera.height), slice(0, camera.width))
+    monkeypatch.setattr(surface_module, "pixel_window", lambda *_: frame)
+    full = rasterise(mesh, camera)
+    assert full.hit.sum() > 1000
+    np.testing.assert_array_equal(windowed.hit, full.hit)
+    np.testing.assert_array_equal(windowed.face, full.face)
+    np.testing.assert_allclose(windowed.points, full.points, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(windowed.normals, full.normals, rtol=0, atol=1e-9)
+
+
 def _directions(points: np.ndarray, rig) -> np.ndarray:
     d = np.array([light.position for light in rig.lights])[:, None, :] - points[None]
     return d / np.linalg.norm(d, axis=-1, keepdims=True)

@@ -53,23 +53,38 @@ def rasterise(range_map: RangeMap, camera: PinholeModel) -> SurfaceMap:
 
     The hit point is recomputed in float64 on the hit triangle's plane; the normal is the
     barycentric interpolation of the range map's vertex normals, turned to face the camera.
+    Only the pixels of :func:`pixel_window` are cast (no other can see the range map).
     """
     import open3d as o3d
 
     h, w = camera.height, camera.width
-    empty = SurfaceMap(
+    surface = SurfaceMap(
         np.zeros((h, w), bool),
         np.full((h, w, 3), np.nan),
         np.full((h, w, 3), np.nan),
         np.full((h, w), -1, np.int64),
     )
     if len(range_map.faces) == 0:
-        return empty
+        return surface
     if range_map.faces.max() >= len(range_map.vertices) or range_map.faces.min() < 0:
         raise SlscanError(
             f"range map {range_map.view!r}: a face refers to a vertex that does not exist"
         )
-    rays = pixel_rays(camera).reshape(-1, 3)
+    rows, cols = pixel_window(range_map, camera)
+    if rows.stop <= rows.start or cols.stop <= cols.start:
+        return surface
+    if (rows.stop - rows.start) * (cols.stop - cols.start) > WINDOW_SHARE * h * w:
+        rays = pixel_rays(camera)[rows, cols].reshape(-1, 3)  # cached per camera
+    else:
+        grid = np.stack(
+            np.meshgrid(
+                np.arange(cols.start, cols.stop, dtype=float),
+                np.arange(rows.start, rows.stop, dtype=float),
+            ),
+            axis=-1,
+        )
+        rays = camera.rays_local(grid).reshape(-1, 3)
+        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
     scene = _scene(range_map)
     cast = scene.cast_rays(
         o3d.core.Tensor(np.concatenate([np.zeros_like(rays), rays], 1).astype(np.float32))
@@ -93,14 +108,44 @@ def rasterise(range_map: RangeMap, camera: PinholeModel) -> SurfaceMap:
     face_unit = face_n / np.maximum(np.linalg.norm(face_n, axis=1, keepdims=True), 1e-300)
     n = np.where(length > 1e-6, n / np.maximum(length, 1e-300), face_unit)
     n[np.einsum("ij,ij->i", n, r) > 0] *= -1
-    points = np.full((h * w, 3), np.nan)
-    normals = np.full((h * w, 3), np.nan)
-    face = np.full(h * w, -1, np.int64)
-    points[idx] = r * t[:, None]
-    normals[idx] = n
-    face[idx] = prim
-    return SurfaceMap(
-        hit.reshape(h, w), points.reshape(h, w, 3), normals.reshape(h, w, 3), face.reshape(h, w)
+    win = (rows.stop - rows.start, cols.stop - cols.start)
+    surface.hit[rows, cols] = hit.reshape(win)
+    surface.points[rows, cols] = _scatter(idx, r * t[:, None], win, np.nan)
+    surface.normals[rows, cols] = _scatter(idx, n, win, np.nan)
+    surface.face[rows, cols] = _scatter(idx, prim, win, -1)
+    return surface
+
+
+def _scatter(idx: np.ndarray, values: np.ndarray, shape: tuple[int, int], fill) -> np.ndarray:
+    """``values`` at the flat indices ``idx`` of a (shape + values' trailing shape) array."""
+    out = np.full((shape[0] * shape[1],) + values.shape[1:], fill, values.dtype)
+    out[idx] = values
+    return out.reshape(shape + values.shape[1:])
+
+
+WINDOW_SHARE = 0.5
+"""A window larger than this share of the frame takes its rays from the per-camera cache."""
+WINDOW_MARGIN_PX = 2
+"""Margin of :func:`pixel_window` around the vertices' projections: a triangle's edges
+are straight in the ideal image and bent by the lens distortion between their ends."""
+
+
+def pixel_window(range_map: RangeMap, camera: PinholeModel) -> tuple[slice, slice]:
+    """(rows, cols) of the camera's pixels that can see ``range_map``: its vertices'
+    projections with a margin (:data:`WINDOW_MARGIN_PX`), within the frame; the whole frame
+    if a vertex is not in front of the camera."""
+    h, w = camera.height, camera.width
+    v = np.asarray(range_map.vertices, float)
+    if len(v) == 0:
+        return slice(0, 0), slice(0, 0)
+    pix = camera.project_local(v)
+    if not (np.all(v[:, 2] > 0) and np.all(np.isfinite(pix))):
+        return slice(0, h), slice(0, w)
+    lo = np.floor(pix.min(0)).astype(int) - WINDOW_MARGIN_PX
+    hi = np.ceil(pix.max(0)).astype(int) + WINDOW_MARGIN_PX + 1
+    return (
+        slice(int(np.clip(lo[1], 0, h)), int(np.clip(hi[1], 0, h))),
+        slice(int(np.clip(lo[0], 0, w)), int(np.clip(hi[0], 0, w))),
     )
 
 
