@@ -24,6 +24,12 @@ Columns: pairwise alignments tried (progress ticks), CPU seconds of the registra
 worst view's rotation (degrees) and translation at its centroid (mm) against the true
 poses. The last lines extrapolate each method's CPU time to 146 views by a least-squares
 fit ``cpu = a N + b N^2`` over the N measured (needs two N or more).
+
+``--bunny-seeds 1,2,...`` instead registers the Stanford bunny from bun.conf perturbed
+by up to ``--bunny-deg`` degrees / ``--bunny-mm`` mm (default 20 / 20, seeds as given;
+bun000 kept), all candidate pairs against the k nearest, and prints per seed the scans
+left out, the worst scan's error against bun.conf and the largest difference between
+the two results: the robustness from perturbed starts, side by side.
 """
 
 from __future__ import annotations
@@ -147,6 +153,53 @@ def _export_toolbox(rev: str, folder: Path) -> Path:
     return folder / "toolbox"
 
 
+def bunny_robustness(args) -> None:
+    import warnings
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import bunny  # the bunny benchmark's perturbation, at this size
+
+    from slscan.data import shared_data_dir
+    from slscan.register.multiview import MultiviewConfig, register_scans
+    from slscan.register.pairwise import pose_error
+    from slscan.register.rangescan import load_stanford_dir
+
+    bunny.DEG, bunny.MM = args.bunny_deg, args.bunny_mm
+    scans, truth = load_stanford_dir(shared_data_dir() / "stanford_bunny")
+    by_name = {s.name: s for s in scans}
+    k = args.max_neighbours if args.max_neighbours is not None else MultiviewConfig().max_neighbours
+    print(f"Stanford bunny from bun.conf perturbed by up to {args.bunny_deg:g} deg / "
+          f"{args.bunny_mm:g} mm: all candidate pairs (k=0) vs k={k}; worst scan vs bun.conf "
+          "(rotation deg / translation at its centroid mm); diff: largest difference between "
+          "the two results")
+    print(f"{'seed':>4} {'start':>13} | {'k=0 left out':>14} {'worst':>13} {'pairs':>5} "
+          f"{'cpu s':>6} | {f'k={k} left out':>14} {'worst':>13} {'pairs':>5} {'cpu s':>6} | "
+          f"{'diff':>13}")
+    for seed in [int(v) for v in args.bunny_seeds.split(",") if v.strip()]:
+        start = bunny.perturbed(truth, seed)
+        row, results = [], []
+        for kk in (0, k):
+            ticks = []
+            cpu = time.process_time()
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                r = register_scans(scans, initial_poses=start, reference="bun000",
+                                   config=MultiviewConfig(max_neighbours=kk), progress=ticks.append)
+            cpu = time.process_time() - cpu
+            err = [pose_error(p, truth[n], at=by_name[n].vertices.mean(axis=0))
+                   for n, p in r.poses.items()]
+            row.append(f"{','.join(sorted(r.left_out)) or '-':>14} "
+                       f"{max(e[0] for e in err):6.3f}/{max(e[1] for e in err):6.3f} "
+                       f"{len(ticks):>5} {cpu:6.1f}")
+            results.append(r.poses)
+        both = set(results[0]) & set(results[1])
+        diff = [pose_error(results[1][n], results[0][n], at=by_name[n].vertices.mean(axis=0))
+                for n in both]
+        s0 = [pose_error(p, truth[n], at=by_name[n].vertices.mean(axis=0)) for n, p in start.items()]
+        print(f"{seed:>4} {max(e[0] for e in s0):6.2f}/{max(e[1] for e in s0):6.2f} | {row[0]} | "
+              f"{row[1]} | {max(e[0] for e in diff):6.3f}/{max(e[1] for e in diff):6.3f}")
+
+
 def _extrapolate(ns: list[int], cpus: list[float], to: int = 146) -> float:
     a = np.array([[n, n * n] for n in ns], float)
     coef, *_ = np.linalg.lstsq(a, np.array(cpus), rcond=None)
@@ -163,12 +216,18 @@ def main() -> None:
     parser.add_argument("--perturb-deg", type=float, default=3.0)
     parser.add_argument("--perturb-mm", type=float, default=3.0)
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--bunny-seeds", help="robustness on the bunny instead: seeds, comma-separated")
+    parser.add_argument("--bunny-deg", type=float, default=20.0)
+    parser.add_argument("--bunny-mm", type=float, default=20.0)
     parser.add_argument("--stage", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--n", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--k", type=int, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.stage:
         print(json.dumps(stage(args)))
+        return
+    if args.bunny_seeds:
+        bunny_robustness(args)
         return
     ns = [int(v) for v in args.views.split(",") if v.strip()]
     methods = {"all pairs (k=0)": {"k": 0}, "k nearest": {"k": args.max_neighbours}}

@@ -97,6 +97,10 @@ def test_pair_overlaps_leaves_out_pairs_that_cannot_overlap():
     # looking up a stride of the samples estimates the same fraction
     sub = pair_overlaps(clouds, normals, 2.0, max_samples=200)
     assert sub[(0, 1)][0] == pytest.approx(overlap, abs=0.06)
+    # unless it lies near the overlap a candidate needs: then every sample is looked up
+    assert sub[(0, 1)] != both[(0, 1)]
+    near = pair_overlaps(clouds, normals, 2.0, max_samples=200, threshold=overlap + 0.01)
+    assert near[(0, 1)] == both[(0, 1)]
 
 
 def _tried(monkeypatch, fail=frozenset()):
