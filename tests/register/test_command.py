@@ -162,6 +162,22 @@ def test_pose_tolerance_reaches_the_config_and_rejected_pairs_are_written(blob, 
                  "--quiet"]) == 2
 
 
+def test_max_neighbours_reaches_the_config(blob, tmp_path, spy):
+    folder, _, truth = blob
+    _write_poses(tmp_path / "truth.json", truth)
+    assert main(["register", str(folder), "--poses", str(tmp_path / "truth.json"),
+                 "--max-neighbours", "1", "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    assert spy[0]["config"].max_neighbours == 1
+    assert main(["register", str(folder), "--max-neighbours", "-1", "--out", str(tmp_path / "x"),
+                 "--quiet"]) == 2
+    config = RegisterConfig(source=str(folder), poses=str(tmp_path / "truth.json"), max_neighbours=0)
+    assert _run_register(StageContext(out=tmp_path / "aligned", inputs={}), config)["aligned"] == 4
+    assert spy[1]["config"].max_neighbours == 0
+    with pytest.raises(SlscanError, match="register.max_neighbours: expected >= 0"):
+        _run_register(StageContext(out=tmp_path / "y", inputs={}),
+                      RegisterConfig(source=str(folder), max_neighbours=-2))
+
+
 def test_a_pair_failing_the_check_is_rejected_with_its_reason(blob):
     _, scans, truth = blob
     result = multiview.register_scans(scans, initial_poses=truth,

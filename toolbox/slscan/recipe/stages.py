@@ -178,6 +178,10 @@ class RegisterConfig:
     allow_outside: bool = False
     """Let a ``source`` .mlp name scans outside its folder (as ``--allow-outside`` does);
     they are reported. False: such a project is refused."""
+    max_neighbours: int = 8
+    """With poses, align each scan with at most this many partners, its best candidates
+    by estimated overlap (the graph kept connected); 0: every candidate pair (quadratic in
+    the number of views). The default is ``MultiviewConfig.max_neighbours``."""
 
 
 @dataclass(frozen=True)
@@ -195,6 +199,9 @@ def _run_register(ctx: StageContext, config: RegisterConfig) -> dict[str, Any]:
     from slscan.register.command import load_poses, load_scans, save_registration
     from slscan.register.multiview import register_scans
 
+    if config.max_neighbours < 0:
+        raise SlscanError(f"register.max_neighbours: expected >= 0 (0: every candidate pair), "
+                          f"got {config.max_neighbours}")
     if config.poses and not config.use_poses:
         raise SlscanError("register: register.poses is set but register.use_poses is false")
     if config.source:
@@ -214,7 +221,8 @@ def _run_register(ctx: StageContext, config: RegisterConfig) -> dict[str, Any]:
     start = preview_frame(scans, poses)
     rlog.log_registration_start(ctx.rec, scans, start.apply(poses) if start else poses)
     result = register_scans(scans, initial_poses=poses, reference=config.reference or None, progress=ctx.progress,
-                            config=MultiviewConfig(pose_tolerance=config.pose_tolerance or None))
+                            config=MultiviewConfig(pose_tolerance=config.pose_tolerance or None,
+                                                   max_neighbours=config.max_neighbours))
     result, frame = to_object_frame(scans, result)
     rlog.log_registration_result(ctx.rec, result)
     save_registration(ctx.out, scans, result, overwrite=True, frame=frame)

@@ -14,6 +14,9 @@ from slscan.progress import ProgressBar, console
 
 SHOWN_REJECTED = 5
 """Rejected pairs listed in ``slscan register``'s summary (registration.json has them all)."""
+MAX_NEIGHBOURS = 8
+"""Default of ``--max-neighbours`` (``MultiviewConfig.max_neighbours``; open3d is imported
+only when the command runs)."""
 
 
 def load_scans(
@@ -149,12 +152,14 @@ def _cmd_register(args: argparse.Namespace) -> int:
 
     if args.pose_tolerance is not None and not args.pose_tolerance > 0:
         raise SlscanError(f"--pose-tolerance must be > 0 mm, got {args.pose_tolerance}")
+    if args.max_neighbours < 0:
+        raise SlscanError(f"--max-neighbours must be >= 0 (0: every candidate pair), got {args.max_neighbours}")
     scans, poses = load_scans(args.scans, conf=args.conf, allow_outside=args.allow_outside)
     if args.poses is not None:
         poses = load_poses(args.poses, [s.name for s in scans])
     if args.no_poses:
         poses = None
-    config = MultiviewConfig(pose_tolerance=args.pose_tolerance)
+    config = MultiviewConfig(pose_tolerance=args.pose_tolerance, max_neighbours=args.max_neighbours)
     t0 = time.perf_counter()
     from slscan.viewer.layouts import register_blueprint
 
@@ -273,6 +278,10 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
                    help="how far (mm) the start poses may be off: the first ICP round's reach; a "
                         "pair ICP moves by more than twice this is rejected (default: 30 sample "
                         "spacings, at most 1/8 of the scans' size)")
+    p.add_argument("--max-neighbours", type=int, metavar="K", default=MAX_NEIGHBOURS,
+                   help="with start poses, align each scan with at most K partners, its best "
+                        "candidates by estimated overlap, keeping the graph connected; 0: every "
+                        f"candidate pair, quadratic in the scans (default {MAX_NEIGHBOURS})")
     p.add_argument("--conf", metavar="NAME",
                    help="the .conf to read in a Stanford folder (needed when it holds several)")
     p.add_argument("--reference", help="scan that keeps its pose (default: the first)")

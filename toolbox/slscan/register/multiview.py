@@ -95,6 +95,20 @@ class MultiviewConfig:
     """An edge whose inlier RMSE exceeds this fraction of its correspondence distance is
     rejected (a wrong alignment that found some overlap: its residuals spread over the
     whole distance)."""
+    max_neighbours: int = 8
+    """With initial poses, each scan is aligned with at most this many candidate partners,
+    its best by estimated overlap (a pair is kept when either scan ranks the other among
+    its best), and the joint refinement matches the same number; the best remaining
+    candidates are added where that would leave the graph in pieces. 0: every candidate
+    pair (the behaviour before, quadratic in the number of scans)."""
+    max_view_angle: float = 150.0
+    """Degrees. With ``max_neighbours`` > 0, two scans whose view directions (under the
+    initial poses) are further apart than this see different sides of the object and are
+    no candidates; nor are scans whose bounding boxes lie apart."""
+    overlap_samples: int = 4000
+    """With ``max_neighbours`` > 0, the overlap of two scans is estimated from at most this
+    many samples of each (an even stride), for speed; pairs whose estimate lies near
+    ``min_overlap`` are measured on all their samples."""
 
 
 @dataclass(frozen=True)
@@ -186,6 +200,122 @@ def overlap_matrix(clouds: Sequence[np.ndarray], distance: float) -> np.ndarray:
 def _pair_overlap(m: np.ndarray, i: int, j: int) -> float:
     """Overlap of a pair: the larger of the two directed fractions (the smaller scan's)."""
     return max(m[i, j], m[j, i])
+
+
+def view_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """Angle (degrees) between two unit view directions."""
+    return math.degrees(math.acos(float(np.clip(np.dot(a, b), -1.0, 1.0))))
+
+
+def pair_overlaps(
+    clouds: Mapping[int, np.ndarray],
+    normals: Mapping[int, np.ndarray],
+    distance: float,
+    *,
+    directions: Mapping[int, np.ndarray] | None = None,
+    max_view_angle: float = 180.0,
+    max_samples: int | None = None,
+    normal_cos: float = 0.0,
+    threshold: float | None = None,
+    margin: float = 0.05,
+) -> dict[tuple[int, int], tuple[float, float]]:
+    """Estimated overlap of every pair of clouds that can overlap: {(i, j), i < j: (overlap,
+    same-side overlap)}.
+
+    A pair is left out, without looking at its samples, when its view directions are more
+    than ``max_view_angle`` degrees apart (the two sensors see different sides) or its
+    bounding boxes, grown by ``distance``, do not meet. Otherwise, as in
+    :func:`overlap_matrix`, the larger of the two directed fractions of a cloud's points
+    within ``distance`` of the other (overlap) and of those whose nearest point there also
+    has a normal within acos(``normal_cos``) of theirs (same-side overlap: the two sides
+    of a thin part, seen from opposite views, do not count).
+
+    clouds, normals : {scan index: (k, 3)} points (mm) and unit normals, common frame
+    directions : {scan index: (3,) unit view direction, common frame}
+    max_samples : at most this many points of each cloud are looked up (an even stride)
+    threshold : with ``max_samples``, a pair whose estimated overlap lies within ``margin``
+        of this value (the overlap a candidate needs) is measured again on every point,
+        so that which pairs pass does not depend on the stride (4,000 samples estimate a
+        fraction to about 0.01)
+    """
+    keys = sorted(clouds)
+    lo = {k: clouds[k].min(axis=0) if len(clouds[k]) else None for k in keys}
+    hi = {k: clouds[k].max(axis=0) if len(clouds[k]) else None for k in keys}
+    trees: dict[int, cKDTree] = {}
+    out: dict[tuple[int, int], tuple[float, float]] = {}
+    for i, j in itertools.combinations(keys, 2):
+        if lo[i] is None or lo[j] is None:
+            continue
+        if np.any(lo[i] - distance > hi[j]) or np.any(hi[i] + distance < lo[j]):
+            continue
+        if directions is not None and view_angle_deg(directions[i], directions[j]) > max_view_angle:
+            continue
+        for samples in (max_samples, None):
+            fractions = []
+            for a, b in ((i, j), (j, i)):
+                if b not in trees:
+                    trees[b] = cKDTree(clouds[b])
+                step = max(1, len(clouds[a]) // samples) if samples else 1
+                d, idx = trees[b].query(clouds[a][::step], distance_upper_bound=distance)
+                hit = np.isfinite(d)
+                same = np.einsum("ij,ij->i", normals[a][::step][hit], normals[b][idx[hit]])
+                fractions.append((float(np.mean(hit)), float(np.sum(same > normal_cos)) / len(d)))
+            out[(i, j)] = (max(f[0] for f in fractions), max(f[1] for f in fractions))
+            if (not samples or threshold is None or abs(out[(i, j)][0] - threshold) >= margin
+                    or max(len(clouds[i]), len(clouds[j])) <= samples):
+                break
+    return out
+
+
+def select_pairs(scores: Mapping[tuple[int, int], float], k: int) -> list[tuple[int, int]]:
+    """The candidate pairs to align: each scan's ``k`` best partners by score (a pair is
+    kept when either scan ranks the other among its ``k`` best), plus the best remaining
+    candidates that join pieces the kept pairs leave apart (a maximum spanning forest of
+    the candidates), so the kept pairs connect every scan the candidates connect.
+
+    scores : {(i, j): score, higher is better} of the candidate pairs
+    k : partners per scan; 0 or less: every candidate
+
+    Returns the kept pairs, sorted.
+    """
+    if k <= 0:
+        return sorted(scores)
+    ranked = sorted(scores, key=lambda key: (-scores[key], key))
+    count: dict[int, int] = {}
+    kept = set()
+    for i, j in ranked:
+        if count.get(i, 0) < k or count.get(j, 0) < k:
+            kept.add((i, j))
+        count[i], count[j] = count.get(i, 0) + 1, count.get(j, 0) + 1
+    parts = _Components()
+    for i, j in kept:
+        parts.join(i, j)
+    for i, j in ranked:
+        if (i, j) not in kept and parts.join(i, j):
+            kept.add((i, j))
+    return sorted(kept)
+
+
+class _Components:
+    """Union–find over scan indices."""
+
+    def __init__(self) -> None:
+        self.parent: dict[int, int] = {}
+
+    def find(self, a: int) -> int:
+        self.parent.setdefault(a, a)
+        while self.parent[a] != a:
+            self.parent[a] = self.parent[self.parent[a]]
+            a = self.parent[a]
+        return a
+
+    def join(self, a: int, b: int) -> bool:
+        """Join the pieces of a and b; False when they were one already."""
+        ra, rb = self.find(a), self.find(b)
+        if ra == rb:
+            return False
+        self.parent[ra] = rb
+        return True
 
 
 # --- pose graph ---------------------------------------------------------------------------------
@@ -417,14 +547,19 @@ def register_scans(
     """Register N overlapping range scans into one frame.
 
     1. Candidate pairs: with initial poses, the pairs whose samples overlap within
-       ``pose_tolerance``; without, every pair (aligned from FPFH features).
+       ``pose_tolerance``, of which each scan keeps its ``max_neighbours`` best (view
+       directions more than ``max_view_angle`` apart and bounding boxes apart are no
+       candidates; where the kept pairs, or the ones ICP accepts of them, leave the graph
+       in pieces, the best remaining candidates joining them are aligned too); without,
+       every pair (aligned from FPFH features).
     2. Pairwise multi-scale ICP on each candidate (coarse levels); a pair is an edge when
        it succeeds with enough overlap and a low RMSE; the others are returned as
        ``rejected``, each with the reason.
     3. Pose graph over the edges (open3d, Levenberg–Marquardt, line process pruning
        inconsistent edges [1]_), from poses chained along a maximum spanning tree.
-    4. Joint point-to-plane refinement of all poses over all pairs that overlap under
-       the optimised poses (:func:`refine_jointly`), at full resolution.
+    4. Joint point-to-plane refinement of all poses over the pairs that overlap under
+       the optimised poses, each scan's ``max_neighbours`` best (:func:`refine_jointly`),
+       at full resolution.
 
     Parameters
     ----------
@@ -473,17 +608,33 @@ def register_scans(
     have = [names[k] in initial_poses for k in range(n)]
     poses0 = {k: np.asarray(initial_poses[names[k]], np.float64) for k in range(n) if have[k]}
     coarse_voxel = 4.0 * spacing
-    world = [
-        np.asarray(
-            downsample(
-                scan_point_cloud(s, pose=poses0.get(k), min_quality=pw.min_quality), coarse_voxel
-            ).points
-        )
-        if have[k]
-        else np.zeros((0, 3))
+    prune = config.max_neighbours > 0
+    coarse = {
+        k: downsample(scan_point_cloud(s, pose=poses0[k], min_quality=pw.min_quality), coarse_voxel)
         for k, s in enumerate(scans)
-    ]
-    m = overlap_matrix(world, max(tolerance / 2, coarse_voxel))
+        if have[k]
+    }
+    world = [np.asarray(coarse[k].points) if k in coarse else np.zeros((0, 3)) for k in range(n)]
+    reach = max(tolerance / 2, coarse_voxel)
+    if prune:
+        estimates = pair_overlaps(
+            {k: world[k] for k in coarse},
+            {k: np.asarray(c.normals) for k, c in coarse.items()},
+            reach,
+            directions={k: poses0[k][:3, :3] @ scans[k].view_direction for k in coarse},
+            max_view_angle=config.max_view_angle,
+            max_samples=config.overlap_samples,
+            threshold=config.min_overlap,
+        )
+        candidates = {key: same for key, (o, same) in estimates.items() if o >= config.min_overlap}
+    else:
+        m = overlap_matrix(world, reach)
+        candidates = {
+            (i, j): _pair_overlap(m, i, j)
+            for i, j in itertools.combinations(range(n), 2)
+            if have[i] and have[j] and _pair_overlap(m, i, j) >= config.min_overlap
+        }
+    chosen = set(select_pairs(candidates, config.max_neighbours))
     first = replace(
         pw,
         initial_distance=pw.initial_distance or tolerance,
@@ -497,10 +648,10 @@ def register_scans(
             k: scan_features(s, voxel, min_quality=pw.min_quality) for k, s in enumerate(scans)
         }
     edges: dict[tuple[int, int], PairwiseResult] = {}
-    for i, j in itertools.combinations(range(n), 2):
+
+    def align(i: int, j: int) -> None:
+        """Align scan i onto scan j; an edge when it holds, else rejected with the reason."""
         if have[i] and have[j]:
-            if _pair_overlap(m, i, j) < config.min_overlap:
-                continue
             init = np.linalg.inv(poses0[j]) @ poses0[i]
             res = register_pair(scans[i], scans[j], init=init, config=first,
                                 clouds=(clouds[i], clouds[j]))
@@ -512,7 +663,7 @@ def register_scans(
                     f"ICP moved it {moved:.1f} mm from the recorded poses, more than twice their "
                     f"tolerance ({tolerance:.1f} mm): a slide along a symmetric surface",
                 )
-                continue
+                return
         else:
             res = register_pair(
                 scans[i],
@@ -526,8 +677,23 @@ def register_scans(
         verdict = _check_edge(res, config)
         if verdict:
             rejected[(names[i], names[j])] = _rejected(names[i], names[j], res, verdict)
-            continue
+            return
         edges[(i, j)] = res
+
+    for i, j in itertools.combinations(range(n), 2):
+        if (i, j) in chosen or not (have[i] and have[j]):
+            align(i, j)
+    if prune:
+        # pairs that failed may leave the graph in pieces: try the best remaining
+        # candidates that would join them
+        parts = _Components()
+        for i, j in edges:
+            parts.join(i, j)
+        for i, j in sorted(set(candidates) - chosen, key=lambda key: (-candidates[key], key)):
+            if parts.find(i) != parts.find(j):
+                align(i, j)
+                if (i, j) in edges:
+                    parts.join(i, j)
 
     # 3. pose graph
     poses, _ = _solve(n, edges, root, poses0.get(root, np.eye(4)), spacing, config, names, rejected)
@@ -537,21 +703,33 @@ def register_scans(
     stats: list[tuple[float, float]] = []
     if len(poses) > 1:
         order = sorted(poses)
-        world = [
-            np.asarray(
-                downsample(
-                    scan_point_cloud(scans[k], pose=poses[k], min_quality=pw.min_quality),
-                    2 * spacing,
-                ).points
+        fine = {
+            k: downsample(
+                scan_point_cloud(scans[k], pose=poses[k], min_quality=pw.min_quality), 2 * spacing
             )
             for k in order
-        ]
-        m = overlap_matrix(world, 4 * spacing)
-        pairs = [
-            (order[a], order[b])
-            for a, b in itertools.combinations(range(len(order)), 2)
-            if _pair_overlap(m, a, b) >= config.min_overlap
-        ]
+        }
+        if prune:
+            estimates = pair_overlaps(
+                {k: np.asarray(c.points) for k, c in fine.items()},
+                {k: np.asarray(c.normals) for k, c in fine.items()},
+                4 * spacing,
+                directions={k: poses[k][:3, :3] @ scans[k].view_direction for k in order},
+                max_view_angle=config.max_view_angle,
+                max_samples=config.overlap_samples,
+                threshold=config.min_overlap,
+            )
+            pairs = select_pairs(
+                {key: same for key, (o, same) in estimates.items() if o >= config.min_overlap},
+                config.max_neighbours,
+            )
+        else:
+            m = overlap_matrix([np.asarray(fine[k].points) for k in order], 4 * spacing)
+            pairs = [
+                (order[a], order[b])
+                for a, b in itertools.combinations(range(len(order)), 2)
+                if _pair_overlap(m, a, b) >= config.min_overlap
+            ]
         poses, stats = refine_jointly(
             scans,
             poses,
