@@ -156,7 +156,11 @@ def test_pruning_keeps_the_graph_connected(ring_views, monkeypatch):
     chosen = {p for p in tried if "view11" in p}
     assert chosen
     retried = _tried(monkeypatch, fail=chosen)
-    result = register_scans(scans, initial_poses=start, config=MultiviewConfig(max_neighbours=1))
+    totals, ticks = [], []
+    result = register_scans(scans, initial_poses=start, config=MultiviewConfig(max_neighbours=1),
+                            progress=ticks.append, on_total=totals.append)
+    # a progress bar's total: the pairs planned, raised for each joining pair, ends at what ran
+    assert totals[0] == len(tried) and totals == sorted(totals) and totals[-1] == len(retried) == len(ticks)
     assert set(retried) > set(tried)
     assert any("view11" in p and p not in chosen for p in retried)
     assert result and set(result.poses) == set(truth)

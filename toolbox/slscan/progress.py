@@ -57,3 +57,8 @@ class ProgressBar:
 
     def set(self, done: int, total: int) -> None:
         self.update(done, total)
+
+    def set_total(self, total: int) -> None:
+        """Change the number of steps (once the work turns out to be more or less)."""
+        if not self.quiet:
+            self._progress.update(self._task, total=total)

@@ -170,7 +170,7 @@ def _cmd_register(args: argparse.Namespace) -> int:
         n_pairs = len(scans) * (len(scans) - 1) // 2
         with ProgressBar(n_pairs + 1, "registering", args.quiet) as bar:
             result = register_scans(scans, initial_poses=poses, reference=args.reference, config=config,
-                                    progress=bar.step)
+                                    progress=bar.step, on_total=lambda k: bar.set_total(k + 1))
         result, frame = to_object_frame(scans, result)
         rlog.log_registration_result(rec, result)
     project = save_registration(args.out, scans, result, overwrite=args.overwrite, frame=frame)

@@ -543,6 +543,7 @@ def register_scans(
     reference: str | None = None,
     config: MultiviewConfig = MultiviewConfig(),
     progress: Callable[[str], None] | None = None,
+    on_total: Callable[[int], None] | None = None,
 ) -> MultiviewResult:
     """Register N overlapping range scans into one frame.
 
@@ -571,6 +572,8 @@ def register_scans(
         identity); default: the first scan
     config : MultiviewConfig
     progress : called with a short label after each pairwise alignment (progress bars)
+    on_total : called with the number of pairwise alignments planned, once the pairs are
+        chosen and again whenever a joining pair is added (a progress bar's total)
 
     Returns
     -------
@@ -680,6 +683,10 @@ def register_scans(
             return
         edges[(i, j)] = res
 
+    planned = [sum(1 for i, j in itertools.combinations(range(n), 2)
+                   if (i, j) in chosen or not (have[i] and have[j]))]
+    if on_total is not None:
+        on_total(planned[0])
     for i, j in itertools.combinations(range(n), 2):
         if (i, j) in chosen or not (have[i] and have[j]):
             align(i, j)
@@ -691,6 +698,9 @@ def register_scans(
             parts.join(i, j)
         for i, j in sorted(set(candidates) - chosen, key=lambda key: (-candidates[key], key)):
             if parts.find(i) != parts.find(j):
+                planned[0] += 1
+                if on_total is not None:
+                    on_total(planned[0])
                 align(i, j)
                 if (i, j) in edges:
                     parts.join(i, j)
