@@ -273,36 +273,49 @@ def point_blocks(points: np.ndarray, normals: np.ndarray, size: int = CULL_BLOCK
     sorted by the normal's dominant axis (6 classes), then by a grid cell holding about
     ``size`` points of the surface, then cut into consecutive runs."""
     k = len(points)
-    p = np.asarray(points, np.float64)
-    n = np.asarray(normals, np.float64)
-    lo, hi = p.min(axis=0), p.max(axis=0)
+    p = np.asarray(points)
+    n = np.asarray(normals)
+    lo = p.min(axis=0).astype(np.float64)
+    hi = p.max(axis=0).astype(np.float64)
     diagonal = float(np.linalg.norm(hi - lo)) or 1.0
     cell = diagonal * math.sqrt(size / max(k, 1))  # a surface of ~k points: ~k / size cells
-    grid = np.floor((p - lo) / cell).astype(np.int64)
-    dims = grid.max(axis=0) + 1
+    dims = np.floor((hi - lo) / cell).astype(np.int64) + 2
     major = np.abs(n).argmax(axis=1)
-    klass = 2 * major + (n[np.arange(k), major] < 0)
-    key = ((klass * dims[0] + grid[:, 0]) * dims[1] + grid[:, 1]) * dims[2] + grid[:, 2]
-    del grid, major, klass
+    key = 2 * major + (np.take_along_axis(n, major[:, None], axis=1)[:, 0] < 0)
+    del major
+    for i in range(3):  # column by column: a few bytes per point at a time
+        cells = np.clip(np.floor((p[:, i] - lo[i]) / cell), 0, dims[i] - 1).astype(np.int64)
+        key = key * dims[i] + cells
+    del cells
     order = np.argsort(key)
+    del key
     b = -(-k // size)
     members = np.full(b * size, -1, np.int64)
     members[:k] = order
+    del order
     members = members.reshape(b, size)
     # bounds, coordinate by coordinate on (b, size) arrays; pads repeat their block's first point
     filled = np.where(members >= 0, members, members[:, :1])
-    bp = [p[:, i].take(filled) for i in range(3)]
-    centre = np.stack([0.5 * (c.min(axis=1) + c.max(axis=1)) for c in bp], axis=1)
-    radius = np.sqrt(sum((c - centre[:, i:i + 1]) ** 2 for i, c in enumerate(bp)).max(axis=1))
+    columns = [p[:, i].take(filled).astype(np.float64) for i in range(3)]
+    centre = np.stack([0.5 * (c.min(axis=1) + c.max(axis=1)) for c in columns], axis=1)
+    del columns
+    d2 = np.zeros(filled.shape)
+    for i in range(3):
+        d2 += (p[:, i].take(filled) - centre[:, i:i + 1]) ** 2
+    radius = np.sqrt(d2.max(axis=1))
+    del d2
     # points may be float32: allow for their rounding at the model's scale
-    radius = radius * (1 + 1e-6) + 1e-5 * (1.0 + np.abs(p).max(initial=0.0))
-    del bp
-    bn = [n[:, i].take(filled) for i in range(3)]
-    axis = np.stack([c.sum(axis=1) for c in bn], axis=1)
+    radius = radius * (1 + 1e-6) + 1e-5 * (1.0 + float(np.abs(p).max(initial=0.0)))
+    axis = np.stack([n[:, i].take(filled).sum(axis=1, dtype=np.float64) for i in range(3)], axis=1)
     length = np.linalg.norm(axis, axis=1)
     axis /= np.maximum(length, 1e-12)[:, None]
-    norm = np.sqrt(sum(c * c for c in bn))
-    cos = (sum(c * axis[:, i:i + 1] for i, c in enumerate(bn)) / np.maximum(norm, 1e-12)).min(axis=1)
+    dot = np.zeros(filled.shape)
+    norm2 = np.zeros(filled.shape)
+    for i in range(3):
+        c = n[:, i].take(filled).astype(np.float64)
+        dot += c * axis[:, i:i + 1]
+        norm2 += c * c
+    cos = (dot / np.maximum(np.sqrt(norm2), 1e-12)).min(axis=1)
     spread = np.where(length > 1e-6, np.arccos(np.clip(cos, -1.0, 1.0)), np.pi)
     return Blocks(members, centre, radius, axis, spread)
 
