@@ -10,7 +10,15 @@ import pytest
 from slscan.colour import srgb8
 from slscan.errors import SlscanError
 from slscan.rig import PinholeModel, look_at, pixel_rays
-from slscan.texture.bake import BakeOptions, bake, check_texture_memory, pad_charts, rasterise_uv
+from slscan.texture.bake import (
+    BakeOptions,
+    bake,
+    blocks_in_view,
+    check_texture_memory,
+    pad_charts,
+    point_blocks,
+    rasterise_uv,
+)
 from slscan.texture.metrics import psnr, render_into_atlas, seam_edges, seam_error
 from slscan.texture.views import TextureView
 
@@ -183,3 +191,60 @@ def test_seam_error_is_zero_for_matching_sides_and_large_for_mismatched_ones():
     split = same.copy()
     split[:, 32:] = 40
     assert seam_error(split, faces, atlas).mean > 50
+
+
+def sphere(radius: float, n: int):
+    """A UV sphere (mm) centred at the origin."""
+    theta, phi = np.meshgrid(np.linspace(0.05, np.pi - 0.05, n), np.linspace(0, 2 * np.pi, 2 * n, endpoint=False))
+    vertices = radius * np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)],
+                                 axis=-1).reshape(-1, 3)
+    rows, cols = 2 * n, n
+    r, c = np.meshgrid(np.arange(rows), np.arange(cols - 1), indexing="ij")
+    a = (r * cols + c).ravel()
+    b = (((r + 1) % rows) * cols + c).ravel()
+    faces = np.concatenate([np.stack([a, a + 1, b], 1), np.stack([a + 1, b + 1, b], 1)])
+    return vertices, faces
+
+
+def test_culled_blocks_hold_every_point_a_view_can_see():
+    rng = np.random.default_rng(3)
+    points = rng.normal(size=(20_000, 3))
+    points *= (80.0 / np.linalg.norm(points, axis=1))[:, None]
+    normals = points / 80.0 + rng.normal(scale=0.3, size=points.shape)  # rough: wide cones
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    blocks = point_blocks(points.astype(np.float32), normals.astype(np.float32), size=64)
+    assert np.array_equal(np.sort(blocks.members[blocks.members >= 0]), np.arange(len(points)))
+    block_of = np.empty(len(points), np.int64)
+    rows, cols = np.nonzero(blocks.members >= 0)
+    block_of[blocks.members[rows, cols]] = rows
+    cos_min = np.cos(np.radians(80.0))
+    culled_some = False
+    for eye in ([0, 0, -400], [300, 200, 100], [0, -250, 30], [500, 0, 0]):
+        for target in ([0, 0, 0], [60, 40, 0]):
+            view = TextureView("v", CAMERA, look_at(eye, target), np.zeros((240, 320, 3), np.float32))
+            m = view.camera_from_world
+            pc = points @ m[:3, :3].T + m[:3, 3]
+            cos = -np.einsum("ij,ij->i", normals @ m[:3, :3].T, pc) / np.linalg.norm(pc, axis=1)
+            pix = CAMERA.project_local(pc)
+            seen = (cos > cos_min) & (pc[:, 2] > 0) & (pix[:, 0] >= 0) & (pix[:, 1] >= 0) \
+                & (pix[:, 0] <= 319) & (pix[:, 1] <= 239)
+            kept = np.zeros(len(blocks.members), bool)
+            kept[blocks_in_view(blocks, view, 80.0)] = True
+            assert kept[block_of[seen]].all(), "a block holding a visible point was culled"
+            culled_some |= not kept.all()
+    assert culled_some
+
+
+def test_culling_leaves_the_bake_unchanged():
+    vertices, faces = sphere(60.0, 40)
+    atlas = SimpleNamespace(
+        vertices=vertices, faces=faces, size=256, source_vertex=np.arange(len(vertices)),
+        uvs=np.stack([np.arctan2(vertices[:, 1], vertices[:, 0]) / (2 * np.pi) + 0.5,
+                      np.arccos(vertices[:, 2] / 60.0) / np.pi], axis=1).astype(np.float32) * 0.96 + 0.02)
+    views = [render_view(f"v{k}", look_at(eye, [0, 0, 0]), vertices, faces, lambda p, i: pattern(p))
+             for k, eye in enumerate(([0, 0, -400], [380, 0, -120], [-250, 300, 0], [0, -90, 420], [20, 15, -500]))]
+    culled = bake(vertices, faces, atlas, views, BakeOptions(chunk=5000))
+    every = bake(vertices, faces, atlas, views, BakeOptions(chunk=5000, cull=False))
+    assert culled.observed.sum() > 0.5 * culled.covered.sum()
+    for name in ("linear", "covered", "observed", "view_count", "vertex_colors", "vertex_observed"):
+        assert np.array_equal(getattr(culled, name), getattr(every, name)), name

@@ -160,3 +160,33 @@ def test_real_blender_imports_the_demo_glb_with_its_texture_and_cameras(run):
     images = [mat["image"] for m in meshes for mat in m["materials"] if mat.get("image_texture")]
     assert images and images[0]["size"] == [manifest["atlas"]["size"]] * 2
     assert len(scene["cameras"]) == len(manifest["views"]) == 8
+
+
+@pytest.mark.parametrize("with_normals", [True, False])
+def test_obj_text_is_line_for_line_what_trimesh_writes(with_normals, tmp_path):
+    from types import SimpleNamespace
+
+    from trimesh.exchange.obj import export_obj
+
+    from slscan.meshes import read_obj_atlas
+    from slscan.texture.export import _textured_trimesh, obj_text, write_obj
+
+    rng = np.random.default_rng(5)
+    vertices = rng.normal(scale=80.0, size=(700, 3))
+    vertices[0] = [-0.0, 1e-9, 123456.123456789]  # signed zero, tiny and large values
+    faces = rng.integers(0, 700, size=(1300, 3))
+    uvs = rng.random((700, 2)).astype(np.float32)
+    normals = rng.normal(size=(700, 3)).astype(np.float32) if with_normals else None
+    texture = np.zeros((8, 8, 3), np.uint8)
+    mesh = _textured_trimesh(vertices, faces, uvs, texture, normals)
+    theirs, _ = export_obj(mesh, include_normals=with_normals, include_texture=True, return_texture=True,
+                           mtl_name="model.mtl")
+    ours = obj_text(vertices, faces, uvs, normals, "model.mtl")
+    assert [line for line in theirs.splitlines() if line and not line.startswith("#")] == ours.splitlines()[1:]
+    # and it reads back as the atlas it was written from
+    write_obj(tmp_path / "model.obj", SimpleNamespace(vertices=vertices, faces=faces, uvs=uvs), texture, normals)
+    back, image = read_obj_atlas(tmp_path / "model.obj")
+    assert np.array_equal(np.asarray(back["faces"]), faces)
+    assert np.allclose(back["vertices"], vertices, atol=1e-8)
+    assert np.allclose(back["uvs"], uvs, atol=1e-7)
+    assert image.shape == texture.shape

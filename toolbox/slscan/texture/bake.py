@@ -66,6 +66,10 @@ class BakeOptions:
     """Texels the charts are extended into the gutter."""
     chunk: int = 2_000_000
     """Texels processed at once."""
+    cull: bool = True
+    """Project a texel only into the views whose frustum holds it and that face it, tested
+    on blocks of nearby texels with conservative bounds (:func:`point_blocks`); False:
+    every texel into every view (the same result, kept to measure against)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -234,11 +238,124 @@ def _bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     y0 = np.minimum(np.floor(y).astype(np.int64), h - 2) if h > 1 else np.zeros(len(y), np.int64)
     fx = (x - x0).astype(np.float32)[:, None]
     fy = (y - y0).astype(np.float32)[:, None]
-    x1 = np.minimum(x0 + 1, w - 1)
-    y1 = np.minimum(y0 + 1, h - 1)
-    top = image[y0, x0] * (1 - fx) + image[y0, x1] * fx
-    bottom = image[y1, x0] * (1 - fx) + image[y1, x1] * fx
+    step_x = np.minimum(x0 + 1, w - 1) - x0
+    step_y = (np.minimum(y0 + 1, h - 1) - y0) * w
+    flat = image.reshape(h * w, -1)  # one flat gather per corner: cheaper than image[y, x]
+    i00 = y0 * w + x0
+    top = flat.take(i00, axis=0) * (1 - fx) + flat.take(i00 + step_x, axis=0) * fx
+    i10 = i00 + step_y
+    bottom = flat.take(i10, axis=0) * (1 - fx) + flat.take(i10 + step_x, axis=0) * fx
     return top * (1 - fy) + bottom * fy
+
+
+@dataclass(frozen=True, eq=False)
+class Blocks:
+    """Surface points grouped for culling: ``members`` (b, size) indices into the points
+    (``-1`` pads the last block), spatially coherent and of similar normal; every point of
+    block ``i`` lies within ``radius[i]`` of ``centre[i]`` and its normal within
+    ``spread[i]`` radians of the unit ``axis[i]`` (``spread`` = pi: unbounded)."""
+
+    members: np.ndarray
+    centre: np.ndarray
+    radius: np.ndarray
+    axis: np.ndarray
+    spread: np.ndarray
+
+
+CULL_BLOCK = 256
+"""Points per culling block."""
+CULL_MARGIN_RAD = 1e-3
+"""Angles are culled only this far beyond their bound (float rounding)."""
+
+
+def point_blocks(points: np.ndarray, normals: np.ndarray, size: int = CULL_BLOCK) -> Blocks:
+    """Group ``points`` (k, 3) with unit ``normals`` into blocks of ``size`` for culling:
+    sorted by the normal's dominant axis (6 classes), then by a grid cell holding about
+    ``size`` points of the surface, then cut into consecutive runs."""
+    k = len(points)
+    p = np.asarray(points)
+    n = np.asarray(normals)
+    lo = p.min(axis=0).astype(np.float64)
+    hi = p.max(axis=0).astype(np.float64)
+    diagonal = float(np.linalg.norm(hi - lo)) or 1.0
+    cell = diagonal * math.sqrt(size / max(k, 1))  # a surface of ~k points: ~k / size cells
+    dims = np.floor((hi - lo) / cell).astype(np.int64) + 2
+    major = np.abs(n).argmax(axis=1)
+    key = 2 * major + (np.take_along_axis(n, major[:, None], axis=1)[:, 0] < 0)
+    del major
+    for i in range(3):  # column by column: a few bytes per point at a time
+        cells = np.clip(np.floor((p[:, i] - lo[i]) / cell), 0, dims[i] - 1).astype(np.int64)
+        key = key * dims[i] + cells
+    del cells
+    order = np.argsort(key)
+    del key
+    b = -(-k // size)
+    members = np.full(b * size, -1, np.int64)
+    members[:k] = order
+    del order
+    members = members.reshape(b, size)
+    # bounds, coordinate by coordinate on (b, size) arrays; pads repeat their block's first point
+    filled = np.where(members >= 0, members, members[:, :1])
+    columns = [p[:, i].take(filled).astype(np.float64) for i in range(3)]
+    centre = np.stack([0.5 * (c.min(axis=1) + c.max(axis=1)) for c in columns], axis=1)
+    del columns
+    d2 = np.zeros(filled.shape)
+    for i in range(3):
+        d2 += (p[:, i].take(filled) - centre[:, i:i + 1]) ** 2
+    radius = np.sqrt(d2.max(axis=1))
+    del d2
+    # points may be float32: allow for their rounding at the model's scale
+    radius = radius * (1 + 1e-6) + 1e-5 * (1.0 + float(np.abs(p).max(initial=0.0)))
+    axis = np.stack([n[:, i].take(filled).sum(axis=1, dtype=np.float64) for i in range(3)], axis=1)
+    length = np.linalg.norm(axis, axis=1)
+    axis /= np.maximum(length, 1e-12)[:, None]
+    dot = np.zeros(filled.shape)
+    norm2 = np.zeros(filled.shape)
+    for i in range(3):
+        c = n[:, i].take(filled).astype(np.float64)
+        dot += c * axis[:, i:i + 1]
+        norm2 += c * c
+    cos = (dot / np.maximum(np.sqrt(norm2), 1e-12)).min(axis=1)
+    spread = np.where(length > 1e-6, np.arccos(np.clip(cos, -1.0, 1.0)), np.pi)
+    return Blocks(members, centre, radius, axis, spread)
+
+
+def _view_frustum(cam) -> np.ndarray:
+    """(4, 3) unit inward normals of the planes through the camera centre bounding the
+    rays of the image (undistorted from a dense walk round its border, widened by 1 %)."""
+    w, h = cam.width, cam.height
+    xs = np.linspace(-0.5, w - 0.5, max(2, w // 4))
+    ys = np.linspace(-0.5, h - 0.5, max(2, h // 4))
+    border = np.concatenate([
+        np.stack([xs, np.full_like(xs, -0.5)], 1), np.stack([xs, np.full_like(xs, h - 0.5)], 1),
+        np.stack([np.full_like(ys, -0.5), ys], 1), np.stack([np.full_like(ys, w - 0.5), ys], 1),
+    ])
+    rays = cam.rays_local(border)
+    x0, x1 = rays[:, 0].min(), rays[:, 0].max()
+    y0, y1 = rays[:, 1].min(), rays[:, 1].max()
+    pad_x, pad_y = 0.01 * (x1 - x0) + 1e-6, 0.01 * (y1 - y0) + 1e-6
+    x0, x1, y0, y1 = x0 - pad_x, x1 + pad_x, y0 - pad_y, y1 + pad_y
+    planes = np.array([[1.0, 0.0, -x0], [-1.0, 0.0, x1], [0.0, 1.0, -y0], [0.0, -1.0, y1]])
+    return planes / np.linalg.norm(planes, axis=1, keepdims=True)
+
+
+def blocks_in_view(blocks: Blocks, view: TextureView, max_angle_deg: float) -> np.ndarray:
+    """Indices of the blocks some point of which may be in front of ``view``, inside its
+    image and facing it at most ``max_angle_deg`` obliquely (the rest cannot be)."""
+    m = view.camera_from_world
+    c = blocks.centre @ m[:3, :3].T + m[:3, 3]
+    r = blocks.radius
+    keep = c[:, 2] + r > 0
+    for plane in _view_frustum(view.camera):
+        keep &= c @ plane + r >= 0
+    dist = np.linalg.norm(c, axis=1)
+    toward = -c / np.maximum(dist, 1e-12)[:, None]
+    axis = blocks.axis @ m[:3, :3].T
+    angle = np.arccos(np.clip(np.einsum("ij,ij->i", axis, toward), -1.0, 1.0))
+    # the rays to the block's points deviate from the ray to its centre by at most this
+    ray_spread = np.where(dist > r, np.arcsin(np.clip(r / np.maximum(dist, 1e-12), 0.0, 1.0)), np.pi)
+    keep &= angle - blocks.spread - ray_spread <= math.radians(max_angle_deg) + CULL_MARGIN_RAD
+    return np.nonzero(keep)[0]
 
 
 def blend_views(
@@ -248,43 +365,77 @@ def blend_views(
     depths: Sequence[DepthMap],
     options: BakeOptions,
 ) -> Blend:
-    """The views' weighted mean colour at surface ``points`` (k, 3) with unit ``normals``."""
+    """The views' weighted mean colour at surface ``points`` (k, 3) with unit ``normals``.
+
+    With ``options.cull`` the points are grouped in blocks (:func:`point_blocks`) and each
+    view takes only the blocks :func:`blocks_in_view` keeps: the same result (the bounds
+    are conservative; every point's arithmetic is the same), at a cost that follows the
+    views that can see a point rather than all views.
+    """
     k = len(points)
-    acc = np.zeros((k, 3), np.float32)
-    wsum = np.zeros(k, np.float32)
-    count = np.zeros(k, np.uint8)
+    acc = np.zeros((k + 1, 3), np.float32)  # the last row takes the blocks' padding
+    wsum = np.zeros(k + 1, np.float32)
+    count = np.zeros(k + 1, np.uint8)
     cos_min = math.cos(math.radians(options.max_angle_deg))
+    blocks = point_blocks(points, normals) if options.cull and k else None
+    if blocks is None:  # rows of ``chunk`` points in their order
+        width = max(1, min(options.chunk, k))
+        members = np.full(-(-k // width) * width, -1, np.int64)
+        members[:k] = np.arange(k)
+        members = members.reshape(-1, width)
+    else:
+        members = blocks.members
+    chunk_rows = max(1, options.chunk // members.shape[1])
+    # coordinates in columns (3, rows, width): a view gathers its blocks as contiguous runs
+    ordered = np.where(members >= 0, members, 0)
+    pts = np.asarray(points, np.float32)[ordered].transpose(2, 0, 1)
+    nms = np.asarray(normals, np.float32)[ordered].transpose(2, 0, 1)
+    del ordered
+    target_of = np.where(members >= 0, members, k).astype(np.int32 if k < 2**31 - 1 else np.int64)
+    del members
     for view, dm in zip(views, depths):
         cam = view.camera
         m = view.camera_from_world
-        for start in range(0, k, options.chunk):
-            sl = slice(start, min(k, start + options.chunk))
-            pc = points[sl] @ m[:3, :3].T + m[:3, 3]
-            dist = np.linalg.norm(pc, axis=1)
-            cos = -np.einsum("ij,ij->i", normals[sl] @ m[:3, :3].T, pc) / np.maximum(dist, 1e-12)
-            idx = np.nonzero((cos > cos_min) & (pc[:, 2] > 0))[0]
+        centre = np.asarray(view.world_from_camera, float)[:3, 3]
+        axis = m[2, :3]  # the optical axis in the world frame
+        rows = np.arange(len(target_of)) if blocks is None else blocks_in_view(blocks, view, options.max_angle_deg)
+        for start in range(0, len(rows), chunk_rows):
+            sel = rows[start:start + chunk_rows]
+            p = pts[:, sel].reshape(3, -1).astype(np.float64)
+            nrm = nms[:, sel].reshape(3, -1)
+            # the tests in the world frame, column by column (no (k, 3) matrix products):
+            # the ray to the camera centre, its length and depth are those of the camera frame
+            ray = [centre[i] - p[i] for i in range(3)]
+            dist = np.sqrt(ray[0] * ray[0] + ray[1] * ray[1] + ray[2] * ray[2])
+            cos = (nrm[0] * ray[0] + nrm[1] * ray[1] + nrm[2] * ray[2]) / np.maximum(dist, 1e-12)
+            depth = -(axis[0] * ray[0] + axis[1] * ray[1] + axis[2] * ray[2])
+            idx = np.nonzero((cos > cos_min) & (depth > 0))[0]
             if len(idx) == 0:
                 continue
-            pix = cam.project_local(pc[idx])
+            sub = [ray[0][idx], ray[1][idx], ray[2][idx]]
+            pc = np.stack([-(r[0] * sub[0] + r[1] * sub[1] + r[2] * sub[2]) for r in m[:3, :3]], axis=1)
+            pix = cam.project_local(pc)
             x, y = pix[:, 0], pix[:, 1]
             inside = (x >= 0) & (y >= 0) & (x <= cam.width - 1) & (y <= cam.height - 1)
             idx, x, y = idx[inside], x[inside], y[inside]
-            z = pc[idx, 2]
+            z = pc[inside, 2]
             xi, yi = np.rint(x).astype(np.int64), np.rint(y).astype(np.int64)
             c = cos[idx]
             tan = np.sqrt(np.maximum(1.0 - c * c, 0.0)) / c
             slack = (z / cam.fx) * (options.depth_slack_px + tan)
-            visible = z <= dm.depth[yi, xi] + slack
-            idx, x, y, xi, yi, c = idx[visible], x[visible], y[visible], xi[visible], yi[visible], c[visible]
-            edge = np.clip(dm.edge_distance[yi, xi] / options.edge_px, 0.0, 1.0)
+            pixel = yi * cam.width + xi
+            visible = z <= dm.depth.ravel().take(pixel) + slack
+            idx, x, y, pixel, c = idx[visible], x[visible], y[visible], pixel[visible], c[visible]
+            edge = np.clip(dm.edge_distance.ravel().take(pixel) / options.edge_px, 0.0, 1.0)
             border = np.minimum.reduce([x, y, cam.width - 1 - x, cam.height - 1 - y])
             w = (c ** options.angle_power) * edge * np.clip(border / options.border_px, 0.0, 1.0)
             color = _bilinear(view.albedo, x, y)
             good = (w > 0) & np.all(np.isfinite(color), axis=1)
-            target = idx[good] + start
+            target = target_of[sel].ravel()[idx[good]]
             acc[target] += (color[good] * w[good, None]).astype(np.float32)
             wsum[target] += w[good].astype(np.float32)
             count[target] += 1
+    acc, wsum, count = acc[:k], wsum[:k], count[:k]
     with np.errstate(invalid="ignore", divide="ignore"):
         color = np.where(wsum[:, None] > 0, acc / wsum[:, None], np.nan).astype(np.float32)
     return Blend(color, wsum, count)
