@@ -49,7 +49,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from measure import distances_to_mesh, peak_rss_bytes, surface_samples
+from measure import distances_to_mesh, export_toolbox, peak_rss_bytes, surface_samples
 
 DEG, MM = 10.0, 10.0
 O3D_ORDER = ("chin", "bun315", "bun000", "bun045", "top3", "bun090", "top2", "ear_back",
@@ -269,22 +269,6 @@ def _errors(poses: dict, truth: dict, scans: dict) -> dict:
     return out
 
 
-def _export_toolbox(rev: str, folder: Path) -> Path:
-    """``toolbox/`` of git revision ``rev`` written to ``folder`` (git archive: the working
-    tree and the repository are left as they are)."""
-    import io
-    import tarfile
-
-    root = Path(__file__).resolve().parent.parent
-    proc = subprocess.run(["git", "-C", str(root), "archive", rev, "toolbox"],
-                          capture_output=True, check=False)
-    if proc.returncode != 0:
-        raise SystemExit(f"--against {rev}: {proc.stderr.decode(errors='replace').strip()}")
-    folder.mkdir(parents=True, exist_ok=True)
-    with tarfile.open(fileobj=io.BytesIO(proc.stdout)) as tar:
-        tar.extractall(folder, filter="data")
-    return folder / "toolbox"
-
 
 def _print_side_by_side(side: dict, side_poses: dict, truth: dict, by_name: dict,
                         samples: dict) -> None:
@@ -360,7 +344,7 @@ def main() -> None:
         }
         runs = {"slscan (this tree)": ("slscan", reg["perturbed"])}
         if args.against:
-            toolbox = _export_toolbox(args.against, args.work / "against")
+            toolbox = export_toolbox(args.against, args.work / "against")
             runs[f"slscan ({args.against})"] = (
                 "against", _run(args, "register", toolbox=toolbox, tag="against"))
         for voxel in [float(v) for v in args.o3d_voxels.split(",") if v.strip()]:

@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
-from measure import cpu_seconds, model_vs_truth, peak_rss_bytes, surface_samples
+from measure import cpu_seconds, export_toolbox, model_vs_truth, peak_rss_bytes, surface_samples
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -165,20 +165,6 @@ def _finish(mesh, cpu0: float, wall0: float, integrate: float, blocks: int) -> d
             "p95": float(np.percentile(d, 95)), "complete": complete}
 
 
-def _export_toolbox(rev: str, folder: Path) -> Path:
-    """``toolbox/`` of git revision ``rev`` written to ``folder`` (git archive)."""
-    import io
-    import tarfile
-
-    proc = subprocess.run(["git", "-C", str(ROOT), "archive", rev, "toolbox"],
-                          capture_output=True, check=False)
-    if proc.returncode != 0:
-        raise SystemExit(f"--against {rev}: {proc.stderr.decode(errors='replace').strip()}")
-    folder.mkdir(parents=True, exist_ok=True)
-    with tarfile.open(fileobj=io.BytesIO(proc.stdout)) as tar:
-        tar.extractall(folder, filter="data")
-    return folder / "toolbox"
-
 
 def _run(way: str, path: Path, voxel: float, toolbox: Path) -> dict:
     env = dict(os.environ, PYTHONPATH=str(toolbox))
@@ -213,7 +199,7 @@ def main() -> None:
         rows = {
             "Open3D plain (weight 1)": _run("plain", maps, args.voxel, ROOT / "toolbox"),
             f"slscan {args.against}": _run(
-                "slscan", maps, args.voxel, _export_toolbox(args.against, Path(tmp) / "against")),
+                "slscan", maps, args.voxel, export_toolbox(args.against, Path(tmp) / "against")),
             "slscan, this tree": _run("slscan", maps, args.voxel, ROOT / "toolbox"),
         }
     plain = rows["Open3D plain (weight 1)"]

@@ -154,3 +154,20 @@ def model_vs_truth(mesh, scene, truth_points: np.ndarray) -> tuple[np.ndarray, f
     d = distances_to_mesh(surface_samples(mesh.vertices, mesh.faces, 300_000), scene.vertices, scene.triangles)
     complete = float(np.mean(distances_to_mesh(truth_points, mesh.vertices, mesh.faces) < 1.0))
     return d, complete
+
+
+def export_toolbox(rev: str, folder: Path) -> Path:
+    """``toolbox/`` of git revision ``rev`` written to ``folder`` (git archive: the working
+    tree and the repository are left as they are), for ``--against REV`` runs."""
+    import io
+    import tarfile
+
+    root = Path(__file__).resolve().parent.parent
+    proc = subprocess.run(["git", "-C", str(root), "archive", rev, "toolbox"],
+                          capture_output=True, check=False)
+    if proc.returncode != 0:
+        raise SystemExit(f"--against {rev}: {proc.stderr.decode(errors='replace').strip()}")
+    folder.mkdir(parents=True, exist_ok=True)
+    with tarfile.open(fileobj=io.BytesIO(proc.stdout)) as tar:
+        tar.extractall(folder, filter="data")
+    return folder / "toolbox"

@@ -138,20 +138,6 @@ def _run(args, n: int, *, k: int | None, toolbox: Path | None = None) -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def _export_toolbox(rev: str, folder: Path) -> Path:
-    import io
-    import tarfile
-
-    root = Path(__file__).resolve().parent.parent
-    proc = subprocess.run(["git", "-C", str(root), "archive", rev, "toolbox"],
-                          capture_output=True, check=False)
-    if proc.returncode != 0:
-        raise SystemExit(f"--against {rev}: {proc.stderr.decode(errors='replace').strip()}")
-    folder.mkdir(parents=True, exist_ok=True)
-    with tarfile.open(fileobj=io.BytesIO(proc.stdout)) as tar:
-        tar.extractall(folder, filter="data")
-    return folder / "toolbox"
-
 
 def bunny_robustness(args) -> None:
     import warnings
@@ -235,7 +221,10 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="slscan-pairs-") as tmp:
         toolbox = None
         if args.against:
-            toolbox = _export_toolbox(args.against, Path(tmp) / "against")
+            sys.path.insert(0, str(Path(__file__).resolve().parent))
+            from measure import export_toolbox
+
+            toolbox = export_toolbox(args.against, Path(tmp) / "against")
             rows[f"rev {args.against}"] = {}
         for n in ns:
             for label, kw in methods.items():

@@ -19,16 +19,19 @@ from slscan.virtual.sensor import Sensor
 # --- inputs built once ------------------------------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def session_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def _small_session(folder: Path, *, lit_images: bool) -> Path:
     """A noise-free 2-view Gray-code capture of the figurine at a fifth of the paper's size."""
     config = VirtualCaptureConfig(
         scene="object", views=2, patterns="gray", camera_scale=0.2, projector_scale=0.2,
-        lit_images=False, sensor=Sensor(noise=False),
+        lit_images=lit_images, sensor=Sensor(noise=False),
     )
-    path = tmp_path_factory.mktemp("bad_inputs") / "session"
-    capture_session(config, path)
-    return path
+    capture_session(config, folder / "session")
+    return folder / "session"
+
+
+@pytest.fixture(scope="module")
+def session_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return _small_session(tmp_path_factory.mktemp("bad_inputs"), lit_images=False)
 
 
 @pytest.fixture
@@ -201,13 +204,7 @@ def test_no_usable_view_is_an_error(session, tmp_path, capsys):
 @pytest.fixture(scope="module")
 def lit_session_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Like ``session_dir``, with the 6 ring-light images (for albedo)."""
-    config = VirtualCaptureConfig(
-        scene="object", views=2, patterns="gray", camera_scale=0.2, projector_scale=0.2,
-        lit_images=True, sensor=Sensor(noise=False),
-    )
-    path = tmp_path_factory.mktemp("bad_inputs_lit") / "session"
-    capture_session(config, path)
-    return path
+    return _small_session(tmp_path_factory.mktemp("bad_inputs_lit"), lit_images=True)
 
 
 @pytest.mark.parametrize("blank", ["lit", "all"])
