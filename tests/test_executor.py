@@ -72,6 +72,23 @@ def test_an_error_in_a_helper_or_here_reaches_the_caller_and_the_pool_goes_on():
     assert list(Executor(workers=2).map(operator.neg, range(5))) == [0, -1, -2, -3, -4]
 
 
+def _read_relative(item):
+    time.sleep(0.05)
+    return os.getpid(), open(item).read()
+
+
+def test_helpers_follow_the_callers_working_directory(tmp_path, monkeypatch):
+    ex = Executor(workers=2)
+    list(ex.map(_where, range(4)))  # the helper starts in this directory
+    for name in ("a", "b"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "x.txt").write_text(name)
+        monkeypatch.chdir(tmp_path / name)  # a later stage, run from elsewhere, with relative paths
+        results = list(ex.map(_read_relative, ["x.txt"] * 6))
+        assert {text for _, text in results} == {name}
+        assert len({pid for pid, _ in results}) == 2  # the helper read some too
+
+
 def test_bad_settings_are_refused():
     with pytest.raises(SlscanError, match="at least 1"):
         Executor(workers=0)

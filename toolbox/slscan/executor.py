@@ -134,6 +134,14 @@ def shutdown() -> None:
 atexit.register(shutdown)
 
 
+def _in_dir(cwd: str, fn: Callable[..., T], item: Any) -> T:
+    """``fn(item)`` in a helper process, run from the caller's working directory (the
+    helpers outlive a ``chdir`` of the caller, and paths may be relative to it)."""
+    if os.getcwd() != cwd:
+        os.chdir(cwd)
+    return fn(item)
+
+
 def _map_shared(pool: ProcessPoolExecutor, helpers: int, fn: Callable[..., T], items: list[Any]) -> Iterator[T]:
     """``fn`` over ``items`` by ``helpers`` pool processes taking items from the front
     and this process taking them from the back, yielded in input order.
@@ -142,6 +150,7 @@ def _map_shared(pool: ProcessPoolExecutor, helpers: int, fn: Callable[..., T], i
     callback, while this process works on its own), never queued more than that: a
     helper still starting up holds back one item at most.
     """
+    cwd = os.getcwd()
     lock = threading.RLock()  # a callback on a finished future runs at once, in add_done_callback
     futures: dict[int, Future] = {}
     done: dict[int, T] = {}
@@ -153,7 +162,7 @@ def _map_shared(pool: ProcessPoolExecutor, helpers: int, fn: Callable[..., T], i
             busy -= finished is not None
             while front < back and busy < helpers:
                 try:
-                    future = pool.submit(fn, items[front])
+                    future = pool.submit(_in_dir, cwd, fn, items[front])
                 except RuntimeError:  # the pool is shutting down (at exit)
                     return
                 futures[front] = future
