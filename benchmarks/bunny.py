@@ -42,14 +42,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
-from measure import distances_to_mesh, export_toolbox, peak_rss_bytes, surface_samples
+from measure import distances_to_mesh, export_toolbox, peak_rss_bytes, run_json, surface_samples
 
 DEG, MM = 10.0, 10.0
 O3D_ORDER = ("chin", "bun315", "bun000", "bun045", "top3", "bun090", "top2", "ear_back",
@@ -244,14 +243,7 @@ def _run(args, stage: str, *, toolbox: Path | None = None, **extra) -> dict:
     ]
     for k, v in extra.items():
         command += [f"--{k}", str(v)]
-    env = None
-    if toolbox is not None:
-        env = dict(os.environ, PYTHONPATH=os.pathsep.join(
-            [str(toolbox), *filter(None, [os.environ.get("PYTHONPATH")])]))
-    proc = subprocess.run(command, capture_output=True, text=True, check=False, env=env)
-    if proc.returncode != 0:
-        raise SystemExit(f"stage {stage} {extra} failed:\n{proc.stderr[-3000:]}")
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+    return run_json(command, f"stage {stage} {extra}", toolbox)
 
 
 def _errors(poses: dict, truth: dict, scans: dict) -> dict:

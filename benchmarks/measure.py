@@ -171,3 +171,19 @@ def export_toolbox(rev: str, folder: Path) -> Path:
     with tarfile.open(fileobj=io.BytesIO(proc.stdout)) as tar:
         tar.extractall(folder, filter="data")
     return folder / "toolbox"
+
+
+def run_json(command: list[str], what: str, toolbox: Path | None = None) -> dict:
+    """Run a benchmark's child process (with ``toolbox`` first on its PYTHONPATH, for an
+    ``--against`` revision) and return the JSON object its last output line holds."""
+    import json
+    import os
+
+    env = None
+    if toolbox is not None:
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+            [str(toolbox), *filter(None, [os.environ.get("PYTHONPATH")])]))
+    proc = subprocess.run(command, capture_output=True, text=True, check=False, env=env)
+    if proc.returncode != 0:
+        raise SystemExit(f"{what} failed:\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])

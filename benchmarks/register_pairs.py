@@ -38,7 +38,6 @@ import argparse
 import json
 import math
 import os
-import subprocess
 import sys
 import tempfile
 import time
@@ -128,14 +127,10 @@ def _run(args, n: int, *, k: int | None, toolbox: Path | None = None) -> dict:
                "--perturb-deg", str(args.perturb_deg), "--perturb-mm", str(args.perturb_mm)]
     if k is not None:
         command += ["--k", str(k)]
-    env = None
-    if toolbox is not None:
-        env = dict(os.environ, PYTHONPATH=os.pathsep.join(
-            [str(toolbox), *filter(None, [os.environ.get("PYTHONPATH")])]))
-    proc = subprocess.run(command, capture_output=True, text=True, check=False, env=env)
-    if proc.returncode != 0:
-        raise SystemExit(f"registration of {n} views (k={k}) failed:\n{proc.stderr[-3000:]}")
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from measure import run_json
+
+    return run_json(command, f"registration of {n} views (k={k})", toolbox)
 
 
 
