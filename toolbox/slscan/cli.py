@@ -34,14 +34,6 @@ def _folder_size(path: Path) -> int:
     return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
 
 
-def _human(n: float) -> str:
-    for unit in ("B", "KiB", "MiB", "GiB"):
-        if n < 1024 or unit == "GiB":
-            return f"{n:.1f} {unit}" if unit != "B" else f"{int(n)} B"
-        n /= 1024
-    return str(n)
-
-
 # --- capture / demo -------------------------------------------------------------------
 
 
@@ -108,10 +100,12 @@ def _cmd_capture(args: argparse.Namespace) -> int:
     with (recording_from_args(args, recording_name=f"capture {args.out.name}", blueprint=capture_blueprint()) as rec,
           _ProgressBar(total, "capturing", args.quiet) as bar):
         session = capture_session(config, args.out, overwrite=args.overwrite, rec=rec, progress=bar.step)
+    from slscan.fsio import human_size
+
     n_images = sum(len(v.images) for v in session.views)
     console.print(
         f"[green]wrote[/] {args.out}: {len(session.views)} view(s), {n_images} images "
-        f"{session.camera_size[0]}x{session.camera_size[1]}, {_human(_folder_size(args.out))}, "
+        f"{session.camera_size[0]}x{session.camera_size[1]}, {human_size(_folder_size(args.out))}, "
         f"{time.perf_counter() - t0:.1f} s"
     )
     _say_recording(args)
@@ -120,7 +114,9 @@ def _cmd_capture(args: argparse.Namespace) -> int:
 
 def _say_recording(args: argparse.Namespace) -> None:
     if getattr(args, "save", None):
-        _console().print(f"[green]recording[/] {args.save} ({_human(Path(args.save).stat().st_size)}): "
+        from slscan.fsio import human_size
+
+        _console().print(f"[green]recording[/] {args.save} ({human_size(Path(args.save).stat().st_size)}): "
                          f"open it with  rerun {args.save}")
 
 
@@ -667,13 +663,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
     except Exception as exc:  # noqa: BLE001 - the one place where every error becomes one line
         known = _known_error(exc)
-        if known is not None:
-            if args.verbose:
-                _console().print_exception()
-            _print_error(known)
-            return 2
         if args.verbose:
             _console().print_exception()
+        if known is not None:
+            _print_error(known)
+            return 2
         _print_error(f"internal error, a bug in slscan: {type(exc).__name__}: {_first_line(exc)} "
                      f"(re-run with -v for the traceback and please report it)")
         return EXIT_BUG

@@ -51,7 +51,7 @@ import numpy as np
 
 from slscan.errors import SlscanError
 from slscan.fsio import atomic_output_file, native_stderr_silenced
-from slscan.meshes import check_finite_vertices
+from slscan.meshes import MESH_SUFFIXES, check_finite_vertices
 from slscan.register.rangescan import RangeScan
 
 log = logging.getLogger(__name__)
@@ -849,10 +849,6 @@ def write_mesh(mesh: Mesh, path: str | os.PathLike) -> Path:
             )
         _check_written_mesh(tmp, path, mesh, ok)
     return path
-
-
-MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off", ".gltf", ".glb")
-"""Mesh formats open3d writes."""
 
 
 def _check_written_mesh(tmp: Path, path: Path, mesh: Mesh, ok: bool) -> None:

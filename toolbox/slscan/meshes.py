@@ -9,6 +9,9 @@ import numpy as np
 
 from slscan.errors import SlscanError
 
+MESH_SUFFIXES = (".ply", ".obj", ".gltf", ".glb", ".off", ".stl")
+"""The mesh file formats slscan reads (through Open3D/trimesh)."""
+
 
 def check_finite_vertices(vertices: np.ndarray, path: str | os.PathLike) -> None:
     """Refuse a mesh whose vertices hold NaN or infinite coordinates, naming the file, how

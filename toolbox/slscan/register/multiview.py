@@ -683,10 +683,10 @@ def register_scans(
             return
         edges[(i, j)] = res
 
-    planned = [sum(1 for i, j in itertools.combinations(range(n), 2)
-                   if (i, j) in chosen or not (have[i] and have[j]))]
+    planned = sum(1 for i, j in itertools.combinations(range(n), 2)
+                  if (i, j) in chosen or not (have[i] and have[j]))
     if on_total is not None:
-        on_total(planned[0])
+        on_total(planned)
     for i, j in itertools.combinations(range(n), 2):
         if (i, j) in chosen or not (have[i] and have[j]):
             align(i, j)
@@ -698,9 +698,9 @@ def register_scans(
             parts.join(i, j)
         for i, j in sorted(set(candidates) - chosen, key=lambda key: (-candidates[key], key)):
             if parts.find(i) != parts.find(j):
-                planned[0] += 1
+                planned += 1
                 if on_total is not None:
-                    on_total(planned[0])
+                    on_total(planned)
                 align(i, j)
                 if (i, j) in edges:
                     parts.join(i, j)

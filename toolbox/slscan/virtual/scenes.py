@@ -17,12 +17,10 @@ from typing import Protocol
 import numpy as np
 
 from slscan.errors import SlscanError
-from slscan.meshes import vertex_normals
+from slscan.meshes import MESH_SUFFIXES, vertex_normals
 from slscan.rig import rotation_about_axis
 
 log = logging.getLogger(__name__)
-
-MESH_SUFFIXES = (".ply", ".obj", ".gltf", ".glb", ".off", ".stl")
 
 
 class AlbedoSource(Protocol):
