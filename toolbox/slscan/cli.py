@@ -210,21 +210,48 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 # --- decode -------------------------------------------------------------------------------
 
 
-def _decode(session, out: Path, config, overwrite: bool, rec, quiet: bool, planes=None, executor=None) -> None:
+def _decode(session, out: Path, config, overwrite: bool, rec, quiet: bool, planes=None, executor=None,
+            codes: bool = False) -> None:
     from slscan.decode.pipeline import decode_session
     from slscan.executor import LOCAL
 
     t0 = time.perf_counter()
     with _ProgressBar(len(session.views), "decoding", quiet) as bar:
         results = decode_session(session, out, config, overwrite=overwrite, rec=rec, progress=bar.step,
-                                 planes=planes, executor=executor or LOCAL)
+                                 planes=planes, executor=executor or LOCAL, codes=codes)
     elapsed = time.perf_counter() - t0
+    _print_valid_shares([(r.view, r.valid_share) for r in results])
     vertices = sum(len(r.range_map.vertices) for r in results)
     faces = sum(len(r.range_map.faces) for r in results)
+    with_codes = " and projector codes (columns/rows/mask PNG per view, projector_codes.json)" if codes else ""
     _console().print(
-        f"[green]wrote[/] {out}: {len(results)} range map(s) ({results[0].method} decoding), "
+        f"[green]wrote[/] {out}: {len(results)} range map(s) ({results[0].method} decoding){with_codes}, "
         f"{vertices:,} vertices, {faces:,} faces, {elapsed:.1f} s"
     )
+
+
+def _decode_codes(session, out: Path, overwrite: bool, rec, quiet: bool, executor=None) -> None:
+    """Projector codes only (a session without calibration)."""
+    from slscan.decode.codes import decode_codes_session
+    from slscan.executor import LOCAL
+
+    t0 = time.perf_counter()
+    with _ProgressBar(len(session.views), "decoding codes", quiet) as bar:
+        results = decode_codes_session(session, out, overwrite=overwrite, rec=rec, progress=bar.step,
+                                       executor=executor or LOCAL)
+    elapsed = time.perf_counter() - t0
+    _print_valid_shares([(r.view, r.valid_share) for r in results])
+    _console().print(
+        f"[green]wrote[/] {out}: projector codes of {len(results)} view(s) (VIEW/columns.png, rows.png, "
+        f"mask.png; 65535 = not decoded; projector_codes.json), no range maps, {elapsed:.1f} s"
+    )
+
+
+def _print_valid_shares(shares: list) -> None:
+    """Per Gray-code view: the decoded share and what limited it (noise, contrast, weak bits)."""
+    for view, share in shares:
+        if share is not None:
+            _console().print(f"  {view}: {share.describe()}", highlight=False)
 
 
 def _cmd_decode(args: argparse.Namespace) -> int:
@@ -235,6 +262,7 @@ def _cmd_decode(args: argparse.Namespace) -> int:
 
     config = DecodeConfig(method=args.method, estimator=args.estimator, trim_line_ends=args.trim_line_ends)
     session = load_session(args.session)
+    codes = args.codes
     planes = None
     if args.calibration is not None:
         from slscan.calibrate.io import apply_calibration, calibration_planes, load_calibration
@@ -242,14 +270,26 @@ def _cmd_decode(args: argparse.Namespace) -> int:
         calibration = load_calibration(args.calibration)
         session = apply_calibration(session, calibration)
         planes = calibration_planes(calibration, source=args.planes)
-    with recording_from_args(args, recording_name=f"decode {args.session.name}", blueprint=decode_blueprint()) as rec:
+    codes_only = session.calibration is None and planes is None
+    if codes_only:
+        from slscan.decode.codes import require_gray_codes
+
+        require_gray_codes(session)  # a hybrid set without calibration: nothing to write
+        logging.getLogger(__name__).warning(
+            "%s has no calibration: writing projector codes only, no range maps (for range maps, "
+            "calibrate the rig with slscan calibrate, then pass --calibration CALIB.json)", args.session)
+    blueprint = decode_blueprint(codes=codes or codes_only)
+    with recording_from_args(args, recording_name=f"decode {args.session.name}", blueprint=blueprint) as rec:
         if rec is not None:
             from slscan.viewer.log import log_rig
 
             if session.calibration is not None:
                 log_rig(rec, session.calibration)
-        _decode(session, args.out, config, args.overwrite, rec, args.quiet, planes=planes,
-                executor=executor_from_args(args))
+        if codes_only:
+            _decode_codes(session, args.out, args.overwrite, rec, args.quiet, executor=executor_from_args(args))
+        else:
+            _decode(session, args.out, config, args.overwrite, rec, args.quiet, planes=planes,
+                    executor=executor_from_args(args), codes=codes)
     return 0
 
 
@@ -480,12 +520,16 @@ def build_parser() -> argparse.ArgumentParser:
                     "sub-pixel green-line axes (hybrid) or stripe edges (Gray code), ray-plane "
                     "triangulation with the session's calibration, and meshing into one range "
                     "map per view (binary PLY with normals, colour and quality, for MeshLab). "
-                    "Also writes range_maps.json with per-view metrics.",
-        epilog="example:\n  slscan decode demo-scan/capture --out maps --save decode.rrd",
+                    "Also writes range_maps.json with per-view metrics. With --codes, or "
+                    "automatically when the session has no calibration, it writes each Gray-code "
+                    "view's projector column and row maps (16-bit PNG, 65535 where not decoded) "
+                    "and a mask.",
+        epilog="examples:\n  slscan decode demo-scan/capture --out maps --save decode.rrd\n"
+               "  slscan decode kamino410-session --out codes      (no calibration: codes only)",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("session", type=Path, help="capture-session folder")
-    p.add_argument("--out", required=True, type=Path, help="folder for the range maps")
+    p.add_argument("--out", required=True, type=Path, help="folder for the range maps (and projector codes)")
     p.add_argument("--method", choices=("auto", "hybrid", "gray"), default="auto",
                    help="which patterns to decode (default auto: hybrid when captured)")
     p.add_argument("--estimator", choices=ESTIMATORS, default=DEFAULT_ESTIMATOR,
@@ -494,6 +538,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="drop this many samples at either end of every line, and lone samples "
                         "(default 0: keep them at lower quality); 1 trades a few %% of coverage "
                         "for a smaller axis error")
+    p.add_argument("--codes", action="store_true",
+                   help="also write each view's projector column/row maps: VIEW/columns.png, rows.png "
+                        "(16-bit, 65535 = not decoded), mask.png and projector_codes.json (Gray-code "
+                        "sets only; automatic, without range maps, when the session has no calibration)")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--calibration", type=Path, metavar="CALIB.json",

@@ -4,7 +4,8 @@ Per view: decode the patterns (hybrid green lines or Gray-code edges) to
 :class:`~slscan.decode.samples.StripeSamples`, intersect their camera rays with the
 projector's light planes, mesh the points on their (row × stripe) grid. Writes
 ``VIEW.ply`` per view and ``range_maps.json`` (what was decoded, how, and per-view
-metrics) into the output folder, atomically.
+metrics) into the output folder, atomically; with ``codes`` also the projector column/row
+maps of Gray-code sets (:mod:`slscan.decode.codes`).
 """
 
 from __future__ import annotations
@@ -20,6 +21,16 @@ import numpy as np
 
 from slscan import __version__
 from slscan.capture.session import SESSION_FILE, Session, ViewRecord, load_session
+from slscan.decode.codes import (
+    ProjectorCodes,
+    ValidShare,
+    codes_from_gray,
+    decode_codes,
+    require_gray_codes,
+    valid_share,
+    write_codes_manifest,
+    write_view_codes,
+)
 from slscan.decode.graycode import decode_gray
 from slscan.decode.hybrid import DEFAULT_ESTIMATOR, ESTIMATORS, decode_hybrid, hybrid_pattern_ids
 from slscan.decode.masks import saturation
@@ -97,6 +108,8 @@ class ViewDecode:
         or Gray-code column, -1 where invalid), up to ``code_max``
     saturated : (h, w) bool pixels clipped (white frame for hybrid; any image for Gray)
     white : the white-frame capture the range map's colours come from
+    projector_codes : the projector column/row maps, when asked for (Gray-code sets)
+    valid_share : what limited the decoded share (Gray-code decoding)
     """
 
     view: str
@@ -110,6 +123,8 @@ class ViewDecode:
     saturated: np.ndarray
     white: np.ndarray
     seconds: dict[str, float] = field(default_factory=dict)
+    projector_codes: ProjectorCodes | None = None
+    valid_share: ValidShare | None = None
 
     @property
     def metrics(self) -> dict[str, float]:
@@ -141,17 +156,21 @@ def decode_view(
     config: DecodeConfig = DecodeConfig(),
     *,
     planes: LightPlanes | None = None,
+    with_codes: bool = False,
 ) -> ViewDecode:
     """Decode one view of ``session`` to a range map (rig frame, mm).
 
     planes : the projector's light planes; default: from the session's calibration
+    with_codes : also keep the projector column/row maps (``projector_codes``); the session
+        needs Gray-code patterns (decoded apart when the range map comes from the hybrid)
     """
     view = session.view(view) if isinstance(view, str) else view
     rig = session.calibration
     if rig is None:
         raise SlscanError(
             f"{session.root}: the session has no calibration, so its light planes are unknown "
-            "(calibrate the rig first)"
+            "(calibrate the rig first; `slscan decode --codes` or slscan.decode.codes.decode_codes_session "
+            "writes the projector column/row maps of a Gray-code set without one)"
         )
     planes = planes or RigPlanes(rig.projector)
     method = choose_method(session, config.method)
@@ -172,6 +191,7 @@ def decode_view(
     if config.trim_line_ends:
         samples = samples.trim_line_ends(config.trim_line_ends)
     seconds["decode"] = time.perf_counter() - t
+    projector_codes, share = _codes_of_view(session, view, res if method == "gray" else None, with_codes)
     t = time.perf_counter()
     points = triangulate(samples, rig.camera, planes)
     seconds["triangulate"] = time.perf_counter() - t
@@ -192,7 +212,22 @@ def decode_view(
     return ViewDecode(
         view=view.name, method=method, samples=samples, points=points, range_map=range_map,
         mask=mask, codes=codes, code_max=code_max, saturated=saturated, white=white, seconds=seconds,
+        projector_codes=projector_codes, valid_share=share,
     )
+
+
+def _codes_of_view(
+    session: Session, view: ViewRecord, gray, codes: bool
+) -> tuple[ProjectorCodes | None, ValidShare | None]:
+    """The view's projector codes (when asked for) and the Gray-code decode's valid share:
+    from ``gray`` (the view's :class:`GrayResult`) when the range map came from it, else
+    decoded apart."""
+    if gray is not None:
+        return (codes_from_gray(gray, session, view.name) if codes else None), valid_share(gray)
+    if not codes:
+        return None, None
+    found = decode_codes(session, view)
+    return found, found.valid_share
 
 
 def _why_unusable(result: ViewDecode) -> str:
@@ -206,10 +241,12 @@ def _why_unusable(result: ViewDecode) -> str:
 
 
 def _decode_task(task: tuple) -> ViewDecode:
-    """Decode one view and write its PLY (runs in a worker process)."""
-    session, view_name, config, planes, folder = task
-    result = decode_view(session, session.view(view_name), config, planes=planes)
+    """Decode one view and write its PLY, and its codes when asked (runs in a worker process)."""
+    session, view_name, config, planes, folder, codes = task
+    result = decode_view(session, session.view(view_name), config, planes=planes, with_codes=codes)
     write_ply(result.range_map, Path(folder) / f"{view_name}.ply")
+    if result.projector_codes is not None:
+        write_view_codes(result.projector_codes, Path(folder) / view_name)
     return result
 
 
@@ -223,8 +260,12 @@ def decode_session(
     progress: Callable[[str], None] | None = None,
     planes: LightPlanes | None = None,
     executor: Executor = LOCAL,
+    codes: bool = False,
 ) -> list[ViewDecode]:
     """Decode every view of a capture session into ``out/VIEW.ply`` and ``out/range_maps.json``.
+
+    With ``codes``, also the projector column/row maps ``out/VIEW/{columns,rows,mask}.png``
+    and ``out/projector_codes.json`` (:mod:`slscan.decode.codes`; Gray-code sets only).
 
     The session is validated (every image against its metadata) before anything is written.
     rec : an ``rr.RecordingStream`` for masks, codes, stripe axes, range maps and metrics
@@ -239,12 +280,15 @@ def decode_session(
         session = load_session(session)
     if not session.views:
         raise SlscanError(f"{session.root / SESSION_FILE}: the session has no views; expected at least one")
+    if codes:
+        require_gray_codes(session)
     executor.start(len(session.views), [__name__])  # helper processes import while we set up
     results = []
     unusable = {}
     with atomic_output_dir(out, overwrite=overwrite) as tmp:
         entries = []
-        tasks = [(session, view.name, config, planes, tmp) for view in session.views]
+        code_entries = []  # every view's, usable or not: codes do not need a range map
+        tasks = [(session, view.name, config, planes, tmp, codes) for view in session.views]
         for index, (view, result) in enumerate(zip(session.views, executor.map(_decode_task, tasks))):
             if rec is not None:
                 rm = result.range_map
@@ -254,8 +298,11 @@ def decode_session(
                 rlog.log_stripes(rec, result.samples, view_index=index)
                 rlog.log_range_map(rec, rm.vertices, rm.faces, rm.normals, rm.colors, view_index=index)
                 rlog.log_metrics(rec, result.metrics, view_index=index)
+                _log_codes(rec, result, index)
             if progress:
                 progress(view.name)
+            if result.projector_codes is not None:
+                code_entries.append(_codes_entry(result))
             if len(result.range_map.faces) == 0:
                 unusable[view.name] = _why_unusable(result)
                 log.warning("%s: unusable view, left out: %s", view.name, unusable[view.name])
@@ -267,6 +314,8 @@ def decode_session(
                 "metrics": result.metrics, "seconds": result.seconds,
             })
             results.append(result)
+        if codes:
+            write_codes_manifest(tmp, session, code_entries)
         if not entries:
             reasons = "; ".join(f"{name}: {why}" for name, why in unusable.items())
             raise SlscanError(f"{session.root}: no usable view ({reasons})")
@@ -278,3 +327,20 @@ def decode_session(
             **({"left_out": unusable} if unusable else {}),
         })
     return results
+
+
+def _log_codes(rec, result: ViewDecode, index: int) -> None:
+    """Stream a view's projector column/row maps, when it has them."""
+    from slscan.viewer import log_decode as rlog
+
+    found = result.projector_codes
+    if found is not None:
+        rlog.log_projector_codes(rec, view_index=index, column=found.column, row=found.row,
+                                 projector_size=found.projector_size)
+
+
+def _codes_entry(result: ViewDecode) -> dict:
+    """A view's line in ``projector_codes.json`` (its codes written by ``_decode_task``)."""
+    share = result.projector_codes.valid_share
+    return {"view": result.view, "folder": result.view, "valid_share": share.decoded,
+            "noise_dn": share.noise_dn, "seconds": result.seconds.get("decode")}

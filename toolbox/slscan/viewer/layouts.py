@@ -82,13 +82,14 @@ def stage_blueprint(root: rrb.Container, timeline: str = VIEW_TIMELINE) -> rrb.B
     )
 
 
-def decode_blueprint() -> rrb.Blueprint:
+def decode_blueprint(*, codes: bool = True) -> rrb.Blueprint:
     """Decode stage: what was measured on the image beside the range map it gives.
 
     Left: the white capture with the stripe axes and the saturation overlay drawn over it
     (zoom in to see the sub-pixel line strips); below it tabs with the decoded code map
-    and the validity mask. Right: 3D view of the range maps (and the true surface points
-    on the virtual rig), and the per-view metrics.
+    and the validity mask, and with ``codes`` the projector column and row maps of a
+    Gray-code set (``slscan decode --codes``). Right: 3D view of the range maps (and the
+    true surface points on the virtual rig), and the per-view metrics.
     """
     overlay = rrb.Spatial2DView(
         origin="world/camera/image",
@@ -98,6 +99,14 @@ def decode_blueprint() -> rrb.Blueprint:
     maps = rrb.Tabs(
         _image_view("world/camera/image", "decode/codes", "Codes"),
         _image_view("world/camera/image", "decode/mask", "Mask"),
+        *(
+            (
+                _image_view("world/camera/image", "decode/columns", "Projector columns"),
+                _image_view("world/camera/image", "decode/rows", "Projector rows"),
+            )
+            if codes
+            else ()
+        ),
         name="Decoded maps",
     )
     scans = rrb.Spatial3DView(
@@ -130,7 +139,8 @@ def pipeline_blueprint(stages: Sequence[str] = ()) -> rrb.Blueprint:
     """
     from slscan.viewer.recording import STAGE_TIMELINE
 
-    tabs = [capture_blueprint(), decode_blueprint(), _albedo(), register_blueprint(), _texture()]
+    # recipes decode to range maps only: no projector-code views
+    tabs = [capture_blueprint(), decode_blueprint(codes=False), _albedo(), register_blueprint(), _texture()]
     active = next((_PIPELINE_TAB[s] for s in stages if s in _PIPELINE_TAB), 0)
     timeline = VIEW_TIMELINE if active <= _PIPELINE_TAB["albedo"] else STAGE_TIMELINE
     return stage_blueprint(

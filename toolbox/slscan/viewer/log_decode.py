@@ -4,6 +4,8 @@ Entity tree, continuing :mod:`slscan.viewer.log`::
 
     world/camera/image/decode/mask         lit-and-decodable pixels    [view]
     world/camera/image/decode/codes        decoded region / column map, colour-mapped  [view]
+    world/camera/image/decode/columns      projector column map (Gray code), colour-mapped  [view]
+    world/camera/image/decode/rows         projector row map (Gray code), colour-mapped  [view]
     world/camera/image/decode/saturation   saturated pixels (red overlay)  [view]
     world/camera/image/decode/stripes      stripe medial axes / edges as 2D line strips  [view]
     world/scans/view_NNN/range_map         Mesh3D of the range map (rig frame, mm)  [view]
@@ -68,6 +70,24 @@ def log_decode_maps(
         overlay = np.zeros(saturated.shape + (4,), np.uint8)
         overlay[saturated] = SATURATION_COLOR
         rec.log(f"{DECODE_PATH}/saturation", rr.Image(overlay, color_model="RGBA", draw_order=10.0))
+
+
+def log_projector_codes(
+    rec: rr.RecordingStream | None,
+    *,
+    view_index: int,
+    column: np.ndarray,
+    row: np.ndarray | None,
+    projector_size: tuple[int, int],
+) -> None:
+    """The projector column and row maps (int, -1 where not decoded), turbo over the
+    projector's width and height; undecoded pixels black."""
+    if rec is None:
+        return
+    _set_view(rec, view_index)
+    rec.log(f"{DECODE_PATH}/columns", _png(colormap(column.astype(np.float32), projector_size[0] - 1)))
+    if row is not None:
+        rec.log(f"{DECODE_PATH}/rows", _png(colormap(row.astype(np.float32), projector_size[1] - 1)))
 
 
 def log_stripes(rec: rr.RecordingStream | None, samples: StripeSamples, *, view_index: int) -> None:
