@@ -3,7 +3,10 @@
 size, which the crops below do not fit): .venv/bin/python docs/figures.py SESSION
 
 The scan_*.png of docs/scanning.md need no session (they scan the virtual rig, and open the
-projector window on a private Xvfb): .venv/bin/python docs/figures.py scan"""
+projector window on a private Xvfb): .venv/bin/python docs/figures.py scan
+
+codes_kamino410.png of docs/reconstruction.md decodes the kamino410 capture_0 in
+../shared/data (or $SLSCAN_DATA): .venv/bin/python docs/figures.py codes"""
 
 from __future__ import annotations
 
@@ -291,8 +294,45 @@ def scan_figures() -> None:
     scan_board_figure()
 
 
+# --- slscan decode --codes (docs/reconstruction.md) ---------------------------------------
+
+CODES_HEIGHT = 300  # px, each panel (the maps are speckled at edges: PNG size grows fast)
+
+
+def codes_figure() -> None:
+    """codes_kamino410.png: the white capture of kamino410's capture_0 beside the projector
+    column and row maps ``slscan decode --codes`` writes for it (Turbo, black: not decoded)."""
+    import tempfile
+
+    from slscan.capture.kamino410 import import_kamino410
+    from slscan.data import shared_data_dir
+    from slscan.decode.codes import decode_codes
+
+    data = shared_data_dir()
+    src = None if data is None else data / "procam_graycode_kamino410" / "sample_data" / "capture_0"
+    if src is None or not src.is_dir():
+        sys.exit(f"kamino410 capture_0 not found at {src}: set SLSCAN_DATA")
+    with tempfile.TemporaryDirectory() as tmp:
+        session = import_kamino410(src, Path(tmp) / "session")
+        view = session.views[0]
+        white = session.read_image(view, view.image_for("white"))
+        codes = decode_codes(session, view)
+    white = np.repeat(white[..., None], 3, axis=2) if white.ndim == 2 else white
+    w, h = codes.projector_size
+    column = projector_column_image(np.where(codes.column >= 0, codes.column, np.nan), w - 1)
+    row = projector_column_image(np.where(codes.row >= 0, codes.row, np.nan), h - 1)
+    panels = [
+        _titled(_to_height(white, CODES_HEIGHT), "white capture (1280x1024)"),
+        _titled(_to_height(column, CODES_HEIGHT), f"columns.png: projector column 0..{w - 1}"),
+        _titled(_to_height(row, CODES_HEIGHT), f"rows.png: projector row 0..{h - 1}"),
+    ]
+    _write("codes_kamino410.png", _side_by_side(*panels))
+
+
 if __name__ == "__main__":
     if sys.argv[1:] == ["scan"]:
         scan_figures()
+    elif sys.argv[1:] == ["codes"]:
+        codes_figure()
     else:
         main(sys.argv[1])

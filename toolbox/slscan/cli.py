@@ -525,7 +525,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "view's projector column and row maps (16-bit PNG, 65535 where not decoded) "
                     "and a mask.",
         epilog="examples:\n  slscan decode demo-scan/capture --out maps --save decode.rrd\n"
-               "  slscan decode kamino410-session --out codes      (no calibration: codes only)",
+               "  slscan decode kamino --out kamino-codes   # no calibration: projector codes only",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("session", type=Path, help="capture-session folder")
