@@ -117,6 +117,26 @@ def test_hybrid_sets_have_no_codes(tmp_path, capsys):
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
 
 
+def test_codes_beside_hybrid_range_maps_come_from_the_gray_set(tmp_path):
+    """A session with both pattern sets: range maps from the hybrid, codes from the Gray code."""
+    from slscan.decode.pipeline import DecodeConfig, decode_session
+
+    session = capture_session(
+        VirtualCaptureConfig(scene="tile", patterns="both", camera_scale=0.25, projector_scale=0.25,
+                             levels=6, views=1, lit_images=False, sensor=Sensor(noise=False)),
+        tmp_path / "both",
+    )
+    out = tmp_path / "maps"
+    [result] = decode_session(session, out, DecodeConfig(method="hybrid"), codes=True)
+    assert result.method == "hybrid" and result.valid_share is not None
+    ref = decode_gray(session, "view_000")
+    codes = read_codes(out)
+    np.testing.assert_array_equal(codes.column, ref.column)
+    np.testing.assert_array_equal(codes.mask, ref.mask)
+    assert codes.row is None and codes.bits[1] == 0 and not (out / "view_000" / "rows.png").exists()
+    assert json.loads((out / "range_maps.json").read_text())["views"][0]["method"] == "hybrid"
+
+
 def test_the_reader_names_what_is_wrong(gray_rows_session, tmp_path):
     out = tmp_path / "codes"
     session = _uncalibrated(gray_rows_session, tmp_path / "copy")
