@@ -447,42 +447,61 @@ def _edges_banded(column, valid, lit, diffs: _BitDiffs, white, saturated, max_ga
     return StripeSamples.concatenate(parts)
 
 
-def _nearest_along(line: np.ndarray, pos: np.ndarray, stripe: np.ndarray) -> np.ndarray:
-    """(k,) distance along the line from each sample to the nearest sample of the same
-    stripe on the lines just before and after (inf: none there)."""
-    n = len(line)
-    best = np.full(n, np.inf)
-    if n == 0:
+def _nearest_on(line: np.ndarray, pos: np.ndarray, stripe: np.ndarray,
+                q_line: np.ndarray, q_pos: np.ndarray, q_stripe: np.ndarray) -> np.ndarray:
+    """(q,) distance along the line from each query ``(q_line, q_pos, q_stripe)`` to the
+    nearest sample ``(line, pos, stripe)`` of the same stripe on line ``q_line`` (inf: none)."""
+    best = np.full(len(q_line), np.inf)
+    if len(line) == 0 or len(q_line) == 0:
         return best
-    line = np.asarray(line, np.int64) - int(np.min(line)) + 1
-    stripe = np.asarray(stripe, np.int64) - int(np.min(stripe))
-    key = stripe * (int(line.max()) + 2) + line
-    rank = np.empty(n, np.int64)
-    rank[np.argsort(pos, kind="stable")] = np.arange(n)
-    comp = key * n + rank
+    lo = min(int(np.min(line)), int(np.min(q_line))) - 1
+    s_lo = min(int(np.min(stripe)), int(np.min(q_stripe)))
+    span = max(int(np.max(line)), int(np.max(q_line))) - lo + 2
+    key = (np.asarray(stripe, np.int64) - s_lo) * span + (np.asarray(line, np.int64) - lo)
+    q_key = (np.asarray(q_stripe, np.int64) - s_lo) * span + (np.asarray(q_line, np.int64) - lo)
+    n = len(line) + len(q_line)
+    rank = np.empty(n, np.int64)  # positions by rank, shared by samples and queries
+    rank[np.argsort(np.concatenate([pos, q_pos]), kind="stable")] = np.arange(n)
+    comp = key * n + rank[: len(line)]
     order = np.argsort(comp)
     sorted_comp, sorted_key = comp[order], key[order]
-    for d in (-1, 1):
-        wanted = key + d
-        at = np.searchsorted(sorted_comp, wanted * n + rank)
-        for cand in (at - 1, at):
-            c = np.clip(cand, 0, n - 1)
-            same = (cand >= 0) & (cand < n) & (sorted_key[c] == wanted)
-            dist = np.where(same, np.abs(pos[order[c]] - pos), np.inf)
-            np.minimum(best, dist, out=best)
+    at = np.searchsorted(sorted_comp, q_key * n + rank[len(line):])
+    for cand in (at - 1, at):
+        c = np.clip(cand, 0, len(line) - 1)
+        same = (cand >= 0) & (cand < len(line)) & (sorted_key[c] == q_key)
+        np.minimum(best, np.where(same, np.abs(pos[order[c]] - q_pos), np.inf), out=best)
     return best
 
 
 def _both_axes(rows_found: StripeSamples, cols_found: StripeSamples) -> StripeSamples:
     """Edges found along rows and along columns (``cols_found`` with ``row`` the camera
     column, ``x`` the sub-pixel camera row), each boundary by the axis crossing it more
-    steeply: along rows where the same boundary's samples in the rows just above and
-    below are within 1 px in x, along columns where those in the columns just left and
-    right are within less than 1 px in y (at 45 degrees, rows win); lone samples stay."""
-    near = _nearest_along(rows_found.row, rows_found.x, rows_found.stripe)
-    rows_found = rows_found.subset((near <= 1.0) | np.isinf(near))
-    near = _nearest_along(cols_found.row, cols_found.x, cols_found.stripe)
-    cols_found = cols_found.subset((near < 1.0) | np.isinf(near))
+    steeply: along rows where the same boundary's nearest samples in the rows just above
+    or below are within 1 px in x, along columns where those in the columns just left or
+    right are within less than 1 px in y (at 45 degrees, rows win). A sample with no
+    neighbour on either side stays unless the other axis has a sample of the same
+    boundary within 1 px of it."""
+    def steep(s: StripeSamples) -> np.ndarray:
+        near = np.minimum(*(_nearest_on(s.row, s.x, s.stripe, s.row + d, s.x, s.stripe)
+                            for d in (-1, 1)))
+        return near
+
+    h_near, v_near = steep(rows_found), steep(cols_found)
+    h_keep, v_keep = h_near <= 1.0, v_near < 1.0
+    # lone samples: kept unless the other axis has the same boundary right there
+    lone = np.flatnonzero(np.isinf(h_near))
+    s = rows_found
+    other = np.minimum(*(_nearest_on(cols_found.row, cols_found.x, cols_found.stripe,
+                                     np.floor(s.x[lone]).astype(np.int64) + d, s.row[lone].astype(float),
+                                     s.stripe[lone]) for d in (0, 1)))
+    h_keep[lone] = other > 1.0
+    lone = np.flatnonzero(np.isinf(v_near))
+    s = cols_found
+    other = np.minimum(*(_nearest_on(rows_found.row, rows_found.x, rows_found.stripe,
+                                     np.floor(s.x[lone]).astype(np.int64) + d, s.row[lone].astype(float),
+                                     s.stripe[lone]) for d in (0, 1)))
+    v_keep[lone] = other > 1.0
+    rows_found, cols_found = rows_found.subset(h_keep), cols_found.subset(v_keep)
     if len(cols_found) == 0:
         return rows_found
     y = cols_found.x
@@ -612,8 +631,12 @@ def decode_gray_images(
     read = _Reader(white, where)
     w_img, b_img = read(white, "white"), read(black, "black")
     full_contrast = w_img - b_img
-    if threshold == "opencv":
-        full_lit = np.abs(full_contrast) > np.float32(black_threshold / read.dn)
+    if threshold == "opencv":  # on the levels: no rounding at ties (white - black = 40 DN)
+        wl, bl = read.levels(white, "white"), read.levels(black, "black")
+        if read.lut is not None:
+            wl, bl = wl.astype(np.int64), bl.astype(np.int64)
+        full_lit = np.abs(wl - bl) > read.level_threshold(black_threshold)
+        del wl, bl
     else:
         full_lit = full_contrast > min_contrast
     # the rest runs on the lit pixels' bounding box: outside it nothing decodes
