@@ -91,3 +91,41 @@ def test_a_session_with_a_missing_image_writes_no_range_map(figurine, tmp_path):
     with pytest.raises(SlscanError, match="hybrid-03.png: image not found"):
         decode_session(load_session(copy, validate=False).root, tmp_path / "out")
     assert not (tmp_path / "out").exists()
+
+
+def test_gray_threshold_reaches_the_decoder(figurine, monkeypatch):
+    from slscan.decode import pipeline
+
+    seen = []
+    real = pipeline.decode_gray
+
+    def spy(session, view, **options):
+        seen.append(options)
+        return real(session, view, **options)
+
+    monkeypatch.setattr(pipeline, "decode_gray", spy)
+    res = decode_view(figurine, figurine.views[0], DecodeConfig(method="gray", gray_threshold="opencv"))
+    assert seen == [{"threshold": "opencv"}] and len(res.samples) > 1000
+    with pytest.raises(SlscanError, match="unknown gray_threshold 'fixed'"):
+        DecodeConfig(gray_threshold="fixed")
+
+
+def test_workers_fit_in_free_memory(figurine, caplog):
+    from types import SimpleNamespace
+
+    from slscan.decode.pipeline import fit_workers, view_memory_bytes
+    from slscan.executor import Executor
+
+    session = SimpleNamespace(views=[None] * 6, camera_size=figurine.camera_size,
+                              channels=figurine.channels, bit_depth=figurine.bit_depth)
+    per_view = view_memory_bytes(session)
+    w, h = figurine.camera_size
+    assert per_view > 75 * w * h
+    many = Executor(workers=8)
+    with caplog.at_level("INFO"):
+        cut = fit_workers(many, session, available=int(2.5 * per_view))
+    assert cut.workers == 2 and "decoding with 2 worker(s) instead of 6" in caplog.text
+    assert fit_workers(many, session, available=100 * per_view) is many
+    assert fit_workers(Executor(workers=1), session, available=0).workers == 1
+    dask = Executor(scheduler="tcp://localhost:8786")
+    assert fit_workers(dask, session, available=0) is dask

@@ -233,7 +233,8 @@ def _cmd_decode(args: argparse.Namespace) -> int:
     from slscan.viewer.layouts import decode_blueprint
     from slscan.viewer.recording import recording_from_args
 
-    config = DecodeConfig(method=args.method, estimator=args.estimator, trim_line_ends=args.trim_line_ends)
+    config = DecodeConfig(method=args.method, estimator=args.estimator, trim_line_ends=args.trim_line_ends,
+                          gray_threshold=args.gray_threshold)
     session = load_session(args.session)
     planes = None
     if args.calibration is not None:
@@ -494,6 +495,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="drop this many samples at either end of every line, and lone samples "
                         "(default 0: keep them at lower quality); 1 trades a few %% of coverage "
                         "for a smaller axis error")
+    p.add_argument("--gray-threshold", choices=("adaptive", "opencv"), default="adaptive",
+                   help="Gray-code bit thresholds: adaptive (default: from the images' noise and "
+                        "contrast) or opencv (OpenCV GrayCodePattern's fixed 40 DN white-black, 5 DN per bit)")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--calibration", type=Path, metavar="CALIB.json",

@@ -42,6 +42,7 @@ import logging
 from collections.abc import Callable, Hashable, Iterator, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
+from typing import Self
 
 import numpy as np
 
@@ -316,7 +317,7 @@ class _BitDiffs:
         return _BitDiffs(self.read, self.pattern[:, sl], self.inverse[:, sl])
 
     @property
-    def T(self) -> _BitDiffs:  # noqa: N802 (like numpy's)
+    def T(self) -> _BitDiffs:
         return _BitDiffs(self.read, self.pattern.transpose(0, 2, 1), self.inverse.transpose(0, 2, 1))
 
 
@@ -819,7 +820,7 @@ class _Streamed(Mapping):
     def __len__(self) -> int:
         return len(self._keys)
 
-    def __enter__(self) -> _Streamed:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc: object) -> None:
