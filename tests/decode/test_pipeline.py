@@ -129,3 +129,20 @@ def test_workers_fit_in_free_memory(figurine, caplog):
     assert fit_workers(Executor(workers=1), session, available=0).workers == 1
     dask = Executor(scheduler="tcp://localhost:8786")
     assert fit_workers(dask, session, available=0) is dask
+
+
+def test_a_set_missing_low_bits_still_meshes(figurine):
+    import dataclasses
+
+    bits = next(p.params["bits"] for p in figurine.patterns if p.family == "gray")
+    drop = {bits - 1, bits - 2, bits - 3}  # edges 8 columns apart: beyond the 6-column bridge
+    session = dataclasses.replace(figurine, patterns=[
+        p for p in figurine.patterns
+        if not (p.family == "gray" and p.axis == "columns" and p.params["bit"] in drop)])
+    full = decode_view(figurine, figurine.views[0], DecodeConfig(method="gray"))
+    res = decode_view(session, session.views[0], DecodeConfig(method="gray"))
+    assert np.all(res.samples.projector_column % 8 == 7.5)
+    assert 0.12 < len(res.samples) / len(full.samples) < 0.4  # the finest edges were the weakest
+    assert res.range_map.n_faces > 0.12 * full.range_map.n_faces  # bridged 8x as far
+    d = _distance_to_truth(res.range_map.vertices, figurine.views[0].rig_from_object)
+    assert np.median(d) < 0.2

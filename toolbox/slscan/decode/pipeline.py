@@ -165,6 +165,7 @@ def decode_view(
     planes = planes or RigPlanes(rig.projector)
     method = choose_method(session, config.method)
     seconds = {}
+    edge_spacing = 1
     t = time.perf_counter()
     if method == "hybrid":
         _, _, descs = hybrid_pattern_ids(session)
@@ -175,6 +176,8 @@ def decode_view(
         res = decode_gray(session, view, threshold=config.gray_threshold)
         samples, mask, codes, saturated = res.edges, res.mask, res.column, res.saturated
         code_max = session.projector_size[0]
+        used, bits = res.bits_used.get("columns", (0, 0))
+        edge_spacing = 2 ** (bits - used)  # a set missing low bits has edges this many columns apart
     white = res.white
     if method == "hybrid":
         saturated = saturation(white)
@@ -193,7 +196,7 @@ def decode_view(
         view=view.name,
         max_edge_factor=config.max_edge_factor,
         max_view_angle_deg=config.max_view_angle_deg,
-        max_gap_columns=config.max_gap_columns,
+        max_gap_columns=config.max_gap_columns * edge_spacing,
     )
     seconds["mesh"] = time.perf_counter() - t
     if len(range_map.faces) == 0:
