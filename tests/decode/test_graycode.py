@@ -270,3 +270,189 @@ def test_real_capture_0(shared_data: Path, tmp_path: Path):
     assert ((r[1:, :] - r[:-1, :])[pair] >= 0).mean() > 0.95
     assert len(res.edges) > 100_000
     assert np.all(np.diff(res.edges.row) >= 0)
+
+
+# --- both camera axes, missing bits, thresholds ------------------------------------------------
+
+
+def _transposed(images, white, black):
+    """The same captures seen by a camera turned 90 degrees: stripes horizontal."""
+    t = {k: np.ascontiguousarray(np.swapaxes(v, 0, 1)) for k, v in images.items()}
+    return t, np.ascontiguousarray(np.swapaxes(white, 0, 1)), np.ascontiguousarray(np.swapaxes(black, 0, 1))
+
+
+def test_rotated_stripes_give_edges_along_columns():
+    images, descs, white, black = _synthetic(np.uint8, 1, rows=False)
+    upright = decode_gray_images(images, descs, white, black)
+    # vertical stripes: every edge along rows, exactly as the row-only search finds them
+    assert upright.edges.along_columns is None and upright.edges.y is None
+    rows_only = decode_gray_images(images, descs, white, black, edge_axes="rows")
+    for name in ("row", "x", "stripe", "contrast", "saturated"):
+        np.testing.assert_array_equal(getattr(upright.edges, name), getattr(rows_only.edges, name))
+    turned = decode_gray_images(*_transposed(images, white, black)[:1], descs,
+                                *_transposed(images, white, black)[1:])
+    e = turned.edges
+    np.testing.assert_array_equal(turned.column, upright.column.T)
+    assert len(e) == len(upright.edges) and e.along_columns.all()
+    assert np.all(e.x == np.round(e.x))  # whole camera columns, sub-pixel rows
+    truth_y = (e.projector_column - B_U) / A_U
+    assert np.max(np.abs(e.y - truth_y)) < 0.01
+    np.testing.assert_array_equal(e.row, np.floor(e.y + 0.5))
+    np.testing.assert_array_equal(e.pixels(), np.stack([e.x, e.y], axis=1))
+    # the row-only search sees (almost) nothing of them
+    assert len(decode_gray_images(*_transposed(images, white, black)[:1], descs,
+                                  *_transposed(images, white, black)[1:], edge_axes="rows").edges) == 0
+
+
+def test_rotated_tile_edges_match_upright(tile):
+    session, view, truth, res = tile
+    descs = [p for p in session.patterns if p.family == "gray"]
+    images = {d.id: session.read_image(view, view.image_for(d.id)) for d in descs}
+    white = session.read_image(view, view.image_for("white"))
+    black = session.read_image(view, view.image_for("black"))
+    turned = decode_gray_images(*_transposed(images, white, black)[:1], descs,
+                                *_transposed(images, white, black)[1:])
+    e = turned.edges
+    assert e.along_columns.mean() > 0.99
+    assert abs(len(e) - len(res.edges)) < 0.02 * len(res.edges)
+    # positions against the truth: a turned camera column is a tile row, its y a tile x
+    u = truth.projector_uv[..., 0].astype(np.float64)
+    interior = _interior(truth.visibility)
+    down = e.along_columns
+    col, y = np.round(e.x[down]).astype(int), e.y[down]
+    ya = np.floor(y).astype(int)
+    inner = interior[col, ya] & interior[col, np.minimum(ya + 1, u.shape[1] - 1)]
+    truth_y = _truth_crossings(u, col, y, e.projector_column[down])
+    err = (y - truth_y)[inner]
+    assert inner.sum() > 5000 and np.isfinite(err).all()
+    assert float(np.sqrt(np.mean(err**2))) < 0.1
+
+
+def test_oblique_boundaries_are_measured_once():
+    # stripes at about 60 degrees from vertical: columns cross them more steeply than rows
+    h, w = 70, 70  # u below 64, the projector width
+    yy, xx = np.mgrid[0:h, 0:w].astype(float)
+    u = 0.3 * xx + 0.52 * yy + 1.0  # boundary direction: dx/dy = -1.73
+    bits = 6
+    descs = graycode.generate(64, 32)
+    images = {}
+    for d in descs:
+        fine = np.linspace(-0.5, 0.5, 9)
+        on = np.mean([(graycode.gray(np.floor(u + 0.3 * fx + 0.52 * fy + 0.5).astype(np.int64))
+                       >> (bits - 1 - d.params["bit"])) & 1 for fx in fine for fy in fine], axis=0)
+        level = 0.05 + 0.55 * (1 - on if d.params["inverse"] else on)
+        images[d.id] = np.rint(level * 255).astype(np.uint8)
+    white, black = np.full((h, w), 153, np.uint8), np.full((h, w), 13, np.uint8)
+    res = decode_gray_images(images, descs, white, black)
+    e = res.edges
+    assert e.along_columns.mean() > 0.95
+    # no boundary point measured along both axes: no row sample near a column sample
+    down = e.along_columns
+    xy = e.pixels()
+    for i in np.flatnonzero(~down):
+        same = down & (e.stripe == e.stripe[i])
+        assert not np.any(np.hypot(*(xy[same] - xy[i]).T) < 1.5)
+    # and they lie on their boundaries: u(x, y) = projector column
+    u_at = 0.3 * xy[:, 0] + 0.52 * xy[:, 1] + 1.0  # within 0.1 px (a 1 px box blur, linear interpolation)
+    np.testing.assert_allclose(u_at, e.projector_column, atol=0.06)
+
+
+def _drop_bits(images, descs, axis: str, bits: set[int]):
+    keep = [d for d in descs if not (d.axis == axis and d.params["bit"] in bits)]
+    return {d.id: images[d.id] for d in keep}, keep
+
+
+def test_missing_low_bit_decodes_coarser(caplog):
+    images, descs, white, black = _synthetic(np.uint8, 1, rows=False)
+    full = decode_gray_images(images, descs, white, black)
+    images, descs = _drop_bits(images, descs, "columns", {5})
+    with caplog.at_level("WARNING"):
+        res = decode_gray_images(images, descs, white, black, where="v1")
+    assert res.bits_used == {"columns": (5, 6)}
+    assert "v1: Gray-code column bit(s) 5 missing" in caplog.text
+    decoded = res.column >= 0
+    assert decoded.mean() > 0.6
+    # the centre of the block of two columns holding the full decode
+    both = decoded & (full.column >= 0)
+    np.testing.assert_array_equal(res.column[both], (full.column[both] // 2) * 2 + 1)
+    e = res.edges
+    assert len(e) > 0 and np.all(e.projector_column % 2 == 1.5)  # only between blocks
+    assert np.array_equal(np.unique(np.diff(np.unique(e.stripe))), [1])  # neighbours
+    truth_x = (e.projector_column - B_U) / A_U
+    assert np.max(np.abs(e.x - truth_x)) < 0.01
+    # every full-resolution edge between blocks is there
+    between = full.edges.subset(full.edges.projector_column % 2 == 1.5)
+    assert len(e) == len(between)
+
+
+def test_missing_middle_bit_uses_the_leading_run(caplog):
+    images, descs, white, black = _synthetic(np.uint8, 1)
+    images, descs = _drop_bits(images, descs, "rows", {2})
+    assert len(gray_pairs(descs, "rows")) == 2  # no error for a wholly missing bit
+    with caplog.at_level("WARNING"):
+        res = decode_gray_images(images, descs, white, black)
+    assert res.bits_used == {"columns": (6, 6), "rows": (2, 5)}
+    assert "row bit(s) 2 missing" in caplog.text and "bits 3, 4 left unused" in caplog.text
+    v = A_V * np.arange(CAM[1]) + B_V
+    expected = np.floor(v + 0.5).astype(int) // 8 * 8 + 4
+    ok = res.row >= 0
+    assert ok.mean() > 0.8
+    assert (res.row == expected[:, None])[ok].mean() > 0.97
+    images2, descs2 = _drop_bits(images, descs, "columns", {0})
+    with pytest.raises(SlscanError, match="lack their most significant bit"):
+        decode_gray_images(images2, descs2, white, black)
+
+
+def _opencv_rule(images, descs, white, black, black_threshold=40, white_threshold=5):
+    """OpenCV GrayCodePattern's decode (computeShadowMasks + getProjPixel), grey uint8."""
+    valid = np.abs(white.astype(int) - black.astype(int)) > black_threshold
+    value = {}
+    for axis, size in (("columns", descs[0].width), ("rows", descs[0].height)):
+        pairs = gray_pairs(descs, axis)
+        code = np.zeros(white.shape, np.int64)
+        for pid, inv in pairs:
+            p, q = images[pid].astype(float), images[inv].astype(float)
+            valid &= ~(np.abs(p - q) < white_threshold)
+            code = code * 2 + (p > q)
+        value[axis] = graycode.inverse_gray(code)
+        valid &= value[axis] < size
+    return valid, value["columns"], value["rows"]
+
+
+def test_opencv_threshold_matches_the_opencv_rule():
+    images, descs, white, black = _synthetic(np.uint8, 1)
+    rng = np.random.default_rng(3)
+    noisy = {k: np.clip(v + rng.normal(0, 4, v.shape), 0, 255).astype(np.uint8) for k, v in images.items()}
+    white = (black + rng.integers(20, 90, white.shape)).astype(np.uint8)  # some under 40 DN
+    res = decode_gray_images(noisy, descs, white, black, threshold="opencv")
+    valid, col, row = _opencv_rule(noisy, descs, white, black)
+    assert 0.2 < valid.mean() < 0.95
+    np.testing.assert_array_equal(res.mask, valid)
+    np.testing.assert_array_equal(res.column[valid], col[valid])
+    np.testing.assert_array_equal(res.row[valid], row[valid])
+    d = res.diagnostics
+    assert d["threshold_mode"] == "opencv" and d["weak_bit_ratio"] == 0
+    assert d["lit"] + d["low_contrast"] == d["pixels"] == valid.size
+    assert d["lit"] == d["valid"] + d["weak_bit_noise"] + d["weak_bit_ratio"] + d["out_of_range"]
+    assert d["valid"] == valid.sum()
+
+
+def test_adaptive_diagnostics_say_what_limited_the_mask():
+    images, descs, white, black = _synthetic(np.uint8, 1)
+    white = white.copy()
+    white[:, :20] = black[:, :20]  # shadow
+    images = dict(images)  # a weak bit: 5 DN of swing, under 10 % of white - black (14 DN)
+    images["gray-col-05"] = images["gray-col-05"].copy()
+    images["gray-col-05"][:, 60:70] = images["gray-col-05-inv"][:, 60:70] + 5
+    res = decode_gray_images(images, descs, white, black, noise=2 / 255)
+    d = res.diagnostics
+    assert d["threshold_mode"] == "adaptive" and d["noise_dn"] == pytest.approx(2.0)
+    assert d["low_contrast"] >= 20 * CAM[1]
+    assert d["lit"] == d["valid"] + d["weak_bit_noise"] + d["weak_bit_ratio"] + d["out_of_range"]
+    assert d["valid"] == res.mask.sum()
+    assert d["weak_bit_ratio"] == 10 * CAM[1] and d["weak_bit_noise"] == 0
+    # a larger noise moves the blame to the noise term
+    noisy = decode_gray_images(images, descs, white, black, noise=40 / 255).diagnostics
+    assert noisy["weak_bit_noise"] > d["weak_bit_noise"] and noisy["valid"] < d["valid"]
+    with pytest.raises(SlscanError, match="unknown Gray-code threshold 'fixed'"):
+        decode_gray_images(images, descs, white, black, threshold="fixed")

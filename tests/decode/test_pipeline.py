@@ -91,3 +91,58 @@ def test_a_session_with_a_missing_image_writes_no_range_map(figurine, tmp_path):
     with pytest.raises(SlscanError, match="hybrid-03.png: image not found"):
         decode_session(load_session(copy, validate=False).root, tmp_path / "out")
     assert not (tmp_path / "out").exists()
+
+
+def test_gray_threshold_reaches_the_decoder(figurine, monkeypatch):
+    from slscan.decode import pipeline
+
+    seen = []
+    real = pipeline.decode_gray
+
+    def spy(session, view, **options):
+        seen.append(options)
+        return real(session, view, **options)
+
+    monkeypatch.setattr(pipeline, "decode_gray", spy)
+    res = decode_view(figurine, figurine.views[0], DecodeConfig(method="gray", gray_threshold="opencv"))
+    assert seen == [{"threshold": "opencv"}] and len(res.samples) > 1000
+    with pytest.raises(SlscanError, match="unknown gray_threshold 'fixed'"):
+        DecodeConfig(gray_threshold="fixed")
+
+
+def test_workers_fit_in_free_memory(figurine, caplog):
+    from types import SimpleNamespace
+
+    from slscan.decode.pipeline import fit_workers, view_memory_bytes
+    from slscan.executor import Executor
+
+    session = SimpleNamespace(views=[None] * 6, camera_size=figurine.camera_size,
+                              channels=figurine.channels, bit_depth=figurine.bit_depth)
+    per_view = view_memory_bytes(session)
+    w, h = figurine.camera_size
+    assert per_view > 75 * w * h
+    many = Executor(workers=8)
+    with caplog.at_level("INFO"):
+        cut = fit_workers(many, session, available=int(2.5 * per_view))
+    assert cut.workers == 2 and "decoding with 2 worker(s) instead of 6" in caplog.text
+    assert fit_workers(many, session, available=100 * per_view) is many
+    assert fit_workers(Executor(workers=1), session, available=0).workers == 1
+    dask = Executor(scheduler="tcp://localhost:8786")
+    assert fit_workers(dask, session, available=0) is dask
+
+
+def test_a_set_missing_low_bits_still_meshes(figurine):
+    import dataclasses
+
+    bits = next(p.params["bits"] for p in figurine.patterns if p.family == "gray")
+    drop = {bits - 1, bits - 2, bits - 3}  # edges 8 columns apart: beyond the 6-column bridge
+    session = dataclasses.replace(figurine, patterns=[
+        p for p in figurine.patterns
+        if not (p.family == "gray" and p.axis == "columns" and p.params["bit"] in drop)])
+    full = decode_view(figurine, figurine.views[0], DecodeConfig(method="gray"))
+    res = decode_view(session, session.views[0], DecodeConfig(method="gray"))
+    assert np.all(res.samples.projector_column % 8 == 7.5)
+    assert 0.12 < len(res.samples) / len(full.samples) < 0.4  # the finest edges were the weakest
+    assert res.range_map.n_faces > 0.12 * full.range_map.n_faces  # bridged 8x as far
+    d = _distance_to_truth(res.range_map.vertices, figurine.views[0].rig_from_object)
+    assert np.median(d) < 0.2

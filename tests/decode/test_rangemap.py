@@ -347,3 +347,23 @@ def test_tile_range_map(gray_tile_session, tmp_path: Path):
     assert np.all(np.abs(np.median(rm.colors, axis=0) - lit_white) < 10)
     back = read_ply(write_ply(rm, tmp_path / "tile.ply"))
     assert back.n_faces == rm.n_faces and back.view == view.name
+
+
+def test_samples_along_columns_mesh_on_their_own_grid():
+    # the flat grid turned: stripes along camera rows, found along camera columns
+    samples, points = _grid()
+    cols, stripes = samples.row.astype(float) + 100, samples.stripe
+    y = 50.0 + 2.0 * (stripes - 5) + 0.25
+    down = StripeSamples(
+        row=np.floor(y + 0.5).astype(np.int32), x=cols, projector_column=samples.projector_column,
+        stripe=stripes, contrast=samples.contrast, saturated=samples.saturated, y=y,
+        along_columns=np.ones(len(y), bool),
+    )
+    rm = _build(down, points)
+    assert rm.n_faces == FLAT_FACES and _facing_camera(rm).all()
+    # colour from the white image at the samples' own column (its value is x)
+    assert set(rm.colors[:, 0].tolist()) == set(cols.astype(int).tolist())
+    # mixed with the upright grid, the two are meshed apart
+    both = StripeSamples.concatenate([samples, down])
+    rm2 = _build(both, np.concatenate([points, points + [0, 0, 50]]))
+    assert rm2.n_faces == 2 * FLAT_FACES

@@ -170,3 +170,22 @@ def test_tile_points_on_plane_and_truth(tile):
     expected = gt[edges.row, xa] * (1 - f) + gt[edges.row, np.minimum(xa + 1, w - 1)] * f
     error = np.linalg.norm(points - expected, axis=1)[inner]
     assert np.median(error) < 0.35 and np.percentile(error, 99) < 0.6
+
+
+def test_samples_along_columns_use_their_subpixel_row():
+    rig = default_rig(scale=0.25)
+    k = 50
+    rng = np.random.default_rng(4)
+    x, y = rng.integers(20, 300, k).astype(float), rng.uniform(20, 200, k)
+    cols = rng.uniform(50, 200, k)
+    down = StripeSamples(
+        row=np.floor(y + 0.5).astype(np.int32), x=x, projector_column=cols,
+        stripe=np.arange(k, dtype=np.int32), contrast=np.ones(k, np.float32),
+        saturated=np.zeros(k, bool), y=y, along_columns=np.ones(k, bool),
+    )
+    planes = RigPlanes(rig.projector)
+    got = triangulate(down, rig.camera, planes)
+    rays = rig.camera.rays_local(np.stack([x, y], axis=1))
+    np.testing.assert_allclose(got, intersect_rays_planes(rays, planes.planes(cols)), rtol=1e-12)
+    # the rounded row would be up to half a pixel off
+    assert not np.allclose(got, triangulate(_samples(down.row, x, cols), rig.camera, planes))

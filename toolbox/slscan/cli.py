@@ -230,7 +230,8 @@ def _decode(session, out: Path, config, overwrite: bool, rec, quiet: bool, plane
     )
 
 
-def _decode_codes(session, out: Path, overwrite: bool, rec, quiet: bool, executor=None) -> None:
+def _decode_codes(session, out: Path, overwrite: bool, rec, quiet: bool, executor=None,
+                  threshold: str = "adaptive") -> None:
     """Projector codes only (a session without calibration)."""
     from slscan.decode.codes import decode_codes_session
     from slscan.executor import LOCAL
@@ -238,7 +239,7 @@ def _decode_codes(session, out: Path, overwrite: bool, rec, quiet: bool, executo
     t0 = time.perf_counter()
     with _ProgressBar(len(session.views), "decoding codes", quiet) as bar:
         results = decode_codes_session(session, out, overwrite=overwrite, rec=rec, progress=bar.step,
-                                       executor=executor or LOCAL)
+                                       executor=executor or LOCAL, threshold=threshold)
     elapsed = time.perf_counter() - t0
     _print_valid_shares([(r.view, r.valid_share) for r in results])
     _console().print(
@@ -260,7 +261,8 @@ def _cmd_decode(args: argparse.Namespace) -> int:
     from slscan.viewer.layouts import decode_blueprint
     from slscan.viewer.recording import recording_from_args
 
-    config = DecodeConfig(method=args.method, estimator=args.estimator, trim_line_ends=args.trim_line_ends)
+    config = DecodeConfig(method=args.method, estimator=args.estimator, trim_line_ends=args.trim_line_ends,
+                          gray_threshold=args.gray_threshold)
     session = load_session(args.session)
     codes = args.codes
     planes = None
@@ -286,7 +288,8 @@ def _cmd_decode(args: argparse.Namespace) -> int:
             if session.calibration is not None:
                 log_rig(rec, session.calibration)
         if codes_only:
-            _decode_codes(session, args.out, args.overwrite, rec, args.quiet, executor=executor_from_args(args))
+            _decode_codes(session, args.out, args.overwrite, rec, args.quiet, executor=executor_from_args(args),
+                          threshold=args.gray_threshold)
         else:
             _decode(session, args.out, config, args.overwrite, rec, args.quiet, planes=planes,
                     executor=executor_from_args(args), codes=codes)
@@ -542,6 +545,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also write each view's projector column/row maps: VIEW/columns.png, rows.png "
                         "(16-bit, 65535 = not decoded), mask.png and projector_codes.json (Gray-code "
                         "sets only; automatic, without range maps, when the session has no calibration)")
+    p.add_argument("--gray-threshold", choices=("adaptive", "opencv"), default="adaptive",
+                   help="Gray-code bit thresholds: adaptive (default: from the images' noise and "
+                        "contrast) or opencv (OpenCV GrayCodePattern's fixed 40 DN white-black, 5 DN per bit)")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--calibration", type=Path, metavar="CALIB.json",

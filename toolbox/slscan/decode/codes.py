@@ -141,6 +141,19 @@ def _from_diagnostics(diag: dict[str, Any], pixels: int, decoded: float) -> Vali
     Counts above 1 are pixel counts; otherwise they are taken as shares of the lit pixels
     (``lit`` then as a share of all pixels).
     """
+    if "pixels" in diag and "dark" in diag:  # the decoder's counts (GrayResult.diagnostics)
+        total = float(diag["pixels"])
+        lit_any = total - float(diag["dark"])  # passed the minimum contrast
+        share = (lambda v: float(v) / lit_any if lit_any else 0.0)
+        return ValidShare(
+            decoded=decoded,
+            lit=lit_any / total if total else 0.0,
+            noise_dn=float(diag["noise_dn"]),
+            low_contrast=share(float(diag["low_contrast"]) - float(diag["dark"])),
+            weak_bits=share(float(diag["weak_bit_noise"]) + float(diag["weak_bit_ratio"])),
+            out_of_range=share(diag["out_of_range"]),
+            source="decoder",
+        )
     lit = float(diag["lit"])
     counts = lit > 1
     per_lit = (lambda v: float(v) / lit if lit else 0.0) if counts else float
@@ -355,9 +368,9 @@ def read_codes(folder: str | os.PathLike, view: str | None = None) -> ProjectorC
 def _codes_task(task: tuple) -> tuple[ProjectorCodes, np.ndarray | None, np.ndarray | None, dict[str, Any], float]:
     """Decode one view and write its codes (runs in a worker process); the white capture
     and the saturation map come back only when they are to be logged."""
-    session, view_name, folder, images = task
+    session, view_name, folder, images, threshold = task
     t = time.perf_counter()
-    result = decode_gray(session, session.view(view_name))
+    result = decode_gray(session, session.view(view_name), threshold=threshold)
     codes = codes_from_gray(result, session, view_name)
     entry = write_view_codes(codes, Path(folder) / view_name)
     seconds = time.perf_counter() - t
@@ -372,12 +385,15 @@ def decode_codes_session(
     rec=None,
     progress: Callable[[str], None] | None = None,
     executor: Executor = LOCAL,
+    threshold: str = "adaptive",
 ) -> list[ProjectorCodes]:
     """Decode every view's Gray code into ``out/VIEW/{columns,rows,mask}.png`` and
     ``out/projector_codes.json``; no calibration needed, no range maps written.
 
     rec : an ``rr.RecordingStream`` for the white capture, the mask, the column and row maps
     executor : where the views are decoded (see :func:`slscan.decode.pipeline.decode_session`)
+    threshold : the Gray-code bit thresholds, ``"adaptive"`` or ``"opencv"``
+        (see :func:`slscan.decode.graycode.decode_gray_images`)
     """
     if not isinstance(session, Session):
         session = load_session(session)
@@ -388,7 +404,7 @@ def decode_codes_session(
     results = []
     with atomic_output_dir(out, overwrite=overwrite) as tmp:
         entries = []
-        tasks = [(session, view.name, tmp, rec is not None) for view in session.views]
+        tasks = [(session, view.name, tmp, rec is not None, threshold) for view in session.views]
         for index, (codes, white, saturated, entry, seconds) in enumerate(executor.map(_codes_task, tasks)):
             if rec is not None:
                 _log_view(rec, codes, index, white=white, saturated=saturated)

@@ -10,7 +10,20 @@ data (see :func:`estimate_noise`).
 The measured features are the stripe edges: along each camera row, where the decoded
 column steps from ``c`` to ``c + 1``, exactly one Gray-code bit flips, and the zero
 crossing of that bit's ``pattern - inverse`` (linearly interpolated between pixels) is the
-sub-pixel camera position of the projector plane ``u = c + 0.5``.
+sub-pixel camera position of the projector plane ``u = c + 0.5``. The same search runs
+along camera columns, and each boundary keeps the samples of the axis that crosses it
+more steeply, so a projector mounted rotated (stripes horizontal in the camera) gives as
+many edges as an upright one.
+
+Two threshold rules are offered: ``"adaptive"`` (the default, above) and ``"opencv"``,
+the fixed rule of OpenCV's ``structured_light::GrayCodePattern`` [3]_: a pixel is lit
+when ``|white - black| > black_threshold`` and every bit reads when
+``|pattern - inverse| >= white_threshold`` (DN; OpenCV's defaults 40 and 5).
+
+Memory: a view keeps, per column bit, only ``pattern - inverse`` (int16 for 8-bit
+captures); row bits are folded into the row code as they are read, the noise is
+estimated on a subsample while reading, and edges are searched in bands, so a 16 MP,
+42-image view decodes in about 1 GB (``benchmarks/decode_memory.py``).
 
 References
 ----------
@@ -19,13 +32,17 @@ References
    plain Gray-code stripes).
 .. [2] Inokuchi, Sato, Matsuda, "Range imaging system for 3-D object recognition",
    ICPR 1984 (Gray-coded structured light).
+.. [3] OpenCV, ``modules/structured_light/src/graycodepattern.cpp``
+   (``computeShadowMasks``, ``getProjPixel``).
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Hashable, Iterator, Mapping, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
+from typing import Self
 
 import numpy as np
 
@@ -41,7 +58,7 @@ from slscan.decode.masks import (
 from slscan.decode.samples import StripeSamples
 from slscan.errors import SlscanError
 from slscan.patterns import PatternImage
-from slscan.patterns.graycode import gray, inverse_gray
+from slscan.patterns.graycode import gray
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +66,22 @@ MAX_EDGE_GAP = 3
 """Largest gap (px) along a row between two valid pixels whose columns differ by one or
 two for the edges between them to be measured; the pixels in between (usually the ones
 right on an edge, where the flipping bit is too weak to read) only locate the crossing."""
+
+THRESHOLD_MODES = ("adaptive", "opencv")
+"""Threshold rules of :func:`decode_gray_images`."""
+
+OPENCV_BLACK_THRESHOLD = 40.0
+"""DN: OpenCV ``GrayCodePattern``'s default ``blackThreshold`` (``|white - black|`` must exceed it)."""
+
+OPENCV_WHITE_THRESHOLD = 5.0
+"""DN: OpenCV ``GrayCodePattern``'s default ``whiteThreshold`` (a bit whose
+``|pattern - inverse|`` is below it makes the pixel invalid)."""
+
+EDGE_BAND = 256
+"""Camera rows (columns) per band of the edge search: bounds its index arrays' memory."""
+
+PREFETCH = 2
+"""Captures :func:`decode_gray` reads ahead of the decoder (each is dropped once used)."""
 
 
 @dataclass(frozen=True)
@@ -58,13 +91,28 @@ class GrayResult:
     column : (h, w) int32 projector column, -1 where not decoded
     row : (h, w) int32 projector row, -1 where not decoded; None without row patterns
     mask : (h, w) bool, the column (and the row, when row patterns exist) decoded
-    edges : StripeSamples, sub-pixel stripe edges along camera rows (``stripe = c``,
-        ``projector_column = c + 0.5`` for the edge between columns ``c`` and ``c + 1``)
+    edges : StripeSamples, sub-pixel stripe edges (``projector_column = c + 0.5`` for the
+        edge between columns ``c`` and ``c + 1``), found along camera rows and, where
+        the stripes cross them more steeply, along camera columns
+        (``edges.along_columns``)
     contrast : (h, w) float32 white minus black, fraction of full scale
     saturated : (h, w) bool, some image of the set is clipped at this pixel
     noise : float, estimated standard deviation of ``pattern - inverse``, fraction of
         full scale
     white : the white capture as read, when decoded from a session (:func:`decode_gray`)
+    bits_used : ``{axis: (bits read, bits of the full code)}``; fewer bits read (a set
+        missing some) give coarser codes: the centre of a block of ``2**missing``
+        columns (rows), and edges only between blocks
+    diagnostics : what limited the valid share, in camera pixels: ``pixels``; ``lit``
+        (passed the contrast test); ``low_contrast`` (failed it: white - black too
+        small, shadow or background); ``dark`` (the part of ``low_contrast`` that
+        failed even the minimum contrast: background, shadow); ``weak_bit_noise`` and ``weak_bit_ratio`` (lit
+        but some bit's ``|pattern - inverse|`` under the threshold, whose binding term
+        was the noise term, or the share of ``white - black``; OpenCV's fixed
+        ``white_threshold`` counts as a noise term); ``out_of_range`` (every bit read,
+        code beyond the projector); ``valid`` (the mask); ``noise_dn`` (the noise in
+        DN of the captures) and ``threshold_mode``. ``lit = valid + weak_bit_noise +
+        weak_bit_ratio + out_of_range``.
     """
 
     column: np.ndarray
@@ -75,6 +123,8 @@ class GrayResult:
     saturated: np.ndarray
     noise: float
     white: np.ndarray | None = None
+    bits_used: dict[str, tuple[int, int]] = field(default_factory=dict)
+    diagnostics: dict[str, float | int | str] = field(default_factory=dict)
 
     @property
     def valid_fraction(self) -> float:
@@ -85,15 +135,37 @@ class GrayResult:
 # --- pattern bookkeeping ------------------------------------------------------------------
 
 
-def gray_pairs(descs: Sequence[PatternImage], axis: str) -> list[tuple[str, str]]:
-    """The ``(pattern id, inverse id)`` of each bit along ``axis``, most significant first.
+@dataclass(frozen=True)
+class GrayBits:
+    """The Gray-code bits of one axis in a pattern set.
 
-    Returns an empty list when the set has no Gray code along ``axis``.
+    bits : bits of the full code
+    pairs : ``(pattern id, inverse id)`` of the bits decoding uses: the leading run of
+        bits present, most significant first
+    missing : indices of the bits absent from the set
+    unused : indices of bits present after the first missing one (not used: without the
+        missing bit they cannot refine the code)
+    """
+
+    bits: int
+    pairs: tuple[tuple[str, str], ...]
+    missing: tuple[int, ...]
+    unused: tuple[int, ...]
+
+    @property
+    def coarse(self) -> int:
+        """Low bits not read: a code names a block of ``2**coarse`` columns (rows)."""
+        return self.bits - len(self.pairs)
+
+
+def gray_bits(descs: Sequence[PatternImage], axis: str) -> GrayBits:
+    """The Gray-code bits along ``axis`` of a pattern set (``bits == 0``: none).
 
     Raises
     ------
     SlscanError
-        When a bit lacks its pattern or its inverse, or the bit counts disagree.
+        When a bit has its pattern but not its inverse (or the reverse), two patterns
+        claim the same bit, or the bit counts disagree.
     """
     found: dict[tuple[int, bool], str] = {}
     bits_seen = set()
@@ -124,45 +196,145 @@ def gray_pairs(descs: Sequence[PatternImage], axis: str) -> list[tuple[str, str]
         found[key] = d.id
         bits_seen.add(bits)
     if not found:
-        return []
+        return GrayBits(0, (), (), ())
     if len(bits_seen) != 1:
         raise SlscanError(
             f"Gray-code {axis} patterns disagree on the number of bits: {sorted(bits_seen)}"
         )
     bits = bits_seen.pop()
-    pairs = []
+    present = []
     for bit in range(bits):
-        for inverse in (False, True):
-            if (bit, inverse) not in found:
-                other = found.get((bit, not inverse), "?")
-                what = "inverse" if inverse else "pattern"
-                raise SlscanError(
-                    f"Gray-code {axis} bit {bit} has no {what} image (its partner is {other!r}); "
-                    "decoding needs every bit as a (pattern, inverse) pair"
-                )
-        pairs.append((found[(bit, False)], found[(bit, True)]))
-    return pairs
+        have = [(bit, inverse) in found for inverse in (False, True)]
+        if have[0] != have[1]:
+            inverse = not have[1]
+            what = "inverse" if inverse else "pattern"
+            raise SlscanError(
+                f"Gray-code {axis} bit {bit} has no {what} image (its partner is "
+                f"{found[(bit, not inverse)]!r}); decoding needs every bit as a "
+                "(pattern, inverse) pair"
+            )
+        if have[0]:
+            present.append(bit)
+    missing = tuple(b for b in range(bits) if b not in present)
+    lead = next(iter(missing), bits)
+    pairs = tuple((found[(b, False)], found[(b, True)]) for b in range(lead))
+    return GrayBits(bits, pairs, missing, tuple(b for b in present if b > lead))
+
+
+def gray_pairs(descs: Sequence[PatternImage], axis: str) -> list[tuple[str, str]]:
+    """The ``(pattern id, inverse id)`` of the bits along ``axis`` that decoding uses, most
+    significant first: every bit, or the leading run of bits present when some are missing
+    (see :func:`gray_bits`).
+
+    Returns an empty list when the set has no Gray code along ``axis`` (or lacks its
+    most significant bit).
+
+    Raises
+    ------
+    SlscanError
+        When a bit has its pattern but not its inverse (or the reverse), or the bit
+        counts disagree.
+    """
+    return list(gray_bits(descs, axis).pairs)
 
 
 class _Reader:
-    """Turns captures into grey float32 images in fractions of full scale, tracking clipping."""
+    """Reads captures of one view: grey levels, their fractions of full scale and clipping."""
 
     def __init__(self, white: np.ndarray, where: str) -> None:
         self.white, self.where = white, where
         self.scale = full_scale(np.empty(0, white.dtype), where)
+        self.channels = 1 if white.ndim == 2 else white.shape[2]
         self.saturated = np.zeros(white.shape[:2], bool)
         self.box = (slice(None), slice(None))  # the part of each image returned
+        # integer captures are kept as levels (the channel sum, in the smallest integer
+        # type that holds it: 1 byte a pixel for 8-bit grey) and turned into the same
+        # float32 fractions as channel_mean gives through a lookup table; float
+        # captures are kept as their float32 fractions (lut None)
+        self.lut = None
+        self.level_dtype = np.float32
+        self.dn = self.scale if white.dtype != np.float32 and white.dtype != np.float64 else 255.0
+        if white.dtype in (np.uint8, np.uint16):
+            top = int(self.scale) * self.channels
+            self.level_dtype = next(t for t in (np.uint8, np.uint16, np.uint32) if top <= np.iinfo(t).max)
+            lut = np.arange(top + 1, dtype=np.float32)
+            if self.channels > 1:
+                lut *= np.float32(1.0 / self.channels)
+            lut *= np.float32(1.0 / self.scale)
+            self.lut = lut
+
+    def check(self, image: np.ndarray, name: str) -> np.ndarray:
+        """``image`` cropped to the box, its clipping recorded (an error naming it when
+        it does not match the white frame)."""
+        image = like_white(image, self.white, name, self.where)[self.box]
+        self.saturated[self.box] |= channel_max(image) >= self.scale
+        return image
 
     def __call__(self, image: np.ndarray, name: str) -> np.ndarray:
-        image = like_white(image, self.white, name, self.where)
-        image = image[self.box]
-        self.saturated[self.box] |= channel_max(image) >= self.scale
-        grey = channel_mean(image)
+        """Grey float32 image in fractions of full scale."""
+        grey = channel_mean(self.check(image, name))
         grey *= np.float32(1.0 / self.scale)
         return grey
 
+    def levels(self, image: np.ndarray, name: str) -> np.ndarray:
+        """Levels of a capture on the box: channel sums (integer captures, ``level_dtype``)
+        or grey fractions (float captures); :meth:`fraction` turns them into fractions."""
+        image = self.check(image, name)
+        if self.lut is None:
+            grey = channel_mean(image)
+            grey *= np.float32(1.0 / self.scale)
+            return grey
+        if image.ndim == 2:
+            return np.array(image, self.level_dtype)
+        out = image[..., 0].astype(self.level_dtype)
+        for c in range(1, image.shape[2]):
+            out += image[..., c]
+        return out
+
+    def fraction(self, levels: np.ndarray) -> np.ndarray:
+        """Grey float32 fractions of full scale of ``levels``, exactly as ``__call__``."""
+        return levels if self.lut is None else self.lut[levels]
+
+    def level_threshold(self, dn: float) -> float:
+        """A threshold in DN of the grey captures, in level units."""
+        return dn * self.channels if self.lut is not None else dn / self.dn
+
+
+class _BitDiffs:
+    """``pattern - inverse`` of each bit, fractions of full scale, indexed like a (bits, h,
+    w) array (``d[k, rows, cols]``) but stored as the two captures' levels."""
+
+    def __init__(self, read: _Reader, pattern: np.ndarray, inverse: np.ndarray) -> None:
+        self.read, self.pattern, self.inverse = read, pattern, inverse
+
+    def __len__(self) -> int:
+        return len(self.pattern)
+
+    def __getitem__(self, index) -> np.ndarray:
+        f = self.read.fraction
+        return f(self.pattern[index]) - f(self.inverse[index])
+
+    def rows(self, sl: slice) -> _BitDiffs:
+        return _BitDiffs(self.read, self.pattern[:, sl], self.inverse[:, sl])
+
+    @property
+    def T(self) -> _BitDiffs:
+        return _BitDiffs(self.read, self.pattern.transpose(0, 2, 1), self.inverse.transpose(0, 2, 1))
+
 
 # --- decoding -------------------------------------------------------------------------------
+
+
+def _mad_sigma(resid: np.ndarray) -> float:
+    mad = float(np.median(np.abs(resid - np.median(resid))))
+    return 1.4826 * mad / np.sqrt(2.0)
+
+
+def _noise_index(where: np.ndarray, bits: int) -> np.ndarray:
+    """Flat indices of the ``where`` pixels the noise estimate uses (about 200 000 residuals)."""
+    # 200 000 residuals fix the MAD to about 0.3 %
+    step = max(1, int(where.sum()) * bits // 200_000)
+    return np.flatnonzero(where)[::step]
 
 
 def estimate_noise(pattern_sums: np.ndarray, flat_sum: np.ndarray, where: np.ndarray) -> float:
@@ -175,30 +347,22 @@ def estimate_noise(pattern_sums: np.ndarray, flat_sum: np.ndarray, where: np.nda
 
     The residual has about twice the variance of ``pattern - inverse``; a median absolute
     deviation keeps camera non-linearity at mid-grey pixels from inflating it.
+    (:func:`decode_gray_images` computes the same on the subsample only, as it reads.)
     """
     if not where.any():
         return 0.0
-    # 200 000 residuals fix the MAD to about 0.3 %
-    step = max(1, int(where.sum()) * len(pattern_sums) // 200_000)
-    idx = np.flatnonzero(where)[::step]
+    idx = _noise_index(where, len(pattern_sums))
     resid = pattern_sums.reshape(len(pattern_sums), -1)[:, idx] - flat_sum.reshape(-1)[idx]
-    mad = float(np.median(np.abs(resid - np.median(resid))))
-    return 1.4826 * mad / np.sqrt(2.0)
+    return _mad_sigma(resid)
 
 
-def _decode_axis(
-    diffs: np.ndarray, size: int, lit: np.ndarray, threshold: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Values (h, w) int32 (-1 where unread) and validity from bit differences (bits, h, w)."""
-    bits = len(diffs)
-    code = np.zeros(diffs.shape[1:], np.int64)
-    valid = lit.copy()
-    for k in range(bits):
-        code |= (diffs[k] > 0).astype(np.int64) << (bits - 1 - k)
-        valid &= np.abs(diffs[k]) > threshold
-    value = inverse_gray(code)
-    valid &= value < size
-    return np.where(valid, value, -1).astype(np.int32), valid
+def _gray_to_value(code: np.ndarray) -> np.ndarray:
+    """Binary values of reflected-binary ``code`` (int32), in place."""
+    shift = code >> 1
+    while shift.any():
+        code ^= shift
+        shift >>= 1
+    return code
 
 
 def _edges(
@@ -217,6 +381,8 @@ def _edges(
     boundary ``c | c + 1`` in between is located at the first sign change, walking from
     the first pixel, of the bit that flips there (a different bit for each of two
     consecutive boundaries), interpolated linearly between the two pixels around it.
+    ``diffs`` : (bits, h, w) ``pattern - inverse``, fractions of full scale (an array or
+    :class:`_BitDiffs`). Run on transposed arrays, it searches along camera columns.
     """
     w = column.shape[1]
     bits = len(diffs)
@@ -272,17 +438,100 @@ def _edges(
     )
 
 
+def _edges_banded(column, valid, lit, diffs: _BitDiffs, white, saturated, max_gap, band=EDGE_BAND):
+    """:func:`_edges` band by band of rows (each row's edges depend on that row alone)."""
+    parts = []
+    for r0 in range(0, column.shape[0], band):
+        r1 = min(column.shape[0], r0 + band)
+        s = _edges(column[r0:r1], valid[r0:r1], lit[r0:r1], diffs.rows(slice(r0, r1)),
+                   white[r0:r1], saturated[r0:r1], max_gap)
+        parts.append(s.shifted(r0, 0))
+    return StripeSamples.concatenate(parts)
+
+
+def _nearest_on(line: np.ndarray, pos: np.ndarray, stripe: np.ndarray,
+                q_line: np.ndarray, q_pos: np.ndarray, q_stripe: np.ndarray) -> np.ndarray:
+    """(q,) distance along the line from each query ``(q_line, q_pos, q_stripe)`` to the
+    nearest sample ``(line, pos, stripe)`` of the same stripe on line ``q_line`` (inf: none)."""
+    best = np.full(len(q_line), np.inf)
+    if len(line) == 0 or len(q_line) == 0:
+        return best
+    lo = min(int(np.min(line)), int(np.min(q_line))) - 1
+    s_lo = min(int(np.min(stripe)), int(np.min(q_stripe)))
+    span = max(int(np.max(line)), int(np.max(q_line))) - lo + 2
+    key = (np.asarray(stripe, np.int64) - s_lo) * span + (np.asarray(line, np.int64) - lo)
+    q_key = (np.asarray(q_stripe, np.int64) - s_lo) * span + (np.asarray(q_line, np.int64) - lo)
+    n = len(line) + len(q_line)
+    rank = np.empty(n, np.int64)  # positions by rank, shared by samples and queries
+    rank[np.argsort(np.concatenate([pos, q_pos]), kind="stable")] = np.arange(n)
+    comp = key * n + rank[: len(line)]
+    order = np.argsort(comp)
+    sorted_comp, sorted_key = comp[order], key[order]
+    at = np.searchsorted(sorted_comp, q_key * n + rank[len(line):])
+    for cand in (at - 1, at):
+        c = np.clip(cand, 0, len(line) - 1)
+        same = (cand >= 0) & (cand < len(line)) & (sorted_key[c] == q_key)
+        np.minimum(best, np.where(same, np.abs(pos[order[c]] - q_pos), np.inf), out=best)
+    return best
+
+
+def _both_axes(rows_found: StripeSamples, cols_found: StripeSamples) -> StripeSamples:
+    """Edges found along rows and along columns (``cols_found`` with ``row`` the camera
+    column, ``x`` the sub-pixel camera row), each boundary by the axis crossing it more
+    steeply: along rows where the same boundary's nearest samples in the rows just above
+    or below are within 1 px in x, along columns where those in the columns just left or
+    right are within less than 1 px in y (at 45 degrees, rows win). A sample with no
+    neighbour on either side stays unless the other axis has a sample of the same
+    boundary within 1 px of it."""
+    def steep(s: StripeSamples) -> np.ndarray:
+        near = np.minimum(*(_nearest_on(s.row, s.x, s.stripe, s.row + d, s.x, s.stripe)
+                            for d in (-1, 1)))
+        return near
+
+    h_near, v_near = steep(rows_found), steep(cols_found)
+    h_keep, v_keep = h_near <= 1.0, v_near < 1.0
+    # lone samples: kept unless the other axis has the same boundary right there
+    lone = np.flatnonzero(np.isinf(h_near))
+    s = rows_found
+    other = np.minimum(*(_nearest_on(cols_found.row, cols_found.x, cols_found.stripe,
+                                     np.floor(s.x[lone]).astype(np.int64) + d, s.row[lone].astype(float),
+                                     s.stripe[lone]) for d in (0, 1)))
+    h_keep[lone] = other > 1.0
+    lone = np.flatnonzero(np.isinf(v_near))
+    s = cols_found
+    other = np.minimum(*(_nearest_on(rows_found.row, rows_found.x, rows_found.stripe,
+                                     np.floor(s.x[lone]).astype(np.int64) + d, s.row[lone].astype(float),
+                                     s.stripe[lone]) for d in (0, 1)))
+    v_keep[lone] = other > 1.0
+    rows_found, cols_found = rows_found.subset(h_keep), cols_found.subset(v_keep)
+    if len(cols_found) == 0:
+        return rows_found
+    y = cols_found.x
+    turned = StripeSamples(
+        row=np.floor(y + 0.5).astype(np.int32), x=cols_found.row.astype(np.float64),
+        projector_column=cols_found.projector_column, stripe=cols_found.stripe,
+        contrast=cols_found.contrast, saturated=cols_found.saturated, y=y,
+        along_columns=np.ones(len(y), bool),
+    )
+    both = StripeSamples.concatenate([rows_found.with_y(), turned])
+    return both.subset(np.lexsort((both.x, both.row)))
+
+
 def decode_gray_images(
     images: Mapping[str, np.ndarray],
     descs: Sequence[PatternImage],
     white: np.ndarray,
     black: np.ndarray,
     *,
+    threshold: str = "adaptive",
     min_contrast: float = 0.03,
     min_bit_ratio: float = 0.1,
     noise_sigmas: float = 3.0,
     noise: float | None = None,
+    black_threshold: float = OPENCV_BLACK_THRESHOLD,
+    white_threshold: float = OPENCV_WHITE_THRESHOLD,
     max_edge_gap: int = MAX_EDGE_GAP,
+    edge_axes: str = "both",
     where: str = "",
 ) -> GrayResult:
     """Decode one view's Gray-code captures into projector columns (rows) and stripe edges.
@@ -290,10 +539,20 @@ def decode_gray_images(
     Parameters
     ----------
     images : mapping of pattern id to (h, w) or (h, w, 3) uint8/uint16 captures
-        At least every Gray-code pattern of ``descs``; other entries are ignored. RGB
-        captures are read as the mean of their channels.
-    descs : the session's pattern descriptions; only ``family == "gray"`` ones are used
+        At least every Gray-code pattern of ``descs`` that is used; other entries are
+        ignored, and each is read once, in the order column bits then row bits (pattern,
+        inverse), so a mapping that reads on demand and forgets keeps memory bounded.
+        RGB captures are read as the mean of their channels.
+    descs : the session's pattern descriptions; only ``family == "gray"`` ones are used.
+        A set missing some bits decodes with the leading run of bits present (a warning
+        names the missing ones; see ``GrayResult.bits_used``).
     white, black : (h, w) or (h, w, 3) captures under full white and full black
+    threshold : {"adaptive", "opencv"}
+        ``"adaptive"``: ``white - black`` must exceed ``min_contrast`` and every bit's
+        ``|pattern - inverse|`` both ``min_bit_ratio`` of ``white - black`` and
+        ``noise_sigmas`` noise deviations. ``"opencv"``: OpenCV ``GrayCodePattern``'s
+        fixed rule, ``|white - black| > black_threshold`` and every bit's
+        ``|pattern - inverse| >= white_threshold``, in DN of the captures.
     min_contrast : float
         ``white - black`` must exceed this fraction of full scale (shadow, background).
     min_bit_ratio : float
@@ -303,24 +562,28 @@ def decode_gray_images(
     noise : float, optional
         That standard deviation, fraction of full scale; default: estimated from the
         images (:func:`estimate_noise`), at least the quantisation noise.
+    black_threshold, white_threshold : float, DN
+        The ``"opencv"`` rule's thresholds (OpenCV's defaults 40 and 5).
     max_edge_gap : int, px
         Measure the edges between valid pixels up to this far apart along a row whose
         columns differ by one or two (the pixels between must pass ``min_contrast``);
         pixels right on an edge are often invalid, their flipping bit being too weak.
+    edge_axes : {"both", "rows"}
+        Search edges along camera rows and columns (each boundary keeps the samples of
+        the axis crossing it more steeply), or along rows only (as before).
     where : str
         Prefix for error messages (e.g. the view folder).
 
     Returns
     -------
     GrayResult
-        Decoded columns (and rows when the set has row codes), the validity mask and the
-        sub-pixel stripe edges (one sample per camera row and column boundary crossed,
-        sorted by row then x; a row that crosses the same boundary twice gives two).
-        ``contrast`` of an edge sample is ``|d(xa)| + |d(xa + 1)|`` over
-        ``white(xa) + white(xa + 1)``, with ``d`` the flipping bit's ``pattern - inverse``
-        at the two pixels around the crossing (1 for a step right between two pixels
-        with no black level; blur and black lower it); ``saturated`` marks a clipped
-        image at either pixel.
+        Decoded columns (and rows when the set has row codes), the validity mask, what
+        limited it (``diagnostics``) and the sub-pixel stripe edges (sorted by row then
+        x; a row that crosses the same boundary twice gives two). ``contrast`` of an
+        edge sample is ``|d(xa)| + |d(xa + 1)|`` over ``white(xa) + white(xa + 1)``,
+        with ``d`` the flipping bit's ``pattern - inverse`` at the two pixels around the
+        crossing (1 for a step right between two pixels with no black level; blur and
+        black lower it); ``saturated`` marks a clipped image at either pixel.
 
     Raises
     ------
@@ -329,15 +592,35 @@ def decode_gray_images(
         images of mismatched size or pixel type (naming the pattern).
     """
     where = f"{where}: " if where and not where.endswith(": ") else where
-    col_pairs = gray_pairs(descs, "columns")
-    row_pairs = gray_pairs(descs, "rows")
-    if not col_pairs:
+    if threshold not in THRESHOLD_MODES:
+        raise SlscanError(
+            f"{where}unknown Gray-code threshold {threshold!r}: expected one of "
+            f"{', '.join(THRESHOLD_MODES)}"
+        )
+    if edge_axes not in ("both", "rows"):
+        raise SlscanError(f"{where}edge_axes must be 'both' or 'rows', got {edge_axes!r}")
+    col_bits, row_bits = gray_bits(descs, "columns"), gray_bits(descs, "rows")
+    if not col_bits.pairs:
+        if col_bits.bits:
+            raise SlscanError(
+                f"{where}the Gray-code column patterns lack their most significant bit 0: "
+                "nothing to decode"
+            )
         raise SlscanError(f"{where}the pattern set has no Gray-code column patterns to decode")
+    for axis, b in (("column", col_bits), ("row", row_bits)):
+        if b.missing:
+            log.warning(
+                "%sGray-code %s bit(s) %s missing: decoding the %d leading bits of %d, "
+                "%ss to blocks of %d%s", where, axis, ", ".join(map(str, b.missing)),
+                len(b.pairs), b.bits, axis, 2**b.coarse,
+                f" (bits {', '.join(map(str, b.unused))} left unused)" if b.unused else "",
+            )
     width = height = None
     for d in descs:
         if d.family == "gray":
             width, height = d.width, d.height
             break
+    col_pairs, row_pairs = list(col_bits.pairs), list(row_bits.pairs)
     for pid in (p for pair in col_pairs + row_pairs for p in pair):
         if pid not in images:
             raise SlscanError(f"{where}no captured image of Gray-code pattern {pid!r}")
@@ -350,48 +633,133 @@ def decode_gray_images(
     read = _Reader(white, where)
     w_img, b_img = read(white, "white"), read(black, "black")
     full_contrast = w_img - b_img
-    full_lit = full_contrast > min_contrast
+    if threshold == "opencv":  # on the levels: no rounding at ties (white - black = 40 DN)
+        wl, bl = read.levels(white, "white"), read.levels(black, "black")
+        if read.lut is not None:
+            wl, bl = wl.astype(np.int64), bl.astype(np.int64)
+        full_lit = np.abs(wl - bl) > read.level_threshold(black_threshold)
+        del wl, bl
+    else:
+        full_lit = full_contrast > min_contrast
     # the rest runs on the lit pixels' bounding box: outside it nothing decodes
     read.box = box = lit_bounds(full_lit, max_edge_gap + 2)
     y0, x0 = box[0].start, box[1].start
     w_img, b_img, contrast, lit = w_img[box], b_img[box], full_contrast[box], full_lit[box]
+    # the noise estimate's subsample of lit pixels (as estimate_noise picks it)
+    idx = _noise_index(lit, len(col_pairs))
+    iy, ix = np.divmod(idx, lit.shape[1])
+    flat_sub = w_img[iy, ix] + b_img[iy, ix]
+    del b_img
 
-    def load(pairs: list[tuple[str, str]]) -> tuple[np.ndarray, np.ndarray]:
-        diffs = np.empty((len(pairs),) + contrast.shape, np.float32)
-        sums = np.empty_like(diffs)
-        for k, (pid, inv) in enumerate(pairs):
-            p, q = read(images[pid], pid), read(images[inv], inv)
-            np.subtract(p, q, out=diffs[k])
-            np.add(p, q, out=sums[k])
-        return diffs, sums
-
-    col_diffs, col_sums = load(col_pairs)
+    # column bits: both captures' levels kept (1 byte a pixel each for 8-bit grey), for
+    # the thresholds once the noise is known and for the edges; the noise residual read
+    # on the subsample as they come
+    shape = (len(col_pairs),) + contrast.shape
+    col_diffs = _BitDiffs(read, np.empty(shape, read.level_dtype), np.empty(shape, read.level_dtype))
+    sub_sums = np.empty((len(col_pairs), len(idx)), np.float32)
+    for k, (pid, inv) in enumerate(col_pairs):
+        col_diffs.pattern[k] = read.levels(images[pid], pid)
+        col_diffs.inverse[k] = read.levels(images[inv], inv)
+        sub_sums[k] = read.fraction(col_diffs.pattern[k, iy, ix]) + read.fraction(
+            col_diffs.inverse[k, iy, ix])
+    estimated = _mad_sigma(sub_sums - flat_sub) if len(idx) else 0.0
+    del sub_sums, flat_sub
     if noise is not None:
         sigma = float(noise)
     else:  # at least the quantisation noise of a difference of two images (0.41 DN)
-        sigma = max(estimate_noise(col_sums, w_img + b_img, lit), np.sqrt(2 / 12) / read.scale)
-    del col_sums
-    threshold = np.maximum(min_bit_ratio * contrast, np.float32(noise_sigmas * sigma))
-    lit &= contrast > threshold  # a pixel must at least carry a readable signal
-    column, col_valid = _decode_axis(col_diffs, width, lit, threshold)
-    row = None
-    mask = col_valid
-    if row_pairs:
-        row_diffs, _ = load(row_pairs)
-        row, row_valid = _decode_axis(row_diffs, height, lit, threshold)
-        mask = col_valid & row_valid
-        del row_diffs
-    edges = _edges(column, col_valid, lit, col_diffs, w_img, read.saturated[box], max_edge_gap)
-    edges = edges.shifted(y0, x0)
-    column, mask = uncrop(column, box, full_lit.shape, -1), uncrop(mask, box, full_lit.shape, False)
-    row = None if row is None else uncrop(row, box, full_lit.shape, -1)
+        sigma = max(estimated, np.sqrt(2 / 12) / read.scale)
+
+    ratio_binds = None
+    if threshold == "opencv":
+        level_threshold = read.level_threshold(white_threshold)
+
+        def strong(pattern: np.ndarray, inverse: np.ndarray) -> np.ndarray:
+            if read.lut is None:
+                return np.abs(pattern - inverse) >= level_threshold
+            return np.abs(pattern.astype(np.int64) - inverse) >= level_threshold
+    else:
+        noise_term = np.float32(noise_sigmas * sigma)
+        ratio_term = min_bit_ratio * contrast
+        ratio_binds = ratio_term > noise_term
+        bit_threshold = np.maximum(ratio_term, noise_term)
+        del ratio_term
+        lit &= contrast > bit_threshold  # a pixel must at least carry a readable signal
+
+        def strong(pattern: np.ndarray, inverse: np.ndarray) -> np.ndarray:
+            return np.abs(read.fraction(pattern) - read.fraction(inverse)) > bit_threshold
+
+    def start() -> tuple[np.ndarray, np.ndarray]:
+        return np.zeros(contrast.shape, np.int32), np.ones(contrast.shape, bool)
+
+    def add_bit(code: np.ndarray, ok: np.ndarray, pattern: np.ndarray, inverse: np.ndarray) -> None:
+        code <<= 1
+        np.bitwise_or(code, pattern > inverse, out=code)  # the same sign as the fractions'
+        ok &= strong(pattern, inverse)
+
+    col_code, col_strong = start()
+    for k in range(len(col_pairs)):
+        add_bit(col_code, col_strong, col_diffs.pattern[k], col_diffs.inverse[k])
+    col_value = _gray_to_value(col_code)
+    col_in = col_value < -(-width // 2**col_bits.coarse)
+    col_valid = lit & col_strong & col_in
+    all_strong, in_range = col_strong, col_in
+    row_value = row_valid = None
+    if row_pairs:  # row bits: folded into the code as they are read
+        row_code, row_strong = start()
+        for pid, inv in row_pairs:
+            add_bit(row_code, row_strong, read.levels(images[pid], pid), read.levels(images[inv], inv))
+        row_value = _gray_to_value(row_code)
+        row_in = row_value < -(-height // 2**row_bits.coarse)
+        row_valid = lit & row_strong & row_in
+        all_strong, in_range = col_strong & row_strong, col_in & row_in
+    mask = lit & all_strong & in_range
+
+    weak = lit & ~all_strong
+    n_lit = int(lit.sum())
+    n_weak = int(weak.sum())
+    n_weak_ratio = 0 if ratio_binds is None else int((weak & ratio_binds).sum())
+    diagnostics = {
+        "threshold_mode": threshold,
+        "noise_dn": float(sigma * read.scale),
+        "pixels": int(full_lit.size),
+        "lit": n_lit,
+        "low_contrast": int(full_lit.size) - n_lit,
+        "dark": int(full_lit.size) - int(full_lit.sum()),
+        "weak_bit_noise": n_weak - n_weak_ratio,
+        "weak_bit_ratio": n_weak_ratio,
+        "out_of_range": int((lit & all_strong & ~in_range).sum()),
+        "valid": int(mask.sum()),
+    }
+    del weak, all_strong, in_range, ratio_binds
+
+    saturated = read.saturated[box]
+    edges = _edges_banded(col_value, col_valid, lit, col_diffs, w_img, saturated, max_edge_gap)
+    if edge_axes == "both":
+        across = _edges_banded(col_value.T, col_valid.T, lit.T, col_diffs.T, w_img.T, saturated.T,
+                               max_edge_gap)
+        edges = _both_axes(edges, across)
+    del col_diffs
+    edges = _coarse_edges(edges, col_bits.coarse).shifted(y0, x0)
+
+    def to_map(value: np.ndarray, valid: np.ndarray, coarse: int, size: int) -> np.ndarray:
+        if coarse:  # the centre of the block of 2**coarse
+            value = np.minimum((value << coarse) + (1 << (coarse - 1)), size - 1)
+        return uncrop(np.where(valid, value, -1).astype(np.int32), box, full_lit.shape, -1)
+
+    column = to_map(col_value, col_valid, col_bits.coarse, width)
+    row = None if row_value is None else to_map(row_value, row_valid, row_bits.coarse, height)
+    mask = uncrop(mask, box, full_lit.shape, False)
     log.debug(
-        "%sGray code: %.1f%% pixels decoded, %d edges, noise %.4f of full scale",
+        "%sGray code: %.1f%% pixels decoded, %d edges (%d along columns), noise %.2f DN",
         where,
         100 * mask.mean(),
         len(edges),
-        sigma,
+        0 if edges.along_columns is None else int(edges.along_columns.sum()),
+        sigma * read.scale,
     )
+    bits_used = {"columns": (len(col_pairs), col_bits.bits)}
+    if row_bits.bits:
+        bits_used["rows"] = (len(row_pairs), row_bits.bits)
     return GrayResult(
         column=column,
         row=row,
@@ -400,13 +768,75 @@ def decode_gray_images(
         contrast=full_contrast,
         saturated=read.saturated,
         noise=sigma,
+        bits_used=bits_used,
+        diagnostics=diagnostics,
     )
+
+
+def _coarse_edges(edges: StripeSamples, coarse: int) -> StripeSamples:
+    """Edges between blocks of ``2**coarse`` columns: ``stripe`` stays the block index (so
+    neighbouring edges have consecutive stripes), ``projector_column`` the plane between
+    the blocks' outer columns."""
+    if not coarse:
+        return edges
+    return replace(edges, projector_column=(edges.stripe.astype(np.float64) + 1) * 2**coarse - 0.5)
+
+
+class _Streamed(Mapping):
+    """Captures by pattern id, read by a background thread in the order given, at most
+    ``ahead`` waiting; each is handed out once and then forgotten, so a view's images are
+    never all in memory. Use it in a ``with`` block."""
+
+    def __init__(self, read: Callable[[Hashable], np.ndarray], keys: Sequence[Hashable],
+                 ahead: int = PREFETCH) -> None:
+        self._read, self._keys, self._ahead = read, list(dict.fromkeys(keys)), max(1, ahead)
+        self._known = set(self._keys)
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="slscan-read")
+        self._futures: dict[Hashable, Future] = {}
+        self._next = 0
+        self._fill()
+
+    def _fill(self) -> None:
+        while self._next < len(self._keys) and len(self._futures) < self._ahead:
+            key = self._keys[self._next]
+            self._futures[key] = self._pool.submit(self._read, key)
+            self._next += 1
+
+    def __getitem__(self, key: Hashable) -> np.ndarray:
+        future = self._futures.pop(key, None)
+        if future is None:
+            if key not in self._known:
+                raise KeyError(key)
+            value = self._read(key)  # asked out of order, or again: read it now
+        else:
+            value = future.result()
+        self._fill()
+        return value
+
+    def __contains__(self, key: object) -> bool:
+        return key in self._known
+
+    def __iter__(self) -> Iterator[Hashable]:
+        return iter(self._keys)
+
+    def __len__(self) -> int:
+        return len(self._keys)
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for future in self._futures.values():
+            future.cancel()
+        self._pool.shutdown(wait=True)
+        self._futures.clear()
 
 
 def decode_gray(session: Session, view: ViewRecord | str, **options) -> GrayResult:
     """Read and decode the Gray-code images of ``view`` in ``session``.
 
-    ``options`` are passed to :func:`decode_gray_images`.
+    ``options`` are passed to :func:`decode_gray_images`. The images are read by a
+    background thread a couple ahead of the decoder, and dropped once used.
 
     Raises
     ------
@@ -423,10 +853,8 @@ def decode_gray(session: Session, view: ViewRecord | str, **options) -> GrayResu
     # the order decoding uses them: flat frames, then column and row (pattern, inverse) pairs
     pairs = gray_pairs(descs, "columns") + gray_pairs(descs, "rows")
     ids = [white_id, black_id, *(p for pair in pairs for p in pair)]
-    records = [view.image_for(pid) for pid in ids]
-    # read in the background while the images already read are decoded
-    with session.prefetch_images(view, records) as images:
-        result = decode_gray_images(
-            images, descs, images[white_id], images[black_id], where=where, **options
-        )
-        return replace(result, white=images[white_id])
+    records = {pid: view.image_for(pid) for pid in ids}
+    with _Streamed(lambda pid: session.read_image(view, records[pid]), ids) as images:
+        white, black = images[white_id], images[black_id]
+        result = decode_gray_images(images, descs, white, black, where=where, **options)
+        return replace(result, white=white)

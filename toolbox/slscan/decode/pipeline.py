@@ -14,7 +14,7 @@ import logging
 import os
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +31,7 @@ from slscan.decode.codes import (
     write_codes_manifest,
     write_view_codes,
 )
-from slscan.decode.graycode import decode_gray
+from slscan.decode.graycode import THRESHOLD_MODES, decode_gray
 from slscan.decode.hybrid import DEFAULT_ESTIMATOR, ESTIMATORS, decode_hybrid, hybrid_pattern_ids
 from slscan.decode.masks import saturation
 from slscan.decode.rangemap import (
@@ -75,6 +75,10 @@ class DecodeConfig:
     """Samples dropped at either end of every line (and lone samples, from 1): line ends
     are 2-3x less accurate; trimming one row trades coverage for accuracy (see
     ``benchmarks/reconstruction.py``). 0 keeps them, at lower quality."""
+    gray_threshold: str = "adaptive"
+    """{"adaptive", "opencv"}: Gray-code bit thresholds from the images' noise and contrast,
+    or OpenCV ``GrayCodePattern``'s fixed ones (40 DN white - black, 5 DN per bit); see
+    ``decode.graycode``."""
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -84,6 +88,11 @@ class DecodeConfig:
         if self.estimator not in ESTIMATORS:
             raise SlscanError(
                 f"unknown estimator {self.estimator!r}: expected one of {', '.join(ESTIMATORS)}"
+            )
+        if self.gray_threshold not in THRESHOLD_MODES:
+            raise SlscanError(
+                f"unknown gray_threshold {self.gray_threshold!r}: expected one of "
+                f"{', '.join(THRESHOLD_MODES)}"
             )
         for name in ("max_edge_factor", "max_gap_columns"):
             if not getattr(self, name) > 0:
@@ -175,6 +184,7 @@ def decode_view(
     planes = planes or RigPlanes(rig.projector)
     method = choose_method(session, config.method)
     seconds = {}
+    edge_spacing = 1
     t = time.perf_counter()
     if method == "hybrid":
         _, _, descs = hybrid_pattern_ids(session)
@@ -182,16 +192,19 @@ def decode_view(
         samples, mask, codes = res.samples, res.mask, res.codes
         code_max = 2 ** len(descs)
     else:
-        res = decode_gray(session, view)
+        res = decode_gray(session, view, threshold=config.gray_threshold)
         samples, mask, codes, saturated = res.edges, res.mask, res.column, res.saturated
         code_max = session.projector_size[0]
+        used, bits = res.bits_used.get("columns", (0, 0))
+        edge_spacing = 2 ** (bits - used)  # a set missing low bits has edges this many columns apart
     white = res.white
     if method == "hybrid":
         saturated = saturation(white)
     if config.trim_line_ends:
         samples = samples.trim_line_ends(config.trim_line_ends)
     seconds["decode"] = time.perf_counter() - t
-    projector_codes, share = _codes_of_view(session, view, res if method == "gray" else None, with_codes)
+    projector_codes, share = _codes_of_view(session, view, res if method == "gray" else None, with_codes,
+                                           config.gray_threshold)
     t = time.perf_counter()
     points = triangulate(samples, rig.camera, planes)
     seconds["triangulate"] = time.perf_counter() - t
@@ -204,7 +217,7 @@ def decode_view(
         view=view.name,
         max_edge_factor=config.max_edge_factor,
         max_view_angle_deg=config.max_view_angle_deg,
-        max_gap_columns=config.max_gap_columns,
+        max_gap_columns=config.max_gap_columns * edge_spacing,
     )
     seconds["mesh"] = time.perf_counter() - t
     if len(range_map.faces) == 0:
@@ -217,7 +230,7 @@ def decode_view(
 
 
 def _codes_of_view(
-    session: Session, view: ViewRecord, gray, codes: bool
+    session: Session, view: ViewRecord, gray, codes: bool, threshold: str = "adaptive"
 ) -> tuple[ProjectorCodes | None, ValidShare | None]:
     """The view's projector codes (when asked for) and the Gray-code decode's valid share:
     from ``gray`` (the view's :class:`GrayResult`) when the range map came from it, else
@@ -226,8 +239,57 @@ def _codes_of_view(
         return (codes_from_gray(gray, session, view.name) if codes else None), valid_share(gray)
     if not codes:
         return None, None
-    found = decode_codes(session, view)
+    found = decode_codes(session, view, threshold=threshold)
     return found, found.valid_share
+
+
+VIEW_BYTES_PER_PIXEL = 75.0
+"""Peak memory of decoding one view, bytes per camera pixel (Gray code, 8-bit grey, 10 + 10
+bits: 1.3 GB for 16 MP, ``benchmarks/decode_memory.py``), plus ``IMAGE_BYTES_PER_PIXEL``
+for the captures the reader holds."""
+
+IMAGE_BYTES_PER_PIXEL = 4.0
+"""Captures held at once while a view decodes (the reader's look-ahead and the pair in
+use), bytes per camera pixel per channel and byte of depth."""
+
+
+def view_memory_bytes(session: Session) -> int:
+    """Estimated peak memory of decoding one view of ``session``, bytes."""
+    w, h = session.camera_size
+    depth = 2 if session.bit_depth == 16 else 1
+    return int(w * h * (VIEW_BYTES_PER_PIXEL + IMAGE_BYTES_PER_PIXEL * session.channels * depth))
+
+
+def available_memory_bytes() -> int | None:
+    """``MemAvailable`` of /proc/meminfo, bytes (None where unknown)."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def fit_workers(executor: Executor, session: Session, available: int | None = None) -> Executor:
+    """``executor`` with no more local workers than the free memory holds views of
+    ``session`` at once (at least one), saying so in a log line when it cuts them."""
+    if executor.scheduler is not None:
+        return executor
+    available = available_memory_bytes() if available is None else available
+    if available is None:
+        return executor
+    wanted = min(len(session.views), executor.workers or os.cpu_count() or 1)
+    per_view = view_memory_bytes(session)
+    fits = max(1, int(available // per_view))
+    if fits >= wanted:
+        return executor
+    log.info("decoding with %d worker(s) instead of %d: a %dx%d view needs about %.1f GB and "
+             "%.1f GB are free", fits, wanted, *session.camera_size, per_view / 1e9, available / 1e9)
+    return replace(executor, workers=fits)
 
 
 def _why_unusable(result: ViewDecode) -> str:
@@ -282,6 +344,7 @@ def decode_session(
         raise SlscanError(f"{session.root / SESSION_FILE}: the session has no views; expected at least one")
     if codes:
         require_gray_codes(session)
+    executor = fit_workers(executor, session)
     executor.start(len(session.views), [__name__])  # helper processes import while we set up
     results = []
     unusable = {}

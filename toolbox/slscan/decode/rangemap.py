@@ -173,7 +173,8 @@ def build_range_map(
 ) -> RangeMap:
     """Mesh triangulated samples on their (camera row x stripe) grid into a range map.
 
-    Consecutive camera rows ``r, r + 1`` are zipped together: walking both rows' samples
+    Consecutive camera rows ``r, r + 1`` are zipped together (and, for samples found along
+    camera columns, consecutive columns, in a grid of their own): walking both rows' samples
     in stripe order, each new sample makes a triangle with the latest sample of its own
     row and of the other row (a full grid gives two triangles per quad). Stripes missing
     in one row are bridged when the triangle's corners are at most ``max_gap_columns``
@@ -235,6 +236,9 @@ def build_range_map(
     if not max_gap_columns > 0:
         raise SlscanError(f"max_gap_columns must be positive, got {max_gap_columns}")
     rows = np.asarray(samples.row, np.int64)
+    # the grid's lines: camera rows, and for samples found along camera columns, those
+    # columns (kept apart from the rows: the two kinds are meshed separately)
+    lines, _ = samples.lines()
     stripes = np.asarray(samples.stripe, np.int64)
     finite = np.all(np.isfinite(points), axis=1)
 
@@ -242,7 +246,7 @@ def build_range_map(
     if finite.any():
         s_min = int(stripes[finite].min())
         span = int(stripes[finite].max()) - s_min + 2
-        keys = (rows - int(rows[finite].min()) + 1) * span + (stripes - s_min)
+        keys = (lines - int(lines[finite].min()) + 1) * span + (stripes - s_min)
         keys[~finite] = -1
         _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
         unique = finite & (counts[inverse.reshape(-1)] == 1)
@@ -253,9 +257,9 @@ def build_range_map(
         m_stripe = _median_ratio(points, depth, a[b >= 0], b[b >= 0])
         m_row = _median_ratio(points, depth, a[c >= 0], c[c >= 0])
         columns = np.asarray(samples.projector_column, np.float64)
-        tri = _zipper(np.flatnonzero(unique), rows, stripes, columns, max_gap_columns)
+        tri = _zipper(np.flatnonzero(unique), lines, stripes, columns, max_gap_columns)
         faces = _filter_faces(
-            tri, points, depth, rows, stripes, m_row, m_stripe, max_edge_factor, max_view_angle_deg
+            tri, points, depth, lines, stripes, m_row, m_stripe, max_edge_factor, max_view_angle_deg
         )
 
     vertex_normals = _vertex_normals(points, faces, finite)
@@ -276,6 +280,12 @@ def build_range_map(
     new_index[keep] = np.arange(int(keep.sum()))
     kept_faces = new_index[faces].astype(np.int32)
     colors = _white_rgb(white, rows[keep], np.asarray(samples.x, np.float64)[keep])
+    if samples.along_columns is not None and np.any(samples.along_columns[keep]):
+        # samples found along columns: bilinear along y on their whole camera column
+        down = np.asarray(samples.along_columns, bool)[keep]
+        colors[down] = _white_rgb(np.swapaxes(white, 0, 1),
+                                  np.rint(np.asarray(samples.x)[keep][down]).astype(np.int64),
+                                  samples.camera_y[keep][down])
     log.debug(
         "range map %s: %d samples -> %d vertices, %d faces",
         view or "?",

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 from typing import Protocol
 
 import numpy as np
@@ -13,7 +14,8 @@ CONTINUITY_PX = 2.0
 
 @dataclass(frozen=True)
 class StripeSamples:
-    """Where the camera saw each measured projector feature, one entry per (camera row, feature).
+    """Where the camera saw each measured projector feature, one entry per (camera row, feature)
+    (or per (camera column, feature) for samples found along columns).
 
     row : (k,) int32 camera row
     x : (k,) float64 sub-pixel camera column of the feature's centre (OpenCV pixel centres)
@@ -24,6 +26,14 @@ class StripeSamples:
         Gray-code edge index c); samples with consecutive ``stripe`` are neighbours
     contrast : (k,) float32 signal of the feature relative to the white frame, for quality
     saturated : (k,) bool, the feature's pixels were clipped in some image
+    y : (k,) float64 sub-pixel camera row, or None: every sample lies on its pixel row
+        ``row`` (found along camera rows)
+    along_columns : (k,) bool, or None (all False): the sample was found along camera
+        column ``x`` (a whole number) at sub-pixel row ``y`` (``row`` is ``y`` rounded),
+        where the stripes cross camera columns more steeply than rows
+
+    Use :attr:`camera_y` (or :meth:`pixels`) for the sample's camera position, which
+    works either way.
     """
 
     row: np.ndarray
@@ -32,13 +42,63 @@ class StripeSamples:
     stripe: np.ndarray
     contrast: np.ndarray
     saturated: np.ndarray
+    y: np.ndarray | None = None
+    along_columns: np.ndarray | None = None
+
+    FIELDS = ("row", "x", "projector_column", "stripe", "contrast", "saturated", "y",
+              "along_columns")
 
     def __len__(self) -> int:
         return len(self.row)
 
+    @property
+    def camera_y(self) -> np.ndarray:
+        """(k,) float64 sub-pixel camera row of each sample."""
+        return np.asarray(self.row, np.float64) if self.y is None else np.asarray(self.y, np.float64)
+
+    def pixels(self) -> np.ndarray:
+        """(k, 2) float64 camera pixel ``(x, y)`` of each sample (OpenCV pixel centres)."""
+        return np.stack([np.asarray(self.x, np.float64), self.camera_y], axis=1)
+
+    def lines(self) -> tuple[np.ndarray, np.ndarray]:
+        """The search line of each sample and its position along it: ``(row, x)`` for
+        samples found along rows, ``(offset + x, y)`` for those found along columns, with
+        ``offset`` keeping the two kinds of lines apart (never adjacent). (k,) int64, (k,)
+        float64."""
+        line = np.asarray(self.row, np.int64)
+        pos = np.asarray(self.x, np.float64)
+        if self.along_columns is None or not np.any(self.along_columns):
+            return line, pos
+        along = np.asarray(self.along_columns, bool)
+        offset = int(line.max()) + 3
+        line = np.where(along, np.rint(pos).astype(np.int64) + offset, line)
+        return line, np.where(along, self.camera_y, pos)
+
     def subset(self, keep: np.ndarray) -> StripeSamples:
-        return StripeSamples(*(getattr(self, f)[keep] for f in
-                               ("row", "x", "projector_column", "stripe", "contrast", "saturated")))
+        return StripeSamples(*(None if getattr(self, f) is None else getattr(self, f)[keep]
+                               for f in self.FIELDS))
+
+    def with_y(self) -> StripeSamples:
+        """The same samples with ``y`` and ``along_columns`` filled in."""
+        return replace(
+            self, y=self.camera_y,
+            along_columns=np.zeros(len(self), bool) if self.along_columns is None
+            else np.asarray(self.along_columns, bool),
+        )
+
+    @staticmethod
+    def concatenate(parts: Sequence[StripeSamples]) -> StripeSamples:
+        """The samples of ``parts`` one after another (``y`` and ``along_columns`` filled in
+        when some part has them)."""
+        if not parts:
+            return StripeSamples(np.zeros(0, np.int32), np.zeros(0), np.zeros(0),
+                                 np.zeros(0, np.int32), np.zeros(0, np.float32), np.zeros(0, bool))
+        full = any(p.y is not None or p.along_columns is not None for p in parts)
+        if full:
+            parts = [p.with_y() for p in parts]
+        return StripeSamples(*(None if getattr(parts[0], f) is None
+                               else np.concatenate([getattr(p, f) for p in parts])
+                               for f in StripeSamples.FIELDS))
 
     def continuity(self, max_dx: float = CONTINUITY_PX) -> np.ndarray:
         """(k,) int8: how many of the rows just above and below carry the same feature
@@ -55,13 +115,12 @@ class StripeSamples:
         out = np.zeros(n, np.int8)
         if n == 0:
             return out
-        rows = np.asarray(self.row, np.int64)
+        rows, x = self.lines()  # rows and x, or columns and y for samples found along columns
         stripes = np.asarray(self.stripe, np.int64) - int(np.min(self.stripe))
         span = int(stripes.max()) + 1
         keys = rows * span + stripes
         order = np.argsort(keys, kind="stable")
         sorted_keys = keys[order]
-        x = np.asarray(self.x, np.float64)
         for step in (-span, span):
             wanted = keys + step
             first = np.searchsorted(sorted_keys, wanted)
@@ -82,8 +141,8 @@ class StripeSamples:
 
     def shifted(self, rows: int, cols: int) -> StripeSamples:
         """The same samples with camera positions moved by ``rows`` and ``cols`` px (crop to image)."""
-        return StripeSamples((self.row + rows).astype(np.int32), self.x + cols, self.projector_column,
-                             self.stripe, self.contrast, self.saturated)
+        return replace(self, row=(self.row + rows).astype(np.int32), x=self.x + cols,
+                       y=None if self.y is None else self.y + rows)
 
 
 class LightPlanes(Protocol):

@@ -79,7 +79,8 @@ def triangulate(
 
     Parameters
     ----------
-    samples : StripeSamples, k samples at camera pixels ``(x, row)`` (distorted, as seen)
+    samples : StripeSamples, k samples at camera pixels ``samples.pixels()`` (distorted,
+        as seen): ``(x, row)``, or ``(x, y)`` for samples found along camera columns
     camera : the camera's lens; rays go through the undistorted pixel
     planes : the projector's light planes (e.g. :class:`RigPlanes`)
     min_angle_deg : float, degrees
@@ -93,9 +94,7 @@ def triangulate(
     k = len(samples)
     if k == 0:
         return np.zeros((0, 3))
-    pixels = np.stack(
-        [np.asarray(samples.x, np.float64), np.asarray(samples.row, np.float64)], axis=1
-    )
+    pixels = samples.pixels()  # (x, row), or (column, sub-pixel y) along columns
     rays = camera.rays_local(pixels)
     pl = np.asarray(
         planes.planes(np.asarray(samples.projector_column, np.float64)), dtype=np.float64
