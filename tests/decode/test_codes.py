@@ -156,26 +156,35 @@ def test_the_valid_share_says_what_limited_it(gray_rows_session):
     view = gray_rows_session.views[0]
     res = decode_gray(gray_rows_session, view)
     share = valid_share(res)
-    assert share.source == "estimated" and share.decoded == pytest.approx(res.mask.mean())
+    # the decoder's own counts (GrayResult.diagnostics): every lit pixel is decoded or lost to one cause
+    assert share.source == "decoder" and share.decoded == pytest.approx(res.mask.mean())
     assert share.noise_dn == pytest.approx(res.noise * 255)
+    lit = res.contrast > 0.03
+    assert share.lit == pytest.approx(lit.mean())
+    assert share.low_contrast + share.weak_bits + share.out_of_range == pytest.approx(
+        1 - (res.mask & lit).sum() / lit.sum())
     # a 10x noisier decode: dark lit pixels fall under 3 sigma, low contrast grows
     noisy = decode_gray(gray_rows_session, view, noise=res.noise * 10)
     worse = valid_share(noisy)
     assert worse.low_contrast > share.low_contrast and worse.decoded < share.decoded
-    assert worse.low_contrast + worse.weak_bits == pytest.approx(1 - (noisy.mask & (noisy.contrast > 0.03)).sum()
-                                                                  / (noisy.contrast > 0.03).sum())
     assert "noise" in share.describe() and "DN" in share.describe()
-    # the decoder's own counts win when it reports them (GrayResult.diagnostics)
-    lit = 1000
-
+    # without the decoder's counts: estimated from contrast, noise and mask
+    bare = SimpleNamespace(mask=noisy.mask, contrast=noisy.contrast, noise=noisy.noise, white=noisy.white)
+    estimated = valid_share(bare)
+    assert estimated.source == "estimated"
+    assert estimated.low_contrast == pytest.approx(worse.low_contrast, abs=0.01)
+    assert estimated.low_contrast + estimated.weak_bits == pytest.approx(
+        1 - (noisy.mask & (noisy.contrast > 0.03)).sum() / (noisy.contrast > 0.03).sum())
+    # counts reported by a decoder: shares of the pixels that passed the minimum contrast
     with_diagnostics = SimpleNamespace(
         mask=res.mask, contrast=res.contrast, noise=res.noise, white=res.white,
-        diagnostics={"noise_dn": 4.5, "lit": lit, "low_contrast": 100, "weak_bit_noise": 50,
-                     "weak_bit_ratio": 150, "out_of_range": 10, "threshold_mode": "adaptive"},
+        diagnostics={"noise_dn": 4.5, "pixels": 2000, "dark": 1000, "lit": 880, "low_contrast": 1120,
+                     "weak_bit_noise": 50, "weak_bit_ratio": 150, "out_of_range": 10, "valid": 670,
+                     "threshold_mode": "adaptive"},
     )
     reported = valid_share(with_diagnostics)
-    assert reported == ValidShare(decoded=float(res.mask.mean()), lit=lit / res.mask.size, noise_dn=4.5,
-                                  low_contrast=0.1, weak_bits=0.2, out_of_range=0.01, source="decoder")
+    assert reported == ValidShare(decoded=float(res.mask.mean()), lit=0.5, noise_dn=4.5,
+                                  low_contrast=0.12, weak_bits=0.2, out_of_range=0.01, source="decoder")
     assert replace(reported, weak_bits=0.0).limited_by == "low contrast"
 
 

@@ -641,6 +641,7 @@ def decode_gray_images(
         del wl, bl
     else:
         full_lit = full_contrast > min_contrast
+    n_dark = int(full_lit.size) - int(full_lit.sum())  # before `lit` (a view of it) narrows
     # the rest runs on the lit pixels' bounding box: outside it nothing decodes
     read.box = box = lit_bounds(full_lit, max_edge_gap + 2)
     y0, x0 = box[0].start, box[1].start
@@ -724,7 +725,7 @@ def decode_gray_images(
         "pixels": int(full_lit.size),
         "lit": n_lit,
         "low_contrast": int(full_lit.size) - n_lit,
-        "dark": int(full_lit.size) - int(full_lit.sum()),
+        "dark": n_dark,
         "weak_bit_noise": n_weak - n_weak_ratio,
         "weak_bit_ratio": n_weak_ratio,
         "out_of_range": int((lit & all_strong & ~in_range).sum()),
