@@ -339,6 +339,8 @@ def image_header(path: Path, *, check: bool = False) -> tuple[int, int, int, int
     except UnidentifiedImageError:
         raise SlscanError(f"{path}: not a readable {image_format(path).upper()} image") from None
     except OSError as exc:
+        if "truncated" in str(exc).lower():
+            raise SlscanError(f"{path}: {image_format(path).upper()} file is truncated") from None
         raise SlscanError(f"{path}: cannot read the image ({exc})") from None
     return width, height, samples, depth
 

@@ -239,6 +239,9 @@ def decode_session(
         session = load_session(session)
     if not session.views:
         raise SlscanError(f"{session.root / SESSION_FILE}: the session has no views; expected at least one")
+    if session.lossy:
+        log.warning("%s: the captures are lossy (JPEG): compression noise lowers the share of "
+                    "pixels decoded and moves stripe edges slightly", session.root)
     executor.start(len(session.views), [__name__])  # helper processes import while we set up
     results = []
     unusable = {}
