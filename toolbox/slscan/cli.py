@@ -406,12 +406,41 @@ def _cmd_patterns(args: argparse.Namespace) -> int:
 # --- import / info ------------------------------------------------------------------------
 
 
-def _cmd_import(args: argparse.Namespace) -> int:
-    from slscan.capture.kamino410 import import_kamino410
+def _projector_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT in projector pixels, e.g. 1024x768, got {text!r}") from None
+    return w, h
 
-    with _ProgressBar(1, f"importing {args.format}", args.quiet) as bar:
-        session = import_kamino410(args.src, args.out, overwrite=args.overwrite, progress=bar.set)
-    _console().print(f"[green]wrote[/] {args.out}: {len(session.views)} view(s) from {args.src}")
+
+def _cmd_import(args: argparse.Namespace) -> int:
+    graycode_only = {"--preset": args.preset, "--order": args.order, "--pattern": args.pattern,
+                     "--rotation": args.rotation, "--missing-bits": args.missing_bits}
+    if args.format is None:
+        args.format = "graycode" if args.preset or args.order else "kamino410"
+    if args.format == "kamino410":
+        given = [name for name, value in graycode_only.items() if value is not None]
+        if given:
+            raise SlscanError(f"{', '.join(given)}: only with --format graycode")
+        from slscan.capture.kamino410 import import_kamino410
+
+        with _ProgressBar(1, f"importing {args.format}", args.quiet) as bar:
+            session = import_kamino410(args.src, args.out, projector_size=args.projector,
+                                       overwrite=args.overwrite, progress=bar.set)
+    else:
+        from slscan.capture.graycode_import import import_graycode
+
+        if (args.preset is None) == (args.order is None):
+            raise SlscanError("--format graycode: give --preset NAME or --order SPEC (one of them)")
+        with _ProgressBar(1, "importing Gray-code captures", args.quiet) as bar:
+            session = import_graycode(
+                args.src, args.out, preset=args.preset, order=args.order, projector_size=args.projector,
+                rotation=args.rotation, pattern=args.pattern, missing_bits=args.missing_bits or "error",
+                overwrite=args.overwrite, progress=bar.set,
+            )
+    lossy = ", lossy (JPEG) captures" if session.lossy else ""
+    _console().print(f"[green]wrote[/] {args.out}: {len(session.views)} view(s) from {args.src}{lossy}")
     return 0
 
 
@@ -659,13 +688,42 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.set_defaults(func=_cmd_patterns)
 
+    from slscan.capture.graycode_import import MISSING_BITS, PRESETS
+
     p = sub.add_parser(
         "import", help="turn another tool's captures into a capture session",
-        description="Import captures made by another tool. kamino410: procam-calibration's "
-                    "42 Gray-code images per pose (a folder of capture_N folders, or one).",
+        description="Import captures made by another tool; images (PNG, JPEG, TIFF) are copied as they are. "
+                    "graycode: any folder of Gray-code captures, the image order given by a preset or an "
+                    "order spec (see docs/capture-session.md), one folder = one view or one sub-folder per "
+                    "view. kamino410: procam-calibration's 42 Gray-code images per pose (a folder of "
+                    "capture_N folders, or one), projector size from its graycode_pattern folder.",
+        epilog="examples:\n"
+               "  slscan import sample_data --out kamino\n"
+               "  slscan import sample_data --format graycode --preset kamino410 --out kamino\n"
+               "  slscan import leftCam/dataset1 --format graycode --preset 3dunderworld --out left\n"
+               "  slscan import shots --format graycode --order white,black,cols:11:pairs,rows:pairs "
+               "--projector 1920x1080 --rotation 90 --out scan\n\n"
+               "order spec: comma-separated items in file order: white, black, skip, "
+               "cols[:BITS][:pairs|split|plain][:msb|lsb], rows[...]; BITS defaults to ceil(log2(size)).",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("src", type=Path, help="folder with the other tool's captures")
-    p.add_argument("--format", choices=("kamino410",), default="kamino410", help="default: kamino410")
+    p.add_argument("--format", choices=("kamino410", "graycode"),
+                   help="default: graycode when --preset or --order is given, else kamino410")
+    p.add_argument("--preset", choices=tuple(PRESETS), help="graycode: a known tool's layout")
+    p.add_argument("--order", metavar="SPEC", help="graycode: the image order, e.g. white,black,cols:10:pairs,rows:10:pairs")
+    p.add_argument("--projector", type=_projector_size, metavar="WxH",
+                   help="projector size in pixels (default: the preset's, else 1024x768; kamino410: "
+                        "read from graycode_pattern/)")
+    p.add_argument("--rotation", type=int, choices=(0, 90, 180, 270),
+                   help="graycode: degrees the projector is mounted turned (90, 270: its column stripes "
+                        "appear horizontal); default: the preset's, else 0")
+    p.add_argument("--pattern", metavar="GLOB",
+                   help="graycode: which files are captures (default: the preset's, else every PNG/JPEG/TIFF), "
+                        "taken in natural sort order")
+    p.add_argument("--missing-bits", choices=MISSING_BITS,
+                   help="graycode: images missing from a numbered set are an error (default), or drop: "
+                        "import the most significant bits that are complete")
     p.add_argument("--out", required=True, type=Path, help="capture-session folder to create")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

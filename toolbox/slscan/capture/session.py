@@ -5,7 +5,8 @@ Layout (full description in ``docs/capture-session.md``)::
     SESSION/
       session.json            metadata: devices, calibration, pattern set, views, images
       view_000/
-        00_white.png ...      lossless captures, 8 or 16 bit, grey or RGB
+        00_white.png ...      captures, 8 or 16 bit, grey or RGB: PNG, or JPEG/TIFF as
+                              imported from another tool (``camera.lossy`` says so)
         ground_truth.npz      virtual rig only: per-pixel truth
 
 Everything downstream reads sessions through :func:`load_session`, never simulator
@@ -35,6 +36,9 @@ SESSION_FORMAT = "slscan.capture-session"
 SESSION_VERSION = 1
 SESSION_FILE = "session.json"
 IMAGE_KINDS = ("pattern", "lit")
+ROTATIONS = (0, 90, 180, 270)
+IMAGE_FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".tif": "tiff", ".tiff": "tiff"}
+"""Capture file extensions (lower case) a session may hold, and their format."""
 
 # ground-truth visibility labels
 BACKGROUND, SHADOW, LIT = 0, 1, 2
@@ -111,6 +115,10 @@ class Session:
     camera_size, projector_size : (width, height) px
     channels : 1 (grey) or 3 (RGB); bit_depth : 8 or 16
     calibration : the rig's calibration when known (the virtual rig writes its truth)
+    lossy : the captures went through lossy compression (JPEG, imported as they were)
+    projector_rotation : {0, 90, 180, 270} degrees the projector is turned about its axis
+        relative to the camera; with 90 or 270 its column stripes appear horizontal in the
+        captures (see :meth:`camera_axis`)
     """
 
     root: Path
@@ -123,6 +131,17 @@ class Session:
     calibration: Rig | None = None
     calibration_source: str | None = None
     device: dict = field(default_factory=dict)
+    lossy: bool = False
+    projector_rotation: int = 0
+
+    def camera_axis(self, axis: str) -> str:
+        """The camera image axis, ``"x"`` (along rows) or ``"y"`` (along columns), that
+        the stripes of patterns varying along projector ``axis`` ("columns" or "rows")
+        cross: where to search their edges."""
+        if axis not in ("columns", "rows"):
+            raise SlscanError(f"pattern axis must be 'columns' or 'rows', got {axis!r}")
+        turned = self.projector_rotation in (90, 270)
+        return "x" if (axis == "columns") != turned else "y"
 
     def pattern(self, pattern_id: str) -> PatternImage:
         for p in self.patterns:
@@ -157,7 +176,7 @@ class Session:
     def read_image(self, view: ViewRecord, rec: ImageRecord) -> np.ndarray:
         """Read one capture, checking it against the session's size, channels and depth."""
         path = self.image_path(view, rec)
-        image = read_png(path)
+        image = read_capture(path)
         _check_image(path, image.shape, image.dtype.itemsize * 8, self)
         return image
 
@@ -180,9 +199,12 @@ class Session:
             "device": self.device,
             "camera": {
                 "width": self.camera_size[0], "height": self.camera_size[1],
-                "channels": self.channels, "bit_depth": self.bit_depth,
+                "channels": self.channels, "bit_depth": self.bit_depth, "lossy": self.lossy,
             },
-            "projector": {"width": self.projector_size[0], "height": self.projector_size[1]},
+            "projector": {
+                "width": self.projector_size[0], "height": self.projector_size[1],
+                "rotation": self.projector_rotation,
+            },
             "calibration": None if self.calibration is None else {
                 "source": self.calibration_source, **self.calibration.to_dict()
             },
@@ -279,6 +301,75 @@ def png_header(path: Path, *, check_chunks: bool = False) -> tuple[int, int, int
     return width, height, channels, depth
 
 
+def image_format(path: Path) -> str:
+    """{"png", "jpeg", "tiff"}: a capture's format from its extension; raise naming others."""
+    fmt = IMAGE_FORMATS.get(Path(path).suffix.lower())
+    if fmt is None:
+        raise SlscanError(
+            f"{path}: not a capture file; expected PNG, JPEG or TIFF "
+            f"({', '.join(sorted(IMAGE_FORMATS))})"
+        )
+    return fmt
+
+
+def image_header(path: Path, *, check: bool = False) -> tuple[int, int, int, int]:
+    """(width, height, channels, bit_depth) of a PNG, JPEG or TIFF capture, from its header
+    only (no pixels decoded). With ``check``, a PNG's chunk CRCs are checked and a JPEG
+    must end with its end-of-image marker (a truncated file is refused, naming it)."""
+    if image_format(path) == "png":
+        return png_header(path, check_chunks=check)
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            width, height = im.size
+            if im.format == "TIFF":
+                samples = int(im.tag_v2.get(277, 1))
+                depth = im.tag_v2.get(258, (8,))
+                depth = int(depth[0] if isinstance(depth, tuple) else depth)
+            else:
+                samples = {"L": 1, "RGB": 3, "RGBA": 4}.get(im.mode, 0)
+                depth = 8
+            if check and im.format == "JPEG":
+                _check_jpeg_end(path)
+    except FileNotFoundError:
+        raise SlscanError(f"{path}: image not found") from None
+    except IsADirectoryError:
+        raise SlscanError(f"{path}: is a folder; expected an image") from None
+    except UnidentifiedImageError:
+        raise SlscanError(f"{path}: not a readable {image_format(path).upper()} image") from None
+    except OSError as exc:
+        if "truncated" in str(exc).lower():
+            raise SlscanError(f"{path}: {image_format(path).upper()} file is truncated") from None
+        raise SlscanError(f"{path}: cannot read the image ({exc})") from None
+    return width, height, samples, depth
+
+
+def _check_jpeg_end(path: Path) -> None:
+    with open(path, "rb") as f:
+        f.seek(max(0, os.fstat(f.fileno()).st_size - 1024))
+        if b"\xff\xd9" not in f.read():
+            raise SlscanError(f"{path}: JPEG file is truncated (no end-of-image marker)")
+
+
+def read_capture(path: Path) -> np.ndarray:
+    """A capture as stored: (h, w) grey or (h, w, 3) RGB, uint8 or uint16. PNG through
+    :func:`~slscan.fsio.read_png`; JPEG and TIFF decoded by OpenCV as they are (EXIF
+    orientation ignored, like the header sizes)."""
+    if image_format(path) == "png":
+        return read_png(path)
+    import cv2
+
+    if not Path(path).is_file():
+        raise SlscanError(f"{path}: image not found")
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise SlscanError(f"{path}: not a readable {image_format(path).upper()} image")
+    if image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGRA2RGB if image.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+    return image
+
+
 def _check_png_chunks(path: Path, f) -> None:
     """Walk the chunks of PNG file ``f`` (positioned anywhere) from the signature to ``IEND``,
     checking lengths and CRCs; raise naming ``path`` when it is truncated or corrupted."""
@@ -326,7 +417,7 @@ def validate_session(session: Session) -> None:
                     and not 0 <= rec.light < len(session.calibration.lights)):
                 raise SlscanError(f"{session.root / view.name / rec.file}: light {rec.light} is not in the rig")
             path = session.image_path(view, rec)
-            w, h, channels, depth = png_header(path, check_chunks=True)
+            w, h, channels, depth = image_header(path, check=True)
             shape = (h, w) if channels == 1 else (h, w, channels)
             _check_image(path, shape, depth, session)
 
@@ -425,6 +516,8 @@ def load_session(path: str | os.PathLike, *, validate: bool = True) -> Session:
             calibration=calibration,
             calibration_source=source,
             device=d.get("device", {}),
+            lossy=bool(cam.get("lossy", False)),
+            projector_rotation=int(proj.get("rotation", 0)),
         )
     except KeyError as exc:
         raise SlscanError(f"{meta_path}: missing field {exc.args[0]!r}") from None
@@ -432,6 +525,10 @@ def load_session(path: str | os.PathLike, *, validate: bool = True) -> Session:
         raise SlscanError(f"{meta_path}: a field has the wrong type ({exc})") from None
     if session.channels not in (1, 3) or session.bit_depth not in (8, 16):
         raise SlscanError(f"{meta_path}: camera must have 1 or 3 channels and 8 or 16 bits")
+    if session.projector_rotation not in ROTATIONS:
+        raise SlscanError(
+            f"{meta_path}: projector rotation {session.projector_rotation} is not one of {ROTATIONS} (degrees)"
+        )
     _check_consistent(session, meta_path)
     _check_inside(session, meta_path)
     if validate:
@@ -470,12 +567,15 @@ class SessionWriter:
         overwrite: bool = False,
         incremental: bool = False,
         resume: bool = False,
+        lossy: bool = False,
+        projector_rotation: int = 0,
     ) -> None:
         self.out = Path(out)
         self._meta = {
             "camera_size": tuple(camera_size), "projector_size": tuple(projector_size), "channels": channels,
             "bit_depth": bit_depth, "patterns": tuple(patterns), "calibration": calibration,
             "calibration_source": calibration_source, "device": device or {},
+            "lossy": bool(lossy), "projector_rotation": int(projector_rotation),
         }
         self._overwrite = overwrite
         self._incremental = incremental or resume

@@ -400,6 +400,12 @@ def decode_codes_session(
     if not session.views:
         raise SlscanError(f"{session.root / SESSION_FILE}: the session has no views; expected at least one")
     require_gray_codes(session)
+    if session.lossy:
+        log.warning("%s: the captures are lossy (JPEG): compression noise lowers the share of "
+                    "pixels decoded", session.root)
+    from slscan.decode.pipeline import fit_workers  # pipeline imports this module
+
+    executor = fit_workers(executor, session)
     executor.start(len(session.views), [__name__])
     results = []
     with atomic_output_dir(out, overwrite=overwrite) as tmp:

@@ -345,6 +345,9 @@ def decode_session(
     if codes:
         require_gray_codes(session)
     executor = fit_workers(executor, session)
+    if session.lossy:
+        log.warning("%s: the captures are lossy (JPEG): compression noise lowers the share of "
+                    "pixels decoded and moves stripe edges slightly", session.root)
     executor.start(len(session.views), [__name__])  # helper processes import while we set up
     results = []
     unusable = {}
