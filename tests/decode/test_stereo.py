@@ -204,6 +204,9 @@ def test_capture_and_decode_commands(tmp_path, capsys):
     for cam in ("cam0", "cam1"):  # each camera with the projector, as a single-camera session
         assert (maps / cam / "view_000.ply").is_file()
     assert "points from" in capsys.readouterr().err
+    assert main(["info", str(out)]) == 0
+    info = capsys.readouterr().out
+    assert "2 cameras" in info and "cam1" in info and info.count("view_000") == 2
 
 
 # --- bad input: one clear line ------------------------------------------------------------

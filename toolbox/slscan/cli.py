@@ -463,8 +463,17 @@ def _cmd_info(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
+    from slscan.capture.multicam import is_multicam, load_multicam
     from slscan.capture.session import load_session
 
+    if is_multicam(args.session):  # each camera's session in turn
+        multi = load_multicam(args.session)
+        Console().print(f"[bold]{multi.root}[/]: {len(multi.cameras)} cameras ("
+                        + ", ".join(f"{c.name}: {'calibrated' if c.calibrated else 'not calibrated'}"
+                                    for c in multi.cameras) + f"), common frame: {multi.frame}")
+        for session in multi.sessions:
+            _cmd_info(argparse.Namespace(session=session.root))
+        return 0
     session = load_session(args.session)
     if not session.views:
         raise SlscanError(f"{session.root / 'session.json'}: the session has no views; expected at least one")
@@ -713,7 +722,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("info", help="check a capture session and summarise it",
                        description="Validate every image of a capture session against its metadata and summarise it.")
-    p.add_argument("session", type=Path, help="capture-session folder")
+    p.add_argument("session", type=Path, help="capture-session folder, or a multi-camera folder (cameras.json)")
     p.set_defaults(func=_cmd_info)
 
     p = sub.add_parser(
