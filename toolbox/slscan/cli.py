@@ -61,6 +61,12 @@ def _add_capture_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scale", type=float, default=1.0,
                    help="camera and projector resolution factor (default 1: the paper's 1440x960 "
                         "camera and 1024x768 projector)")
+    p.add_argument("--cameras", type=int, default=1, metavar="N",
+                   help="cameras (default 1); N > 1 writes a multi-camera folder (camK/ sessions and "
+                        "cameras.json) and adds Gray-code columns and rows, which matching the cameras needs")
+    p.add_argument("--camera-spacing", type=float, default=40.0, metavar="DEG",
+                   help="with --cameras N: angle between neighbouring cameras about the object, degrees "
+                        "(default 40: the projector halfway between cameras 0 and 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_recording_arguments(p)
 
@@ -94,9 +100,29 @@ def _cmd_capture(args: argparse.Namespace) -> int:
         if args.levels > max_levels:
             logging.getLogger(__name__).warning("--scale %s: using %d hybrid levels", args.scale, max_levels)
             config = dataclasses.replace(config, levels=max_levels)
-    total = config.views * images_per_view(config)
+    if args.cameras < 1:
+        raise SlscanError(f"--cameras must be at least 1, got {args.cameras}")
+    if args.cameras > 1:
+        config = _multicam_patterns(config)
+    total = args.cameras * config.views * images_per_view(config)
     console = _console()
     t0 = time.perf_counter()
+    if args.cameras > 1:
+        from slscan.virtual.multicam import capture_multicam
+
+        with (recording_from_args(args, recording_name=f"capture {args.out.name}", blueprint=capture_blueprint()) as rec,
+              _ProgressBar(total, "capturing", args.quiet) as bar):
+            multi = capture_multicam(config, args.out, cameras=args.cameras, spacing_deg=args.camera_spacing,
+                                     overwrite=args.overwrite, rec=rec, progress=bar.step)
+        from slscan.fsio import human_size
+
+        console.print(
+            f"[green]wrote[/] {args.out}: {len(multi.cameras)} cameras x {len(multi.view_names)} view(s), "
+            f"{human_size(_folder_size(args.out))}, {time.perf_counter() - t0:.1f} s; "
+            f"next: slscan decode {args.out} --out {args.out}-range-maps", highlight=False,
+        )
+        _say_recording(args)
+        return 0
     with (recording_from_args(args, recording_name=f"capture {args.out.name}", blueprint=capture_blueprint()) as rec,
           _ProgressBar(total, "capturing", args.quiet) as bar):
         session = capture_session(config, args.out, overwrite=args.overwrite, rec=rec, progress=bar.step)
@@ -110,6 +136,14 @@ def _cmd_capture(args: argparse.Namespace) -> int:
     )
     _say_recording(args)
     return 0
+
+
+def _multicam_patterns(config):
+    """A multi-camera capture's pattern set: Gray-code columns and rows, to match the cameras."""
+    patterns = "both" if config.patterns == "hybrid" else config.patterns
+    if patterns != config.patterns or not config.gray_rows:
+        logging.getLogger(__name__).info("multi-camera capture: adding Gray-code columns and rows")
+    return dataclasses.replace(config, patterns=patterns, gray_rows=True)
 
 
 def _say_recording(args: argparse.Namespace) -> None:
@@ -211,7 +245,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _decode(session, out: Path, config, overwrite: bool, rec, quiet: bool, planes=None, executor=None,
-            codes: bool = False) -> None:
+            codes: bool = False, shown: Path | None = None) -> None:
     from slscan.decode.pipeline import decode_session
     from slscan.executor import LOCAL
 
@@ -225,7 +259,7 @@ def _decode(session, out: Path, config, overwrite: bool, rec, quiet: bool, plane
     faces = sum(len(r.range_map.faces) for r in results)
     with_codes = " and projector codes (columns/rows/mask PNG per view, projector_codes.json)" if codes else ""
     _console().print(
-        f"[green]wrote[/] {out}: {len(results)} range map(s) ({results[0].method} decoding){with_codes}, "
+        f"[green]wrote[/] {shown or out}: {len(results)} range map(s) ({results[0].method} decoding){with_codes}, "
         f"{vertices:,} vertices, {faces:,} faces, {elapsed:.1f} s"
     )
 
@@ -256,7 +290,13 @@ def _print_valid_shares(shares: list) -> None:
 
 
 def _cmd_decode(args: argparse.Namespace) -> int:
+    from slscan.capture.multicam import is_multicam
     from slscan.capture.session import load_session
+
+    if is_multicam(args.session):
+        return _decode_multicam(args)
+    if args.stereo == "only":
+        raise SlscanError(f"{args.session}: --stereo only needs a multi-camera folder (with cameras.json)")
     from slscan.decode.pipeline import DecodeConfig
     from slscan.viewer.layouts import decode_blueprint
     from slscan.viewer.recording import recording_from_args
@@ -293,6 +333,53 @@ def _cmd_decode(args: argparse.Namespace) -> int:
         else:
             _decode(session, args.out, config, args.overwrite, rec, args.quiet, planes=planes,
                     executor=executor_from_args(args), codes=codes)
+    return 0
+
+
+def _decode_multicam(args: argparse.Namespace) -> int:
+    """``slscan decode`` on a multi-camera folder: camera 0 matched with each other camera
+    through the projector codes, and each calibrated camera's own range maps."""
+    from slscan.capture.multicam import load_multicam
+    from slscan.decode.pipeline import DecodeConfig
+    from slscan.decode.stereo import STEREO_FOLDER, reconstruct_multicam
+    from slscan.fsio import atomic_output_dir
+    from slscan.viewer.layouts import decode_blueprint
+    from slscan.viewer.recording import recording_from_args
+
+    if args.calibration is not None:
+        raise SlscanError("--calibration is for one camera's session; decode each camera folder on its own")
+    multi = load_multicam(args.session)
+    if args.stereo != "off":
+        multi.require_calibrated()
+    per_camera = [] if args.stereo == "only" else [
+        (cam, s) for cam, s in zip(multi.cameras, multi.sessions) if s.calibration is not None]
+    config = DecodeConfig(method=args.method, estimator=args.estimator, trim_line_ends=args.trim_line_ends,
+                          gray_threshold=args.gray_threshold)
+    pairs = [] if args.stereo == "off" else [(0, k) for k in range(1, len(multi.cameras))]
+    if not pairs and not per_camera:
+        raise SlscanError(f"{args.session}: no camera session has a projector calibration; decode with --stereo auto")
+    console = _console()
+    t0 = time.perf_counter()
+    with (recording_from_args(args, recording_name=f"decode {args.session.name}", blueprint=decode_blueprint()) as rec,
+          atomic_output_dir(args.out, overwrite=args.overwrite) as tmp):
+        for a, b in pairs:
+            folder = STEREO_FOLDER.format(a=multi.cameras[a].name, b=multi.cameras[b].name)
+            with _ProgressBar(len(multi.view_names), f"matching {folder}", args.quiet) as bar:
+                results = reconstruct_multicam(multi, tmp / folder, pair=(a, b), rec=rec, progress=bar.step)
+            stats = [r.match.stats for r in results]
+            console.print(
+                f"[green]{folder}[/]: {sum(s['matched'] for s in stats):,} points from "
+                f"{sum(s['common'] for s in stats):,} codes both cameras see (rejected: "
+                f"{sum(s['rejected_epipolar'] for s in stats):,} epipolar, {sum(s['rejected_ray_gap'] for s in stats):,} "
+                f"ray gap, {sum(s['rejected_behind'] for s in stats):,} behind), "
+                f"{sum(len(r.range_map.faces) for r in results):,} faces", highlight=False,
+            )
+        for cam, session in per_camera:
+            _decode(session, tmp / cam.name, config, False, None, args.quiet, executor=executor_from_args(args),
+                    shown=args.out / cam.name)
+    skipped = [c.name for c, s in zip(multi.cameras, multi.sessions) if s.calibration is None]
+    note = f" (no projector calibration, not decoded alone: {', '.join(skipped)})" if skipped and args.stereo != "only" else ""
+    console.print(f"[green]wrote[/] {args.out} in {time.perf_counter() - t0:.1f} s{note}", highlight=False)
     return 0
 
 
@@ -448,8 +535,17 @@ def _cmd_info(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
+    from slscan.capture.multicam import is_multicam, load_multicam
     from slscan.capture.session import load_session
 
+    if is_multicam(args.session):  # each camera's session in turn
+        multi = load_multicam(args.session)
+        Console().print(f"[bold]{multi.root}[/]: {len(multi.cameras)} cameras ("
+                        + ", ".join(f"{c.name}: {'calibrated' if c.calibrated else 'not calibrated'}"
+                                    for c in multi.cameras) + f"), common frame: {multi.frame}")
+        for session in multi.sessions:
+            _cmd_info(argparse.Namespace(session=session.root))
+        return 0
     session = load_session(args.session)
     if not session.views:
         raise SlscanError(f"{session.root / 'session.json'}: the session has no views; expected at least one")
@@ -533,7 +629,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Render a capture session of a scene on the virtual rig: the chosen patterns, "
                     "ring-light images and per-pixel ground truth for every view.",
         epilog="examples:\n  slscan capture --scene tile --out tile-scan\n"
-               "  slscan capture --scene statue.glb --views 8 --patterns both --out statue-scan",
+               "  slscan capture --scene statue.glb --views 8 --patterns both --out statue-scan\n"
+               "  slscan capture --cameras 2 --patterns gray --out two-cameras   (docs/stereo.md)",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     _add_capture_options(p)
@@ -557,10 +654,11 @@ def build_parser() -> argparse.ArgumentParser:
                     "view's projector column and row maps (16-bit PNG, 65535 where not decoded) "
                     "and a mask.",
         epilog="examples:\n  slscan decode demo-scan/capture --out maps --save decode.rrd\n"
-               "  slscan decode kamino --out kamino-codes   # no calibration: projector codes only",
+               "  slscan decode kamino --out kamino-codes   # no calibration: projector codes only\n"
+               "  slscan decode two-cameras --out maps      a multi-camera folder (docs/stereo.md)",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("session", type=Path, help="capture-session folder")
+    p.add_argument("session", type=Path, help="capture-session folder, or a multi-camera folder (cameras.json)")
     p.add_argument("--out", required=True, type=Path, help="folder for the range maps (and projector codes)")
     p.add_argument("--method", choices=("auto", "hybrid", "gray"), default="auto",
                    help="which patterns to decode (default auto: hybrid when captured)")
@@ -584,6 +682,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--planes", choices=("auto", "planes", "raw-planes", "inverse-camera"), default="auto",
                    help="with --calibration: which projector model gives the light planes (default auto: "
                         "the light-plane model when measured, else the inverse camera)")
+    p.add_argument("--stereo", choices=("auto", "only", "off"), default="auto",
+                   help="on a multi-camera folder (cameras.json): auto (default) matches camera 0 with each "
+                        "other camera through the projector codes (OUT/stereo_cam0_camK/) and decodes each camera "
+                        "with a projector calibration alone (OUT/camK/); only: just the matching; off: just "
+                        "each camera alone")
     add_recording_arguments(p)
     add_executor_arguments(p)
     p.set_defaults(func=_cmd_decode)
@@ -731,7 +834,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("info", help="check a capture session and summarise it",
                        description="Validate every image of a capture session against its metadata and summarise it.")
-    p.add_argument("session", type=Path, help="capture-session folder")
+    p.add_argument("session", type=Path, help="capture-session folder, or a multi-camera folder (cameras.json)")
     p.set_defaults(func=_cmd_info)
 
     p = sub.add_parser(

@@ -139,13 +139,14 @@ def virtual_devices(
     poses: list[np.ndarray] | None = None,
     rig: Rig | None = None,
     latency_s: float = 0.0,
+    noise_stream: tuple[int, ...] = (),
 ) -> VirtualRig:
     """The virtual rig of ``config`` as devices (see :mod:`slscan.virtual.devices`)."""
     rig = rig or config.rig()
     rig.validate()
     scene = scene or scene_by_name(config.scene)
     return VirtualRig(scene, rig, config.sensor, config.optics, poses=poses, seed=config.seed,
-                      latency_s=latency_s)
+                      latency_s=latency_s, noise_stream=noise_stream)
 
 
 def scan_devices(world: VirtualRig, camera=None) -> ScanDevices:
@@ -185,6 +186,7 @@ def capture_session(
     scene: Scene | None = None,
     poses: list[np.ndarray] | None = None,
     rig: Rig | None = None,
+    noise_stream: tuple[int, ...] = (),
 ) -> Session:
     """Capture ``config.views`` views of ``config.scene`` on the virtual rig into folder ``out``,
     through the acquisition driver (:func:`slscan.capture.driver.scan`), written at once
@@ -195,6 +197,8 @@ def capture_session(
     scene : capture this scene instead of ``config.scene`` (e.g. a calibration board)
     poses : ``rig_from_object`` (4, 4) of each view instead of ``config.views`` turntable steps
     rig : use this rig instead of ``config.rig()`` (same sensor sizes as the config's)
+    noise_stream : a separate noise stream (e.g. ``(k,)`` for camera ``k`` of a multi-camera
+        rig, :mod:`slscan.virtual.multicam`); ``()`` gives the single-camera images
     """
     from slscan.viewer import log as rlog
     from slscan.viewer import log_scan
@@ -203,7 +207,7 @@ def capture_session(
         raise SlscanError(f"views must be at least 1, got {config.views}")
     if poses is not None and len(poses) == 0:
         raise SlscanError("no poses to capture")
-    world = virtual_devices(config, scene=scene, poses=poses, rig=rig)
+    world = virtual_devices(config, scene=scene, poses=poses, rig=rig, noise_stream=noise_stream)
     views = len(poses) if poses is not None else config.views
     for v in range(views):
         pose = poses[v] if poses is not None else turntable_pose(world.rig, 360.0 * v / views)

@@ -49,6 +49,8 @@ class VirtualRig:
     poses : ``rig_from_object`` (4, 4) per view; None: even turntable steps over 360°
     seed : noise seed; image ``i`` of view ``v`` uses ``[seed, v, i]``, so the same scan
         gives the same images
+    noise_stream : more entropy between the seed and ``v`` (``[seed, *noise_stream, v,
+        i]``), e.g. ``(k,)`` for a rig's camera ``k > 0``: its noise is its own
     latency_s : projector latency: an image shown at t is seen by the camera from t + latency
     """
 
@@ -62,11 +64,12 @@ class VirtualRig:
         poses: list[np.ndarray] | None = None,
         seed: int = 0,
         latency_s: float = 0.0,
+        noise_stream: tuple[int, ...] = (),
     ) -> None:
         if latency_s < 0:
             raise DeviceError(f"virtual rig: latency must be >= 0 s, got {latency_s}")
         self.scene, self.rig, self.optics, self.seed, self.latency_s = scene, rig, optics, seed, latency_s
-        self.poses = poses
+        self.poses, self.noise_stream = poses, tuple(noise_stream)
         self.geometry: ViewGeometry | None = None
         self.pose: np.ndarray | None = None
         self.view_index = 0
@@ -99,7 +102,7 @@ class VirtualRig:
         radiance = shade_image(self.geometry, projected, self.optics)
         for k in sorted(self.lights_on):
             add_light(radiance, self.geometry, k, self.rig)
-        rng = np.random.default_rng([self.seed, self.view_index, self.frame_index])
+        rng = np.random.default_rng([self.seed, *self.noise_stream, self.view_index, self.frame_index])
         self.frame_index += 1
         return sensor.expose(radiance, rng)
 
