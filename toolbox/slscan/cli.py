@@ -79,9 +79,9 @@ def _check_scale(scale: float) -> None:
 
 
 def _cmd_capture(args: argparse.Namespace) -> int:
+    from slscan.capture.command import placement_settings
     from slscan.viewer.layouts import capture_blueprint
     from slscan.viewer.recording import recording_from_args
-    from slscan.capture.command import placement_settings
     from slscan.virtual.device import VirtualCaptureConfig, capture_session, images_per_view
     from slscan.virtual.sensor import Sensor
 

@@ -20,8 +20,8 @@ from slscan.errors import SlscanError
 from slscan.patterns import PatternImage, file_name, standard_set
 from slscan.rig import Rig, default_rig, transform_points
 from slscan.virtual.devices import VirtualRig, turntable_pose
-from slscan.virtual.render import Optics, ViewGeometry, shade_light, shade_pattern, trace_view
 from slscan.virtual.placement import check_pose_text, parse_pose, parse_units, placement_record
+from slscan.virtual.render import Optics, ViewGeometry, shade_light, shade_pattern, trace_view
 from slscan.virtual.rigs import RigParams, load_rig_file
 from slscan.virtual.scenes import Scene, scene_by_name
 from slscan.virtual.sensor import Sensor
