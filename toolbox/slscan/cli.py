@@ -45,8 +45,11 @@ def _add_capture_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--scene", default="object",
         help='"object" (built-in figurine, default), "tile" (flat plane test) or a mesh file '
-             "(PLY/OBJ/glTF/GLB; y-up; mm, or metres when under 10 units across)",
+             "(PLY/OBJ/glTF/GLB/OFF/STL)",
     )
+    from slscan.capture.command import add_placement_arguments
+
+    add_placement_arguments(p)
     p.add_argument("--patterns", choices=("hybrid", "gray", "both"), default="hybrid",
                    help="coded patterns after white and black (default: hybrid)")
     p.add_argument("--levels", type=int, default=9, help="hybrid subdivision levels (default 9: 511 lines)")
@@ -82,6 +85,7 @@ def _check_scale(scale: float) -> None:
 
 
 def _cmd_capture(args: argparse.Namespace) -> int:
+    from slscan.capture.command import placement_settings
     from slscan.viewer.layouts import capture_blueprint
     from slscan.viewer.recording import recording_from_args
     from slscan.virtual.device import VirtualCaptureConfig, capture_session, images_per_view
@@ -93,12 +97,14 @@ def _cmd_capture(args: argparse.Namespace) -> int:
         gray_rows=args.gray_rows, lit_images=not args.no_lit, camera_scale=args.scale,
         projector_scale=args.scale, seed=args.seed,
         sensor=Sensor(bit_depth=args.bit_depth, exposure=args.exposure, gain=args.gain, noise=not args.no_noise),
+        **placement_settings(args),
     )
-    if args.scale < 1 and config.patterns != "gray":
+    if config.patterns != "gray":
         # keep two projector pixels per line on a smaller projector
-        max_levels = _max_levels(args.scale)
+        width = config.rig().projector.lens.width
+        max_levels = int(math.log2(max(4, width))) - 1
         if args.levels > max_levels:
-            logging.getLogger(__name__).warning("--scale %s: using %d hybrid levels", args.scale, max_levels)
+            logging.getLogger(__name__).warning("a %d px wide projector: using %d hybrid levels", width, max_levels)
             config = dataclasses.replace(config, levels=max_levels)
     if args.cameras < 1:
         raise SlscanError(f"--cameras must be at least 1, got {args.cameras}")
@@ -630,7 +636,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "ring-light images and per-pixel ground truth for every view.",
         epilog="examples:\n  slscan capture --scene tile --out tile-scan\n"
                "  slscan capture --scene statue.glb --views 8 --patterns both --out statue-scan\n"
-               "  slscan capture --cameras 2 --patterns gray --out two-cameras   (docs/stereo.md)",
+               "  slscan capture --cameras 2 --patterns gray --out two-cameras   (docs/stereo.md)\n"
+               "  slscan capture --scene bust.ply --scene-units m --scene-pose 90,0,0,0,0,0 --out bust-scan\n"
+               "  slscan capture --rig rig.json --scene tile --out tile-scan",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     _add_capture_options(p)

@@ -336,19 +336,26 @@ def default_rig(
     axes_angle_deg: float = 20.0,
     n_lights: int = 6,
     light_ring_radius: float = 250.0,
+    camera_size: tuple[int, int] = (1440, 960),
+    projector_size: tuple[int, int] = (1024, 768),
+    sampling_mm: float = 0.7,
+    camera_distortion: tuple[float, float, float, float, float] = (-0.06, 0.04, 0.0, 0.0, 0.0),
 ) -> Rig:
     """The paper's rig: 1440×960 camera, 1024×768 projector, ~20° apart, at ~1.3 m.
 
-    Both devices sample about 0.7 mm per pixel at the working distance (the paper's
-    0.7 mm × 1.4 mm sampling with 511 lines two projector pixels apart). The camera has
-    mild barrel distortion. The projector sits to the camera's right and looks at the
-    point on the camera axis at ``working_distance``. ``scale`` and ``projector_scale``
-    shrink the sensors (same field of view) for quick tests.
+    Both devices sample about ``sampling_mm`` (0.7) mm per pixel at the working distance
+    (the paper's 0.7 mm × 1.4 mm sampling with 511 lines two projector pixels apart): both
+    focal lengths are ``working_distance / sampling_mm`` px. The camera has mild barrel
+    distortion (``camera_distortion``, OpenCV order) and its principal point is off-centre
+    by (+3.2, −2.1) px. The projector sits to the camera's right and looks at the point on
+    the camera axis at ``working_distance``. ``scale`` and ``projector_scale`` shrink the
+    sensors (same field of view) for quick tests.
     """
-    f_cam = working_distance / 0.7
-    camera = PinholeModel(1440, 960, f_cam, f_cam, 719.5 + 3.2, 479.5 - 2.1, (-0.06, 0.04, 0.0, 0.0, 0.0))
+    f_cam = working_distance / sampling_mm
+    (cw, ch), (pw, ph) = camera_size, projector_size
+    camera = PinholeModel(cw, ch, f_cam, f_cam, (cw - 1) / 2 + 3.2, (ch - 1) / 2 - 2.1, tuple(camera_distortion))
     camera = camera.scaled(scale) if scale != 1.0 else camera
-    proj_lens = PinholeModel(1024, 768, f_cam, f_cam, 511.5, 383.5)
+    proj_lens = PinholeModel(pw, ph, f_cam, f_cam, (pw - 1) / 2, (ph - 1) / 2)
     proj_lens = proj_lens.scaled(projector_scale) if projector_scale != 1.0 else proj_lens
     target = np.array([0.0, 0.0, working_distance])
     a = math.radians(axes_angle_deg)

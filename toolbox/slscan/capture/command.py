@@ -97,6 +97,7 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
     cal.add_argument("--target", choices=("chessboard", "charuco"), default="chessboard", help="board kind")
     sim = p.add_argument_group("virtual rig (--camera virtual or loop)")
     sim.add_argument("--scene", default="object", help='"object" (figurine), "tile" or a mesh file')
+    add_placement_arguments(sim)
     sim.add_argument("--scale", type=float, default=0.5,
                      help="camera and projector resolution factor (default 0.5; 1: 1440x960 and 1024x768)")
     sim.add_argument("--exposure", type=float, default=1.0, help="virtual camera exposure (default 1)")
@@ -106,6 +107,33 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
     add_recording_arguments(p)
     p.set_defaults(func=run)
     return p
+
+
+def add_placement_arguments(p: argparse.ArgumentParser) -> None:
+    """``--scene-units``, ``--scene-pose`` and ``--rig``: where the virtual rig's object
+    stands, and what the rig is (docs/virtual-rig.md)."""
+    p.add_argument("--scene-units", default=None, metavar="UNITS",
+                   help="the mesh file's units: mm, cm, m, in or mm per unit (default auto: mm, or m "
+                        "when the mesh is under 10 units across)")
+    p.add_argument("--scene-pose", default=None, metavar="POSE",
+                   help='where the object stands on the turntable: "rx,ry,rz,tx,ty,tz" (degrees about the '
+                        "turntable's x, y, z, then mm; y is down) or a 4x4 matrix file (.json, .txt) mapping "
+                        "the file's coordinates (mm) to the turntable frame (default: turned 180 degrees about "
+                        "x, so y up and +z front face up and the camera, bounding box centred on the turntable)")
+    p.add_argument("--rig", type=Path, default=None, metavar="RIG.json",
+                   help="the virtual rig's camera, projector and lights as Rig.to_dict writes them (or a "
+                        "session.json: its calibration); default: the paper's rig")
+
+
+def placement_settings(args: argparse.Namespace) -> dict:
+    """The :class:`~slscan.virtual.device.VirtualCaptureConfig` settings of the placement
+    arguments, refused with the option's name when malformed."""
+    from slscan.virtual.placement import check_pose_text, parse_units
+
+    parse_units(args.scene_units, "--scene-units")
+    check_pose_text(args.scene_pose, "--scene-pose")
+    return {"scene_units": args.scene_units, "scene_pose": args.scene_pose,
+            "rig_file": None if args.rig is None else str(args.rig)}
 
 
 # --- devices --------------------------------------------------------------------------------
@@ -184,7 +212,7 @@ def _open_rig(args, camera_spec, projector_spec) -> _Rig:
             raise SlscanError(f"--scale must be in (0, 2], got {args.scale}")
         config = VirtualCaptureConfig(
             scene=args.scene, camera_scale=args.scale, projector_scale=args.scale, seed=args.seed,
-            lit_images=board is None, sensor=Sensor(exposure=args.exposure),
+            lit_images=board is None, sensor=Sensor(exposure=args.exposure), **placement_settings(args),
         )
         scene = poses = None
         if board is not None:
@@ -224,6 +252,11 @@ def _open_rig(args, camera_spec, projector_spec) -> _Rig:
 
     # real devices
     from slscan.devices.lights import ManualLights, ManualStage
+
+    for option, value in (("--rig", args.rig), ("--scene-pose", args.scene_pose), ("--scene-units", args.scene_units)):
+        if value is not None:
+            raise SlscanError(f"{option} is for the virtual rig (--camera virtual or loop); a real rig's geometry "
+                              "comes from --calibration")
 
     projector = open_projector(projector_spec or _default_projector())
     opened = [projector]

@@ -6,6 +6,7 @@ per-view ground truth, so the rest of the pipeline never knows the difference.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 from collections.abc import Callable
@@ -19,7 +20,9 @@ from slscan.errors import SlscanError
 from slscan.patterns import PatternImage, file_name, standard_set
 from slscan.rig import Rig, default_rig, transform_points
 from slscan.virtual.devices import VirtualRig, turntable_pose
+from slscan.virtual.placement import check_pose_text, parse_pose, parse_units, placement_record
 from slscan.virtual.render import Optics, ViewGeometry, shade_light, shade_pattern, trace_view
+from slscan.virtual.rigs import RigParams, load_rig_file
 from slscan.virtual.scenes import Scene, scene_by_name
 from slscan.virtual.sensor import Sensor
 
@@ -42,6 +45,13 @@ class VirtualCaptureConfig:
         1024×768 (same field of view); below 1 for quick runs
     lit_exposure : exposure of the ring-light images relative to the pattern images
     seed : noise seed; the same seed gives the same images
+    scene_units : a mesh file's units: {"auto", "mm", "cm", "m", "in"} or mm per unit;
+        None: auto (mm, or metres when under 10 units across)
+    scene_pose : where the scene stands on the turntable (``turntable_from_object``, see
+        :mod:`slscan.virtual.placement`): "rx,ry,rz,tx,ty,tz" (degrees, mm), a 4x4 matrix
+        file (.json, .txt) or "default"; None: the default placement
+    rig_params : the rig's geometry (:class:`slscan.virtual.rigs.RigParams`); None: the paper's
+    rig_file : a rig as ``Rig.to_dict`` writes it (or a session.json), instead of ``rig_params``
     """
 
     scene: str = "object"
@@ -56,11 +66,27 @@ class VirtualCaptureConfig:
     optics: Optics = field(default_factory=Optics)
     lit_exposure: float = 1.0
     seed: int = 0
+    scene_units: str | float | None = None
+    scene_pose: str | None = None
+    rig_params: RigParams | None = None
+    rig_file: str | None = None
+
+    def __post_init__(self) -> None:
+        check_placement_settings(self)
 
     def rig(self) -> Rig:
-        rig = default_rig(scale=self.camera_scale, projector_scale=self.projector_scale)
+        if self.rig_file:
+            return load_rig_file(self.rig_file, scale=self.camera_scale, projector_scale=self.projector_scale)
+        if self.rig_params is not None:
+            rig = self.rig_params.rig(scale=self.camera_scale, projector_scale=self.projector_scale)
+        else:
+            rig = default_rig(scale=self.camera_scale, projector_scale=self.projector_scale)
         rig.validate()
         return rig
+
+    def build_scene(self) -> Scene:
+        """The scene of ``scene``, in its units, placed at ``scene_pose``."""
+        return scene_by_name(self.scene, units=self.scene_units, pose=parse_pose(self.scene_pose))
 
     def pattern_set(self, rig: Rig) -> list[PatternImage]:
         lens = rig.projector.lens
@@ -72,7 +98,18 @@ class VirtualCaptureConfig:
             "gray_rows": self.gray_rows, "lit_images": self.lit_images, "camera_scale": self.camera_scale,
             "projector_scale": self.projector_scale, "sensor": self.sensor.to_dict(),
             "optics": self.optics.to_dict(), "lit_exposure": self.lit_exposure, "seed": self.seed,
+            "scene_units": self.scene_units, "scene_pose": self.scene_pose,
+            "rig_params": None if self.rig_params is None else dataclasses.asdict(self.rig_params),
+            "rig_file": self.rig_file,
         }
+
+
+def check_placement_settings(config: VirtualCaptureConfig) -> None:
+    """Refuse malformed scene units, pose text and rig settings, naming the setting."""
+    parse_units(config.scene_units, "scene_units")
+    check_pose_text(config.scene_pose, "scene_pose")
+    if config.rig_file is not None and config.rig_params is not None:
+        raise SlscanError("rig_file and rig_params: give one (a rig file, or the parameters of the default rig)")
 
 
 def check_visible(scene: Scene, rig: Rig, rig_from_object: np.ndarray) -> None:
@@ -144,7 +181,7 @@ def virtual_devices(
     """The virtual rig of ``config`` as devices (see :mod:`slscan.virtual.devices`)."""
     rig = rig or config.rig()
     rig.validate()
-    scene = scene or scene_by_name(config.scene)
+    scene = scene or config.build_scene()
     return VirtualRig(scene, rig, config.sensor, config.optics, poses=poses, seed=config.seed,
                       latency_s=latency_s, noise_stream=noise_stream)
 
@@ -210,10 +247,13 @@ def capture_session(
     world = virtual_devices(config, scene=scene, poses=poses, rig=rig, noise_stream=noise_stream)
     views = len(poses) if poses is not None else config.views
     for v in range(views):
-        pose = poses[v] if poses is not None else turntable_pose(world.rig, 360.0 * v / views)
+        pose = poses[v] if poses is not None else turntable_pose(world.rig, 360.0 * v / views, world.scene.placement)
         check_visible(world.scene, world.rig, pose)
     rlog.log_rig(rec, world.rig)
     device = {"kind": "virtual-rig", "scene": world.scene.name, "config": config.to_dict()}
+    if poses is None:
+        device["scene_placement"] = placement_record(world.scene.placement, world.scene.mm_per_unit,
+                                                     config.scene_pose not in (None, "default"))
     result = scan(
         # no reference frame: the virtual rig has no latency, and its images stay those of
         # earlier slscan versions (each image's noise is drawn from its index in the view)

@@ -31,13 +31,15 @@ EXPOSURE_RANGE = (1 / 64, 64.0)  # relative exposure the virtual camera accepts
 GAIN_RANGE = (1.0, 16.0)
 
 
-def turntable_pose(rig: Rig, angle_deg: float) -> np.ndarray:
-    """``rig_from_object`` with the object at the working distance, turned ``angle_deg``
-    about its vertical (y) axis."""
+def turntable_pose(rig: Rig, angle_deg: float, placement: np.ndarray | None = None) -> np.ndarray:
+    """``rig_from_object`` of an object standing on the turntable at ``placement``
+    (``turntable_from_object``; None: the identity) with the turntable turned ``angle_deg``
+    about its vertical (y) axis; the turntable's centre is at the working distance on the
+    camera axis (see :mod:`slscan.virtual.placement`)."""
     pose = np.eye(4)
     pose[:3, :3] = rotation_about_axis([0, 1, 0], math.radians(angle_deg))
     pose[:3, 3] = [0.0, 0.0, rig.working_distance]
-    return pose
+    return pose if placement is None else pose @ placement
 
 
 class VirtualRig:
@@ -218,7 +220,7 @@ class VirtualTurntable(Stage):
                 raise DeviceError(f"{self.name}: no pose for view {view_index} ({len(world.poses)} given)")
             pose = world.poses[view_index]
         else:
-            pose = turntable_pose(world.rig, 360.0 * view_index / views)
+            pose = turntable_pose(world.rig, 360.0 * view_index / views, world.scene.placement)
         geom = world.place(view_index, pose)
         name = f"view_{view_index:03d}"
         if not geom.hit.any():

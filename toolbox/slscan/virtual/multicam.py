@@ -107,7 +107,9 @@ def capture_multicam(
     views = len(poses) if poses is not None else config.views
     if views < 1:
         raise SlscanError(f"views must be at least 1, got {views}")
-    poses0 = list(poses) if poses is not None else [turntable_pose(rig0, 360.0 * v / views) for v in range(views)]
+    scene = scene or config.build_scene()  # once: its placement sets the default poses
+    poses0 = list(poses) if poses is not None else [
+        turntable_pose(rig0, 360.0 * v / views, scene.placement) for v in range(views)]
     entries = []
     with atomic_output_dir(out, overwrite=overwrite) as tmp:
         for k, rig_from_cam in enumerate(camera_poses(rig0, cameras, spacing_deg)):

@@ -1,12 +1,15 @@
 """Scenes for the virtual rig: the built-in figurine, the flat tile, and user meshes.
 
-A scene is a triangle mesh in its own object frame (mm, y down like the rig, front
-towards -z, i.e. towards the camera when placed in front of it) with shading normals,
-an albedo source and a specular lobe.
+A scene is a triangle mesh in its own object frame (mm) with shading normals, an albedo
+source, a specular lobe, and its placement on the turntable (see
+:mod:`slscan.virtual.placement`). The built-in scenes are modelled in place (y down like
+the rig, front towards -z, i.e. towards the camera); a user mesh keeps its file's
+coordinates (scaled to mm) and is placed by a pose.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
@@ -19,6 +22,7 @@ import numpy as np
 from slscan.errors import SlscanError
 from slscan.meshes import MESH_SUFFIXES, vertex_normals
 from slscan.rig import rotation_about_axis
+from slscan.virtual.placement import AUTO_METRES_BELOW, default_placement, parse_units
 
 log = logging.getLogger(__name__)
 
@@ -93,6 +97,10 @@ class Scene:
     albedo : where the surface colour comes from
     specular : Blinn-Phong specular reflectance (white), 0 for matte
     shininess : Blinn-Phong exponent
+    placement : (4, 4) float64 mm, rigid, ``turntable_from_object``: where the object frame
+        stands on the turntable (:mod:`slscan.virtual.placement`); None: the identity
+        (the object frame is the turntable frame)
+    mm_per_unit : the scale from the mesh file's units to the object frame's mm
     """
 
     name: str
@@ -102,6 +110,8 @@ class Scene:
     albedo: AlbedoSource
     specular: float = 0.0
     shininess: float = 40.0
+    placement: np.ndarray | None = None
+    mm_per_unit: float = 1.0
 
     def __post_init__(self) -> None:
         if len(self.triangles) == 0:
@@ -274,12 +284,16 @@ def flat_tile(*, width: float = 400.0, height: float = 300.0, thickness: float =
     return Scene("tile", corners @ r.T, tris, None, UniformAlbedo((albedo, albedo, albedo * 0.97)), specular=0.03, shininess=60.0)
 
 
-def load_mesh_scene(path: str | os.PathLike, *, units: str = "auto", specular: float = 0.05) -> Scene:
+def load_mesh_scene(path: str | os.PathLike, *, units: str | float | None = "auto",
+                    pose: np.ndarray | None = None, specular: float = 0.05) -> Scene:
     """A user mesh (PLY/OBJ/glTF/GLB/OFF/STL) with its texture or vertex colours.
 
-    The mesh is assumed y-up (glTF, Stanford scans) and is turned to the rig's y-down,
-    front-to-camera frame and centred. ``units``: {"auto", "mm", "m"}; "auto" takes a mesh
-    smaller than 10 units across to be in metres.
+    The object frame is the file's own coordinates, scaled to mm by ``units``: a unit name
+    {"mm", "cm", "m", "in"}, mm per unit, or "auto" / None (mm, or metres when the mesh is
+    less than 10 units across). ``pose`` is its ``turntable_from_object`` (4, 4) mm; None:
+    the default placement (:func:`slscan.virtual.placement.default_placement`: y up and
+    front +z turned to the rig's y down and front to the camera, the bounding box centred
+    on the turntable).
     """
     import open3d as o3d
 
@@ -288,19 +302,19 @@ def load_mesh_scene(path: str | os.PathLike, *, units: str = "auto", specular: f
         raise SlscanError(f"{path}: unknown mesh format {path.suffix!r}; expected one of {', '.join(MESH_SUFFIXES)}")
     if not path.is_file():
         raise SlscanError(f"{path}: mesh file not found")
+    mm_per_unit = parse_units(units, "units")
     mesh = o3d.io.read_triangle_mesh(str(path), enable_post_processing=True)
     vertices = np.asarray(mesh.vertices, dtype=float)
     triangles = np.asarray(mesh.triangles, dtype=np.int32)
     if len(triangles) == 0 or len(vertices) < 3:
         raise SlscanError(f"{path}: the mesh has no faces (a point cloud cannot be scanned)")
-    if units not in ("auto", "mm", "m"):
-        raise SlscanError(f"unknown units {units!r}: expected auto, mm or m")
-    diag = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
-    if units == "m" or (units == "auto" and diag < 10.0):
-        if units == "auto":
-            log.warning("%s is %.3g units across: taking it to be in metres", path, diag)
-        vertices = vertices * 1000.0
-    vertices = (vertices - (vertices.max(0) + vertices.min(0)) / 2) * [1, -1, -1]
+    if mm_per_unit is None:
+        diag = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
+        mm_per_unit = 1000.0 if diag < AUTO_METRES_BELOW else 1.0
+        if mm_per_unit != 1.0:
+            log.warning("%s is %.3g units across: taking it to be in metres (set the units to say)", path, diag)
+    vertices = vertices * mm_per_unit
+    placement = default_placement(vertices) if pose is None else np.asarray(pose, dtype=float)
     normals = vertex_normals(vertices, triangles)
     if mesh.has_vertex_colors():
         colors = np.asarray(mesh.vertex_colors, dtype=np.float32)
@@ -318,16 +332,24 @@ def load_mesh_scene(path: str | os.PathLike, *, units: str = "auto", specular: f
         albedo = VertexColorAlbedo(colors, triangles)
     else:
         albedo = UniformAlbedo((0.7, 0.7, 0.7))
-    return Scene(path.stem, vertices, triangles, normals, albedo, specular=specular)
+    return Scene(path.stem, vertices, triangles, normals, albedo, specular=specular, placement=placement,
+                 mm_per_unit=mm_per_unit)
 
 
-def scene_by_name(name: str, **kwargs) -> Scene:
-    """``"object"`` (built-in figurine), ``"tile"``, or a mesh file path."""
-    if name == "object":
-        return builtin_object(**kwargs)
-    if name == "tile":
-        return flat_tile(**kwargs)
-    return load_mesh_scene(name, **kwargs)
+BUILTIN_SCENES = ("object", "tile")
+
+
+def scene_by_name(name: str, *, units: str | float | None = None, pose: np.ndarray | None = None,
+                  **kwargs) -> Scene:
+    """``"object"`` (built-in figurine), ``"tile"``, or a mesh file path (``units``: see
+    :func:`load_mesh_scene`), placed on the turntable at ``pose`` (``turntable_from_object``;
+    None: the default placement)."""
+    if name in BUILTIN_SCENES:
+        if units is not None and not (isinstance(units, str) and units.strip().lower() == "auto"):
+            raise SlscanError(f"scene_units: the built-in scene {name!r} is modelled in mm; units are for a mesh file")
+        scene = builtin_object(**kwargs) if name == "object" else flat_tile(**kwargs)
+        return scene if pose is None else dataclasses.replace(scene, placement=np.asarray(pose, dtype=float))
+    return load_mesh_scene(name, units="auto" if units is None else units, pose=pose, **kwargs)
 
 
 def surface_albedo(scene: Scene, points: np.ndarray) -> np.ndarray:
