@@ -234,7 +234,7 @@ def panel_points(
     if len(samples) == 0:
         return np.zeros(0), np.zeros((0, 3))
     margin = 0.5 * board.square if margin is None else float(margin)
-    pixels = np.stack([np.asarray(samples.x, float), np.asarray(samples.row, float)], axis=1)
+    pixels = samples.pixels()  # sub-pixel (x, y), whichever axis the edge was found along
     rays = camera.rays_local(pixels)
     r, t = camera_from_board[:3, :3], camera_from_board[:3, 3]
     normal = r[:, 2]

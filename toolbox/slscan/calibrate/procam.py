@@ -172,8 +172,8 @@ class GrayAxes:
 
     columns : the usual decode: projector column and row per camera pixel, and the column
         edges along camera rows
-    rows : edges of the projector rows along camera columns, as (k,) arrays ``x`` (camera
-        column, int), ``y`` (sub-pixel camera row) and ``value`` (projector row ``r + 0.5``)
+    rows : edges of the projector rows, as (k,) arrays ``x``, ``y`` (camera px; one of the two
+        sub-pixel, whichever axis crossed the stripes) and ``value`` (projector row ``r + 0.5``)
     """
 
     columns: GrayResult
@@ -229,7 +229,9 @@ def decode_gray_axes(session: Session, view: ViewRecord) -> GrayAxes:
     )
     e = rows.edges
     return GrayAxes(
-        columns, e.row.astype(np.int64), e.x.astype(float), e.projector_column.astype(float)
+        # the transposed decode's (x, y) are the camera's (y, x); its samples may have been
+        # found along either axis, so take the sub-pixel position either way
+        columns, e.camera_y, e.x.astype(float), e.projector_column.astype(float)
     )
 
 
@@ -287,7 +289,7 @@ def projector_corners_from_edges(
     """
     e = axes.columns.edges
     cx_all = np.concatenate([e.x, axes.row_x.astype(float)])
-    cy_all = np.concatenate([e.row.astype(float), axes.row_y])
+    cy_all = np.concatenate([e.camera_y, axes.row_y])  # edges found along rows or columns
     val_all = np.concatenate([e.projector_column, axes.row_value])
     is_row_all = np.concatenate([np.zeros(len(e), bool), np.ones(len(axes.row_x), bool)])
     corners = np.asarray(corners, float).reshape(-1, 2)

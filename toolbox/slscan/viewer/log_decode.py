@@ -44,10 +44,14 @@ def stripe_strips(samples: StripeSamples, *, max_gap_rows: int = 1) -> list[np.n
     """Polylines (list of (k, 2) float32 [x, row]) joining each stripe's samples row by row."""
     if len(samples) == 0:
         return []
-    order = np.lexsort((samples.row, samples.stripe))
-    stripe, row, x = samples.stripe[order], samples.row[order], samples.x[order]
-    breaks = np.flatnonzero((np.diff(stripe) != 0) | (np.diff(row) > max_gap_rows)) + 1
-    points = np.stack([x, row], axis=1).astype(np.float32)
+    # one polyline per stripe and search line kind: samples found along camera rows step
+    # row by row, those found along camera columns (a turned projector) column by column
+    line, pos = samples.lines()
+    along = np.zeros(len(samples), bool) if samples.along_columns is None else np.asarray(samples.along_columns)
+    order = np.lexsort((line, samples.stripe, along))
+    stripe, line, kind = samples.stripe[order], line[order], along[order]
+    breaks = np.flatnonzero((np.diff(stripe) != 0) | (np.diff(kind) != 0) | (np.diff(line) > max_gap_rows)) + 1
+    points = samples.pixels()[order].astype(np.float32)
     return [p for p in np.split(points, breaks) if len(p) >= 2]
 
 
