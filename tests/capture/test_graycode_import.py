@@ -365,3 +365,17 @@ def test_kamino410_preset_equals_the_kamino410_importer(shared_data: Path, tmp_p
         assert a.mask.mean() > 0.2
         for field in ("column", "row", "mask"):
             assert np.array_equal(getattr(a, field), getattr(b, field)), (view.name, field)
+
+
+def test_info_says_lossy_turned_and_dropped_bits(tmp_path: Path, capsys: pytest.CaptureFixture):
+    from slscan.cli import main
+
+    src = _preset_folder(tmp_path / "src", "3dunderworld", ".jpg", True)
+    (src / "0023.jpg").unlink()  # row bit 4 (LSB) inverse
+    out = tmp_path / "session"
+    import_graycode(src, out, preset="3dunderworld", projector_size=PROJECTOR, missing_bits="drop")
+    capsys.readouterr()
+    assert main(["info", str(out)]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "lossy (JPEG)" in text and "turned 90 deg" in text and "cross camera columns" in text
+    assert "rows 4 of 5 kept" in text

@@ -562,6 +562,17 @@ def _cmd_info(args: argparse.Namespace) -> int:
         f"{session.bit_depth}-bit; projector {session.projector_size[0]}x{session.projector_size[1]}; "
         f"calibration: {session.calibration_source or 'none'}"
     )
+    if session.lossy or session.projector_rotation:
+        console.print(
+            ("captures are lossy (JPEG): decoding warns, and valid shares may drop; " if session.lossy else "")
+            + (f"projector turned {session.projector_rotation} deg (its column stripes cross camera "
+               f"{'columns' if session.camera_axis('columns') == 'y' else 'rows'})"
+               if session.projector_rotation else ""), highlight=False,
+        )
+    missing = session.device.get("missing_bits")
+    if missing:
+        console.print("Gray-code bits dropped at import: " + "; ".join(
+            f"{axis} {m['kept']} of {m['bits']} kept" for axis, m in missing.items()), highlight=False)
     families: dict[str, int] = {}
     for p in session.patterns:
         families[p.family] = families.get(p.family, 0) + 1
