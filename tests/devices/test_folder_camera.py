@@ -29,14 +29,17 @@ def _encode(rgb: np.ndarray, ext: str = ".png") -> bytes:
 
 
 def _later(*steps):
-    """Run (delay_s, callable) steps in a writer thread; returns (thread, times each ran)."""
+    """Run (delay_s, callable) steps in a writer thread; returns (thread, times each started).
+
+    The start, not the end: the camera may read a file the step has just completed before
+    the thread, on a loaded machine, gets to note the time (a flaky failure seen in CI)."""
     times: list[float] = []
 
     def run():
         for delay, step in steps:
             time.sleep(delay)
-            step()
             times.append(time.monotonic())
+            step()
 
     thread = threading.Thread(target=run, daemon=True)
     thread.start()
