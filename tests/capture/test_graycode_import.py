@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import logging
 import shutil
-from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -17,7 +16,7 @@ import pytest
 from slscan.capture.graycode_import import PRESETS, Slot, import_graycode, parse_order
 from slscan.capture.kamino410 import import_kamino410
 from slscan.capture.session import load_session
-from slscan.decode.graycode import decode_gray, decode_gray_images
+from slscan.decode.graycode import decode_gray
 from slscan.errors import SlscanError
 from slscan.patterns import PatternImage, flat, graycode, render
 

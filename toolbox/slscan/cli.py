@@ -347,7 +347,7 @@ def _decode_multicam(args: argparse.Namespace) -> int:
     through the projector codes, and each calibrated camera's own range maps."""
     from slscan.capture.multicam import load_multicam
     from slscan.decode.pipeline import DecodeConfig
-    from slscan.decode.stereo import STEREO_FOLDER, reconstruct_multicam
+    from slscan.decode.stereo import STEREO_FOLDER, StereoConfig, reconstruct_multicam
     from slscan.fsio import atomic_output_dir
     from slscan.viewer.layouts import decode_blueprint
     from slscan.viewer.recording import recording_from_args
@@ -371,7 +371,8 @@ def _decode_multicam(args: argparse.Namespace) -> int:
         for a, b in pairs:
             folder = STEREO_FOLDER.format(a=multi.cameras[a].name, b=multi.cameras[b].name)
             with _ProgressBar(len(multi.view_names), f"matching {folder}", args.quiet) as bar:
-                results = reconstruct_multicam(multi, tmp / folder, pair=(a, b), rec=rec, progress=bar.step)
+                results = reconstruct_multicam(multi, tmp / folder, pair=(a, b), rec=rec, progress=bar.step,
+                                               config=StereoConfig(gray_threshold=args.gray_threshold))
             stats = [r.match.stats for r in results]
             console.print(
                 f"[green]{folder}[/]: {sum(s['matched'] for s in stats):,} points from "

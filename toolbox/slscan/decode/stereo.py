@@ -98,6 +98,9 @@ class StereoConfig:
     """Mesh edges longer than this many times the expected spacing are cut."""
     max_view_angle_deg: float = MAX_VIEW_ANGLE_DEG
     """Triangles seen from camera 0 more obliquely than this are dropped."""
+    gray_threshold: str = "adaptive"
+    """Each camera's Gray-code bit thresholds, ``"adaptive"`` or ``"opencv"``
+    (:func:`slscan.decode.graycode.decode_gray_images`)."""
 
     def __post_init__(self) -> None:
         for name in ("max_epipolar_px", "max_ray_gap_mm", "outlier_px", "max_edge_factor"):
@@ -469,7 +472,8 @@ def reconstruct_view(
     height = sa.projector_size[1]
     seconds = {}
     t = time.perf_counter()
-    ra, rb = decode_gray(sa, view), decode_gray(sb, view)
+    ra = decode_gray(sa, view, threshold=config.gray_threshold)
+    rb = decode_gray(sb, view, threshold=config.gray_threshold)
     seconds["decode"] = time.perf_counter() - t
     t = time.perf_counter()
     opts = {"projector_height": height, "code_step": config.code_step}

@@ -46,7 +46,7 @@ def stripe_strips(samples: StripeSamples, *, max_gap_rows: int = 1) -> list[np.n
         return []
     # one polyline per stripe and search line kind: samples found along camera rows step
     # row by row, those found along camera columns (a turned projector) column by column
-    line, pos = samples.lines()
+    line, _ = samples.lines()
     along = np.zeros(len(samples), bool) if samples.along_columns is None else np.asarray(samples.along_columns)
     order = np.lexsort((line, samples.stripe, along))
     stripe, line, kind = samples.stripe[order], line[order], along[order]
