@@ -152,3 +152,28 @@ def test_model_stages_stream_to_rerun(shared_data, tmp_path):
     assert {"/object/scans/bun000", "/object/scans/bun000/mesh", "/object/model/fused",
             "/object/model/simplified"} <= paths, sorted(paths)
     assert any(p.startswith("/plot/register/rmse/") for p in paths)
+
+
+def test_a_file_a_setting_names_is_part_of_the_fingerprint(tmp_path, monkeypatch):
+    """Editing a pose or rig file in place reruns the stage, as a changed setting does."""
+    from dataclasses import dataclass
+    from types import SimpleNamespace
+
+    from slscan.recipe.runner import _fingerprint
+
+    @dataclass
+    class Config:
+        scene_pose: str = "pose.json"
+        nested: tuple = ("rig.json", "object")
+
+    monkeypatch.chdir(tmp_path)
+    stage = SimpleNamespace(name="capture")
+    without = _fingerprint(stage, Config(), {})
+    (tmp_path / "pose.json").write_text("[[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]")
+    first = _fingerprint(stage, Config(), {})
+    assert first != without and _fingerprint(stage, Config(), {}) == first
+    (tmp_path / "pose.json").write_text("[[1, 0, 0, 5], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]")
+    second = _fingerprint(stage, Config(), {})
+    assert second != first
+    (tmp_path / "rig.json").write_text("{}")
+    assert _fingerprint(stage, Config(), {}) != second

@@ -164,9 +164,30 @@ def shipped_recipe(name: str) -> Path:
 
 
 def _fingerprint(stage: Stage, config: Any, inputs: dict[str, str]) -> str:
-    blob = json.dumps({"stage": stage.name, "config": to_mapping(config), "inputs": inputs,
-                       "slscan": __version__}, sort_keys=True)
+    mapping = to_mapping(config)
+    blob = json.dumps({"stage": stage.name, "config": mapping, "inputs": inputs,
+                       "files": _referenced_files(mapping), "slscan": __version__}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()
+
+
+def _referenced_files(value: Any) -> dict[str, str]:
+    """SHA-256 of every existing file a setting names (a user mesh, ``capture.scene_pose``,
+    ``capture.rig_file``...), by the setting's text: editing such a file in place changes
+    the stage's fingerprint as a changed setting does."""
+    found: dict[str, str] = {}
+    if isinstance(value, dict):
+        for v in value.values():
+            found.update(_referenced_files(v))
+    elif isinstance(value, (list, tuple)):
+        for v in value:
+            found.update(_referenced_files(v))
+    elif isinstance(value, str) and ("." in value or "/" in value) and len(value) < 4096:
+        try:
+            if Path(value).is_file():
+                found[value] = _hash_file(Path(value))
+        except OSError:
+            pass
+    return found
 
 
 def _hash_file(path: Path) -> str:
