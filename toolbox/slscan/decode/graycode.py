@@ -488,21 +488,18 @@ def _both_axes(rows_found: StripeSamples, cols_found: StripeSamples) -> StripeSa
                             for d in (-1, 1)))
         return near
 
+    def keep_lone(s: StripeSamples, near: np.ndarray, keep: np.ndarray, other: StripeSamples) -> None:
+        """Lone samples of ``s`` stay unless ``other`` has the same boundary right there."""
+        lone = np.flatnonzero(np.isinf(near))
+        there = np.minimum(*(_nearest_on(other.row, other.x, other.stripe,
+                                         np.floor(s.x[lone]).astype(np.int64) + d, s.row[lone].astype(float),
+                                         s.stripe[lone]) for d in (0, 1)))
+        keep[lone] = there > 1.0
+
     h_near, v_near = steep(rows_found), steep(cols_found)
     h_keep, v_keep = h_near <= 1.0, v_near < 1.0
-    # lone samples: kept unless the other axis has the same boundary right there
-    lone = np.flatnonzero(np.isinf(h_near))
-    s = rows_found
-    other = np.minimum(*(_nearest_on(cols_found.row, cols_found.x, cols_found.stripe,
-                                     np.floor(s.x[lone]).astype(np.int64) + d, s.row[lone].astype(float),
-                                     s.stripe[lone]) for d in (0, 1)))
-    h_keep[lone] = other > 1.0
-    lone = np.flatnonzero(np.isinf(v_near))
-    s = cols_found
-    other = np.minimum(*(_nearest_on(rows_found.row, rows_found.x, rows_found.stripe,
-                                     np.floor(s.x[lone]).astype(np.int64) + d, s.row[lone].astype(float),
-                                     s.stripe[lone]) for d in (0, 1)))
-    v_keep[lone] = other > 1.0
+    keep_lone(rows_found, h_near, h_keep, cols_found)
+    keep_lone(cols_found, v_near, v_keep, rows_found)
     rows_found, cols_found = rows_found.subset(h_keep), cols_found.subset(v_keep)
     if len(cols_found) == 0:
         return rows_found
