@@ -113,7 +113,7 @@ def test_gray_threshold_reaches_the_decoder(figurine, monkeypatch):
 def test_workers_fit_in_free_memory(figurine, caplog):
     from types import SimpleNamespace
 
-    from slscan.decode.pipeline import fit_workers, view_memory_bytes
+    from slscan.decode.budget import fit_workers, view_memory_bytes
     from slscan.executor import Executor
 
     session = SimpleNamespace(views=[None] * 6, camera_size=figurine.camera_size,

@@ -31,6 +31,7 @@ import numpy as np
 
 from slscan import __version__
 from slscan.capture.session import SESSION_FILE, Session, ViewRecord, load_session
+from slscan.decode.budget import fit_workers, warn_if_lossy
 from slscan.decode.graycode import GrayResult, decode_gray, gray_pairs
 from slscan.decode.masks import full_scale
 from slscan.errors import SlscanError
@@ -400,11 +401,7 @@ def decode_codes_session(
     if not session.views:
         raise SlscanError(f"{session.root / SESSION_FILE}: the session has no views; expected at least one")
     require_gray_codes(session)
-    if session.lossy:
-        log.warning("%s: the captures are lossy (JPEG): compression noise lowers the share of "
-                    "pixels decoded", session.root)
-    from slscan.decode.pipeline import fit_workers  # pipeline imports this module
-
+    warn_if_lossy(session)
     executor = fit_workers(executor, session)
     executor.start(len(session.views), [__name__])
     results = []
