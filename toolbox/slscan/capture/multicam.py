@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from slscan import __version__
-from slscan.capture.session import SESSION_FILE, Session, load_session
+from slscan.capture.session import SESSION_FILE, Session, load_session, locate_metadata
 from slscan.errors import SlscanError
 from slscan.fsio import read_json, write_json
 from slscan.rig import PinholeModel, _as_pose
@@ -178,12 +178,7 @@ def load_multicam(path: str | os.PathLike, *, validate: bool = True) -> MultiCam
     SlscanError
         Naming ``cameras.json`` or the camera folder at fault, and what was expected.
     """
-    root = Path(path)
-    meta = root / MULTICAM_FILE
-    if root.is_file() and root.name == MULTICAM_FILE:
-        root, meta = root.parent, root
-    if not root.is_dir():
-        raise SlscanError(f"{root}: multi-camera session folder not found")
+    root, meta = locate_metadata(path, MULTICAM_FILE, "multi-camera session")
     d = read_json(meta, "multi-camera description (cameras.json)")
     if not isinstance(d, dict) or d.get("format") != MULTICAM_FORMAT:
         got = d.get("format") if isinstance(d, dict) else type(d).__name__

@@ -462,14 +462,26 @@ def _check_inside(session: Session, meta_path: Path) -> None:
         )
 
 
+def locate_metadata(path: str | os.PathLike, file_name: str, kind: str) -> tuple[Path, Path]:
+    """The folder and its metadata file ``file_name``, given either of them.
+
+    Raises
+    ------
+    SlscanError
+        When the folder does not exist (``kind`` names what it should be).
+    """
+    root = Path(path)
+    meta = root / file_name
+    if root.is_file() and root.name == file_name:
+        root, meta = root.parent, root
+    if not root.is_dir():
+        raise SlscanError(f"{root}: {kind} folder not found")
+    return root, meta
+
+
 def load_session(path: str | os.PathLike, *, validate: bool = True) -> Session:
     """Read ``session.json`` in folder ``path`` (and check its images unless ``validate=False``)."""
-    root = Path(path)
-    meta_path = root / SESSION_FILE
-    if root.is_file() and root.name == SESSION_FILE:
-        root, meta_path = root.parent, root
-    if not root.is_dir():
-        raise SlscanError(f"{root}: capture-session folder not found")
+    root, meta_path = locate_metadata(path, SESSION_FILE, "capture-session")
     d = read_json(meta_path, "capture-session metadata (session.json)")
     if not isinstance(d, dict):
         raise SlscanError(f"{meta_path}: expected a JSON object (an slscan capture session)")
