@@ -110,8 +110,8 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
 
 
 def add_placement_arguments(p: argparse.ArgumentParser) -> None:
-    """``--scene-units``, ``--scene-pose`` and ``--rig``: where the virtual rig's object
-    stands, and what the rig is (docs/virtual-rig.md)."""
+    """``--scene-units``, ``--scene-pose``, ``--rig`` and ``--effects``: where the virtual
+    rig's object stands, what the rig is and which light it renders (docs/virtual-rig.md)."""
     p.add_argument("--scene-units", default=None, metavar="UNITS",
                    help="the mesh file's units: mm, cm, m, in or mm per unit (default auto: mm, or m "
                         "when the mesh is under 10 units across)")
@@ -120,6 +120,9 @@ def add_placement_arguments(p: argparse.ArgumentParser) -> None:
                         "turntable's x, y, z, then mm; y is down) or a 4x4 matrix file (.json, .txt) mapping "
                         "the file's coordinates (mm) to the turntable frame (default: turned 180 degrees about "
                         "x, so y up and +z front face up and the camera, bounding box centred on the turntable)")
+    p.add_argument("--effects", default=None, metavar="NAMES",
+                   help="light-transport effects to render, comma-separated, or all (default: direct light "
+                        "only; an unknown name lists the known ones; docs/virtual-rig.md)")
     p.add_argument("--rig", type=Path, default=None, metavar="RIG.json",
                    help="the virtual rig's camera, projector and lights as Rig.to_dict writes them (or a "
                         "session.json: its calibration); default: the paper's rig")
@@ -132,8 +135,11 @@ def placement_settings(args: argparse.Namespace) -> dict:
 
     parse_units(args.scene_units, "--scene-units")
     check_pose_text(args.scene_pose, "--scene-pose")
+    from slscan.virtual.effects import parse_effects
+
     return {"scene_units": args.scene_units, "scene_pose": args.scene_pose,
-            "rig_file": None if args.rig is None else str(args.rig)}
+            "rig_file": None if args.rig is None else str(args.rig),
+            "effects": parse_effects(args.effects, "--effects")}
 
 
 # --- devices --------------------------------------------------------------------------------

@@ -20,6 +20,7 @@ from slscan.errors import SlscanError
 from slscan.patterns import PatternImage, file_name, standard_set
 from slscan.rig import Rig, default_rig, transform_points
 from slscan.virtual.devices import VirtualRig, turntable_pose
+from slscan.virtual.effects import apply_effects, parse_effects
 from slscan.virtual.placement import check_pose_text, parse_pose, parse_units, placement_record
 from slscan.virtual.render import Optics, ViewGeometry, shade_light, shade_pattern, trace_view
 from slscan.virtual.rigs import RigParams, load_rig_file
@@ -52,6 +53,8 @@ class VirtualCaptureConfig:
         file (.json, .txt) or "default"; None: the default placement
     rig_params : the rig's geometry (:class:`slscan.virtual.rigs.RigParams`); None: the paper's
     rig_file : a rig as ``Rig.to_dict`` writes it (or a session.json), instead of ``rig_params``
+    effects : light-transport effects switched on by name (:mod:`slscan.virtual.effects`):
+        they set ``optics`` and ``sensor`` fields, which then hold what was rendered
     """
 
     scene: str = "object"
@@ -70,9 +73,16 @@ class VirtualCaptureConfig:
     scene_pose: str | None = None
     rig_params: RigParams | None = None
     rig_file: str | None = None
+    effects: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         check_placement_settings(self)
+        names = parse_effects(self.effects, "effects")
+        object.__setattr__(self, "effects", names)
+        if names:
+            optics, sensor = apply_effects(names, self.optics, self.sensor, self.rig().working_distance)
+            object.__setattr__(self, "optics", optics)
+            object.__setattr__(self, "sensor", sensor)
 
     def rig(self) -> Rig:
         if self.rig_file:
@@ -100,7 +110,7 @@ class VirtualCaptureConfig:
             "optics": self.optics.to_dict(), "lit_exposure": self.lit_exposure, "seed": self.seed,
             "scene_units": self.scene_units, "scene_pose": self.scene_pose,
             "rig_params": None if self.rig_params is None else dataclasses.asdict(self.rig_params),
-            "rig_file": self.rig_file,
+            "rig_file": self.rig_file, "effects": list(self.effects),
         }
 
 
