@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from slscan.errors import SlscanError
 from slscan.patterns import PatternImage
 from slscan.patterns import profile as pattern_profile
 from slscan.rig import PinholeModel, Rig, transform_points
@@ -39,6 +40,11 @@ class Optics:
     projector_black : light the projector leaks when showing black, fraction of white
     crosstalk : (3, 3) camera channel (rows) response to projector primaries (columns)
     ambient : (3,) ambient irradiance, fraction of the projector's white
+    colour_model : "legacy": camera channel c sees ``sum_k M[c, k] * albedo_k * p_k`` (the
+        paint filters the projector's primaries before the crosstalk, so the decoder's one
+        global crosstalk matrix undoes paint exactly); "physical": ``albedo_c * sum_k
+        M[c, k] * p_k`` (each primary's leak into camera band c is reflected with the
+        paint's reflectance in band c, as a real surface does)
     """
 
     projector_blur: float = 0.35
@@ -49,11 +55,17 @@ class Optics:
         (0.02, 0.14, 1.0),
     )
     ambient: tuple[float, float, float] = (0.02, 0.02, 0.02)
+    colour_model: str = "legacy"
+
+    def __post_init__(self) -> None:
+        if self.colour_model not in ("legacy", "physical"):
+            raise SlscanError(f"colour_model: expected 'legacy' or 'physical', got {self.colour_model!r}")
 
     def to_dict(self) -> dict:
         return {
             "projector_blur_px": self.projector_blur, "projector_black": self.projector_black,
             "crosstalk": [list(r) for r in self.crosstalk], "ambient": list(self.ambient),
+            "colour_model": self.colour_model,
         }
 
 
@@ -363,7 +375,10 @@ def _shade(geom: ViewGeometry, light: np.ndarray, optics: Optics) -> np.ndarray:
     hit = geom.hit
     m = np.asarray(optics.crosstalk, dtype=np.float64)
     albedo = geom.albedo[hit].astype(np.float64)
-    diffuse = (albedo * light) @ m.T * geom.proj_diffuse[hit][:, None]
+    if optics.colour_model == "physical":
+        diffuse = albedo * (light @ m.T) * geom.proj_diffuse[hit][:, None]
+    else:
+        diffuse = (albedo * light) @ m.T * geom.proj_diffuse[hit][:, None]
     specular = light @ m.T * geom.proj_specular[hit][:, None]
     ambient = albedo * np.asarray(optics.ambient)
     out = np.zeros(hit.shape + (3,), np.float32)
