@@ -13,6 +13,12 @@ capture session):
    surface colour. The green column comes from pixels that are red in one coarse image
    and blue in another: ``(white − black) − red − blue`` is what the green primary alone
    gives there.
+   With ``mixing="pixel"`` (the default) this matrix only gives the first guess of the
+   bands: :func:`estimate_mixing` then measures each pixel's own response to each primary
+   (paint × crosstalk) from the coarse images where it sits deep in a red or a blue band,
+   and :class:`_PixelUnmixer` unmixes with it (exact also when the paint acts after the
+   crosstalk, as on a real surface); :func:`separate_global` optionally takes the global
+   light out (``global_light``).
 3. **Unmix and normalise** (:func:`primaries`): with ``I − B = M (a ∘ p)`` (albedo ``a``,
    projected primaries ``p`` in [0, 1]), ``M⁻¹ (I − B) / M⁻¹ (W − B) = p`` per pixel and
    primary, so the surface colour cancels (the figurine's saturated red and blue paint
