@@ -13,6 +13,12 @@ capture session):
    surface colour. The green column comes from pixels that are red in one coarse image
    and blue in another: ``(white − black) − red − blue`` is what the green primary alone
    gives there.
+   With ``mixing="pixel"`` (the default) this matrix only gives the first guess of the
+   bands: :func:`estimate_mixing` then measures each pixel's own response to each primary
+   (paint × crosstalk) from the coarse images where it sits deep in a red or a blue band,
+   and :class:`_PixelUnmixer` unmixes with it (exact also when the paint acts after the
+   crosstalk, as on a real surface); :func:`separate_global` optionally takes the global
+   light out (``global_light``).
 3. **Unmix and normalise** (:func:`primaries`): with ``I − B = M (a ∘ p)`` (albedo ``a``,
    projected primaries ``p`` in [0, 1]), ``M⁻¹ (I − B) / M⁻¹ (W − B) = p`` per pixel and
    primary, so the surface colour cancels (the figurine's saturated red and blue paint
@@ -79,7 +85,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -101,6 +107,7 @@ from slscan.decode.masks import (
 from slscan.decode.samples import StripeSamples
 from slscan.errors import SlscanError
 from slscan.patterns import PatternImage
+from slscan.patterns import hybrid as hybrid_pattern
 
 log = logging.getLogger(__name__)
 
@@ -132,6 +139,18 @@ CROSSTALK_ROWS = 240  # about this many image rows are used for it
 MIN_CROSSTALK_PIXELS = 50
 MAX_NEIGHBOUR_GAP = 16.0  # camera px; farther samples along a row are not compared
 MAX_LONE_SLOPE = 8.0  # projector px per camera px, for a sample with a single neighbour
+MIXING_MODES = ("pixel", "global")
+DEFAULT_MIXING = "pixel"
+"""Colour unmixing: per pixel from the session's own bands (:func:`estimate_mixing`), or one
+crosstalk matrix for the view (:func:`estimate_crosstalk`, the decoder before 2026-11)."""
+MIXING_LEVELS = 6  # coarse images whose bands serve the per-pixel mixing
+MIXING_CONFIDENCE = 0.3  # |e − 0.5| a band pixel needs to serve the mixing estimate
+MIXING_SMOOTH = 9  # px, box over which the per-pixel primary shares are averaged
+GLOBAL_LEVELS = 3  # finest levels whose images give the global light (Nayar et al. 2006)
+GLOBAL_WINDOW = 5  # px along x over which the smallest share is taken too
+GLOBAL_SMOOTH = 15  # px, box over which the global estimate is averaged
+PAINT_EDGE_FLOOR = 0.3  # channels darker than this share of the brightest are not tested
+MIN_DIRECT = 0.25  # line samples where less of the white frame is direct light are dropped
 CENTROID_RADIUS = 2.5  # px each side of the centre of mass
 CROP_MARGIN = 8  # px kept around the lit pixels: every window below fits inside
 _EPS = 1e-6
@@ -152,6 +171,8 @@ class HybridResult:
         (columns), unit diagonal, as estimated (or given)
     saturation : per-image saturation, white, black, then the pattern images in level order
     white : (h, w, 3) the white capture as given (for colour and saturation downstream)
+    rejected : line maxima dropped, by reason ("sub-pixel fit", "ambiguous bit", "edge",
+        "polarity", "global": too little direct light, "order": inconsistent index)
     """
 
     samples: StripeSamples
@@ -160,6 +181,7 @@ class HybridResult:
     crosstalk: np.ndarray
     saturation: tuple[SaturationReport, ...]
     white: np.ndarray | None = None
+    rejected: Mapping[str, int] = field(default_factory=dict)
 
 
 # --- sub-pixel medial axis ----------------------------------------------------------------
@@ -496,6 +518,212 @@ def primaries(
         return np.where(w > 0, u / w, np.nan).astype(np.float32)
 
 
+# --- per-pixel mixing and global light ------------------------------------------------------
+
+
+def nan_median(stack: np.ndarray) -> np.ndarray:
+    """Median over axis 0 of ``stack`` ignoring NaN; NaN where every value is NaN."""
+    stack = np.asarray(stack)
+    n = np.isfinite(stack).sum(axis=0)
+    ordered = np.sort(stack, axis=0)  # NaN sorts last
+    lo = np.maximum((n - 1) // 2, 0)[None]
+    hi = np.minimum(n // 2, len(stack) - 1)[None]
+    mid = 0.5 * (np.take_along_axis(ordered, lo, 0)[0] + np.take_along_axis(ordered, hi, 0)[0])
+    return np.where(n > 0, mid, np.nan)
+
+
+def _masked_box(values: np.ndarray, valid: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Mean of ``values`` (h, w, c) over the valid pixels of a ``size`` box; and the count."""
+    weight = valid.astype(np.float32)
+    total = cv2.boxFilter(np.where(valid[..., None], values, 0.0).astype(np.float32), -1,
+                          (size, size), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    count = cv2.boxFilter(weight, -1, (size, size), normalize=False,
+                          borderType=cv2.BORDER_CONSTANT)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return total / count[..., None], count
+
+
+def estimate_mixing(
+    white: np.ndarray,
+    black: np.ndarray,
+    coarse: Sequence[np.ndarray],
+    redness: Sequence[np.ndarray],
+    *,
+    mask: np.ndarray,
+    saturated: Sequence[np.ndarray] | None = None,
+    confidence: float = MIXING_CONFIDENCE,
+    smooth: int = MIXING_SMOOTH,
+) -> np.ndarray:
+    """Each pixel's camera response to each projector primary, (h, w, 3, 3) float32.
+
+    white, black : (h, w, 3) captures under projector white and black
+    coarse : (h, w, 3) captures of hybrid images with wide bands (the first levels)
+    redness : (h, w) the band redness ``e`` of each of ``coarse`` from a first decode
+        (1 red, 0 blue; e.g. with one global crosstalk matrix)
+    mask : (h, w) bool lit pixels
+    saturated : (h, w) bool clipped pixels of each of ``coarse`` (left out)
+    confidence : a pixel serves as red (blue) in an image where ``|e − 0.5|`` reaches this
+        and the band goes on ``PLATEAU_WIDTH // 2`` px either side
+    smooth : box (px) over which the per-pixel fractions are averaged
+
+    Returns ``A`` with ``A[y, x, c, k]``: camera channel ``c`` (black subtracted) under
+    projector primary ``k`` alone, so that ``I − B = A p`` for projected primaries ``p``.
+
+    Every lit pixel is inside a red band in some coarse image and inside a blue one in
+    another: there ``I − B`` is the red (blue) column of ``A`` — paint × crosstalk, as the
+    surface returns it (the paint acts after the crosstalk on a real surface, so one
+    global matrix cannot undo it). Per pixel, the median over those images of the column
+    divided by the white frame's ``W − B`` (per channel) is the primary's share of the
+    white in that channel; the shares are averaged over ``smooth`` px (noise) and, where a
+    pixel never sits in a confident band, taken from the view's median. The green column
+    is the rest of the white: ``W − B − red − blue``.
+    """
+    black_f = np.asarray(black, np.float32)
+    lit = np.asarray(white, np.float32) - black_f
+    h, w = mask.shape
+    floor = 1e-3 * max(float(lit.max()), _EPS)
+    good = mask & np.all(lit > floor, axis=-1)
+    inv = np.where(good[..., None], 1.0 / np.maximum(lit, floor), 0.0).astype(np.float32)
+    n = len(coarse)
+    shares = np.full((2, n, h, w, 3), np.nan, np.float32)
+    for i, (image, e) in enumerate(zip(coarse, redness)):
+        usable = good if saturated is None else good & ~saturated[i]
+        d = (np.asarray(image, np.float32) - black_f) * inv
+        for j, band in enumerate((e > 0.5 + confidence, e < 0.5 - confidence)):
+            here = _plateau(band & usable)
+            shares[j, i][here] = d[here]
+    fractions = []
+    for j in range(2):
+        share = nan_median(shares[j])
+        known = np.isfinite(share[..., 0])
+        if known.sum() >= MIN_CROSSTALK_PIXELS:
+            fallback = np.median(share[known], axis=0)
+        else:
+            log.warning("mixing: only %d pixels sit in a confident %s band; assuming no "
+                        "crosstalk there", int(known.sum()), ("red", "blue")[j])
+            fallback = np.eye(3, dtype=np.float32)[2 * j]
+        mean, count = _masked_box(share, known, smooth)
+        fractions.append(np.where((count > 0)[..., None], mean, fallback).astype(np.float32))
+    red, blue = fractions
+    green = 1.0 - red - blue
+    mixing = np.stack([red, green, blue], axis=-1) * lit[..., None]  # (h, w, c, k)
+    return mixing.astype(np.float32)
+
+
+def _inverse3(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Inverses (..., 3, 3) of ``a`` by cofactors, and where they exist (|det| > 0)."""
+    a = np.asarray(a, np.float64)
+    cof = np.empty_like(a)
+    for i in range(3):
+        for j in range(3):
+            r = [k for k in range(3) if k != i]
+            c = [k for k in range(3) if k != j]
+            cof[..., i, j] = (-1) ** (i + j) * (
+                a[..., r[0], c[0]] * a[..., r[1], c[1]] - a[..., r[0], c[1]] * a[..., r[1], c[0]]
+            )
+    det = (a[..., 0, :] * cof[..., 0, :]).sum(axis=-1)
+    ok = np.abs(det) > _EPS * np.abs(a).max(axis=(-2, -1)) ** 3
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inverse = np.swapaxes(cof, -1, -2) / np.where(ok, det, 1.0)[..., None, None]
+    return np.where(ok[..., None, None], inverse, 0.0), ok
+
+
+def pattern_shares(desc: PatternImage) -> np.ndarray:
+    """Share (3,) of the projector's columns lit red, green and blue in one hybrid image."""
+    labels = hybrid_pattern.band_labels(desc)
+    return np.array([(labels == 0).mean(), (labels == 2).mean(), (labels == 1).mean()])
+
+
+def separate_global(
+    primaries_seen: Sequence[np.ndarray], shares: Sequence[np.ndarray], *, window: int = 1
+) -> np.ndarray:
+    """Global (indirect) light per pixel and primary (h, w, 3) from high-frequency images.
+
+    primaries_seen : (h, w, 3) primaries ``A⁻¹ (I − B)`` seen in fine hybrid images
+        (normalised to the white frame: 1 is the white's direct plus global light)
+    shares : (3,) the share of the projector lit by each primary in each image
+        (:func:`pattern_shares`)
+
+    Nayar et al. (2006): under a high-frequency pattern lighting a share ``α`` of the
+    scene, a pixel that is not lit directly sees only ``α G`` (``G``: the global light
+    under full illumination), and every pixel is unlit in some of the fine images. Per
+    primary, the smallest ``p / α`` over the images is ``G`` (a share of the white frame);
+    the direct share is ``1 − G``. Some pixels are lit by a primary in all the images
+    given (with the three finest hybrid levels, 1 in 16): ``window`` > 1 takes the
+    smallest over that many px along x too (the global light is smooth).
+    """
+    ratios = [np.asarray(p, np.float32) / np.maximum(np.asarray(s, np.float32), _EPS)
+              for p, s in zip(primaries_seen, shares)]
+    lowest = np.min(ratios, axis=0).astype(np.float32)
+    if window > 1:
+        lowest = cv2.erode(lowest, np.ones((1, window), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    return np.clip(lowest, 0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class _PixelUnmixer:
+    """The line signal and redness from per-pixel mixing (:func:`estimate_mixing`).
+
+    The unconstrained primaries ``p = A⁻¹ (I − B)`` are cleaned of the global light
+    (``q = (p − α G) / (1 − G)``, per primary, ``α`` the image's share of it) and then
+    projected onto ``q_r + q_g + q_b = 1`` (every projector pixel shows one primary) with
+    the weights of their noise (covariance ``A⁻¹ A⁻ᵀ`` for equal noise in the camera
+    channels): ``q̂ = q − c (Σ q − 1)``, ``c = Σ 1 / 1ᵀ Σ 1``. Then ``g = q̂_g`` and
+    ``e = (1 + q̂_r − q̂_b) / 2``.
+    """
+
+    inverse: np.ndarray  # (3, 3, h, w) float32: primary k, camera channel j
+    offset: np.ndarray  # (3, h, w) float32: −A⁻¹ B
+    weights: np.ndarray  # (3, h, w) float32: c
+    inside: np.ndarray  # (h, w) bool, mask & invertible
+    global_light: np.ndarray | None = None  # (3, h, w) float32, share of the white
+
+    @classmethod
+    def build(cls, black: np.ndarray, mixing: np.ndarray, mask: np.ndarray) -> _PixelUnmixer:
+        inverse, ok = _inverse3(mixing)
+        inside = np.asarray(mask, bool) & ok
+        cov = inverse @ np.swapaxes(inverse, -1, -2)
+        s = cov.sum(axis=-1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            c = np.where(inside[..., None], s / s.sum(axis=-1, keepdims=True), 1.0 / 3.0)
+        inverse = np.where(inside[..., None, None], inverse, 0.0)
+        offset = -np.einsum("...kj,...j->...k", inverse, np.asarray(black, np.float64))
+        return cls(
+            np.ascontiguousarray(np.moveaxis(inverse, (-2, -1), (0, 1)), np.float32),
+            np.ascontiguousarray(np.moveaxis(offset, -1, 0), np.float32),
+            np.ascontiguousarray(np.moveaxis(c, -1, 0), np.float32),
+            inside,
+        )
+
+    def primaries(self, image: np.ndarray) -> np.ndarray:
+        """Unconstrained primaries (3, h, w) float32 ``A⁻¹ (I − B)``; 0 outside."""
+        channels = [np.asarray(image[..., j], np.float32) for j in range(3)]
+        out = self.offset.copy()
+        for k in range(3):
+            for j in range(3):
+                out[k] += self.inverse[k, j] * channels[j]
+        return out
+
+    def with_global(self, global_light: np.ndarray | None) -> _PixelUnmixer:
+        return _PixelUnmixer(self.inverse, self.offset, self.weights, self.inside, global_light)
+
+    def signals(
+        self, image: np.ndarray, shares: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Line signal ``g`` and redness ``e`` (h, w) float32 of a raw capture (h, w, 3)."""
+        q = self.primaries(image)
+        if self.global_light is not None and shares is not None:
+            for k in range(3):
+                q[k] = (q[k] - np.float32(shares[k]) * self.global_light[k]) / np.maximum(
+                    1.0 - self.global_light[k], np.float32(MIN_DIRECT)
+                )
+        excess = q[0] + q[1] + q[2] - 1.0
+        q -= self.weights * excess
+        g = np.where(self.inside, q[1], 0.0).astype(np.float32)
+        e = np.where(self.inside, 0.5 + 0.5 * (q[0] - q[2]), 0.5).astype(np.float32)
+        return g, e
+
+
 # --- indexing ------------------------------------------------------------------------------
 
 
@@ -682,6 +910,9 @@ def decode_hybrid_images(
     min_polarity: float = DEFAULT_MIN_POLARITY,
     min_edge_ratio: float = DEFAULT_MIN_EDGE_RATIO,
     smooth_rows: bool = True,
+    mixing: str = DEFAULT_MIXING,
+    global_light: bool = False,
+    paint_edges: bool = False,
     crosstalk: np.ndarray | None = None,
     bit_depth: int | None = None,
     names: Sequence[str] | None = None,
@@ -713,8 +944,21 @@ def decode_hybrid_images(
         maxima; a straight line keeps its centre on the middle row, the noise drops by
         about 1.6× (full-size noisy figurine, Gaussian estimator: RMS axis error 0.115 →
         0.093 px)
+    mixing : {"pixel", "global"}: colour unmixing per pixel from the view's own bands
+        (:func:`estimate_mixing`; holds on saturated paint), or with one crosstalk matrix
+        for the view (the decoder before 2026-11)
+    global_light : with ``mixing="pixel"``, estimate the global (indirect) light per pixel
+        from the finest levels (:func:`separate_global`), take it out of the line signal
+        and the band redness, and drop line samples where less than ``MIN_DIRECT`` of the
+        white frame is direct light (off by default: without global light it costs
+        accuracy, see the CHANGELOG and ``benchmarks/hybrid_colour.py``)
+    paint_edges : with ``mixing="pixel"``, drop lines where a camera channel carrying at
+        least ``PAINT_EDGE_FLOOR`` of the white changes by more than ``min_edge_ratio``
+        within ``EDGE_RADIUS`` px (a paint edge across the line's profile); fewer wrong
+        samples near paint edges, less coverage
     crosstalk : (3, 3) camera × projector-primary response; None estimates it from the
-        captures (:func:`estimate_crosstalk`)
+        captures (:func:`estimate_crosstalk`); the first guess of the bands with
+        ``mixing="pixel"``
     bit_depth : {8, 16} when the values do not use their dtype's full range
     names : names of ``images`` for messages and the saturation report (default: pattern ids)
     flat_names : names of the white and black captures in the saturation report
@@ -732,6 +976,10 @@ def decode_hybrid_images(
     if estimator not in ESTIMATORS:
         raise SlscanError(
             f"unknown line estimator {estimator!r}: expected one of {', '.join(ESTIMATORS)}"
+        )
+    if mixing not in MIXING_MODES:
+        raise SlscanError(
+            f"unknown colour mixing {mixing!r}: expected one of {', '.join(MIXING_MODES)}"
         )
     prefix = f"{where}: " if where else ""
     order, names = _check_inputs(white, black, images, descs, names, prefix)
@@ -781,9 +1029,34 @@ def decode_hybrid_images(
     if crosstalk.shape != (3, 3):
         raise SlscanError(f"{prefix}crosstalk must be a (3, 3) matrix, got shape {crosstalk.shape}")
 
-    unmixer = _Unmixer.build(white, black, crosstalk, mask)
+    unmixer: _Unmixer | _PixelUnmixer = _Unmixer.build(white, black, crosstalk, mask)
+    shares = [pattern_shares(d) for d in descs]
+    direct = None
+    if mixing == "pixel":
+        n_mix = min(MIXING_LEVELS, len(descs))
+        coarse = [image(k) for k in range(n_mix)]
+        mixing_matrix = estimate_mixing(
+            white, black, coarse, [unmixer.signals(c)[1] for c in coarse], mask=mask,
+            saturated=[clipped[n] | sat_white for n in names[:n_mix]],
+        )
+        del coarse
+        unmixer = _PixelUnmixer.build(black, mixing_matrix, mask)
+        del mixing_matrix
+        if global_light and len(descs) > GLOBAL_LEVELS:
+            fine = range(len(descs) - GLOBAL_LEVELS, len(descs))
+            estimate = separate_global(
+                [np.moveaxis(unmixer.primaries(image(k)), 0, -1) for k in fine],
+                [shares[k] for k in fine],
+                window=GLOBAL_WINDOW,
+            )
+            estimate, _ = _masked_box(estimate, unmixer.inside, GLOBAL_SMOOTH)
+            estimate = np.where(unmixer.inside[..., None], np.nan_to_num(estimate), 0.0)
+            unmixer = unmixer.with_global(np.ascontiguousarray(np.moveaxis(estimate, -1, 0), np.float32))
+            direct = 1.0 - estimate[..., 1]
     lit = white.astype(np.float32) - black.astype(np.float32)
     white_level = np.where(mask, channel_max(lit), 0.0).astype(np.float32)
+    # per channel, for the paint-edge test (mixing="pixel")
+    lit_channels = [np.where(mask, lit[..., c], 0.0).astype(np.float32) for c in range(3)]
     del lit
     all_columns = np.concatenate([_region_lines(d)[1] for d in descs])
     spacing = (
@@ -795,10 +1068,14 @@ def decode_hybrid_images(
     redness: list[np.ndarray] = []
     parts: list[tuple[np.ndarray, ...]] = []
     line_maps: dict[str, np.ndarray] = {}
-    rejected = dict.fromkeys(("sub-pixel fit", "ambiguous bit", "edge", "polarity"), 0)
+    rejected = dict.fromkeys(("sub-pixel fit", "ambiguous bit", "edge", "polarity", "paint edge", "global"), 0)
     n_peaks = 0
     for k, (desc, name) in enumerate(zip(descs, names), start=1):
-        g, e = unmixer.signals(image(k - 1))
+        g, e = (
+            unmixer.signals(image(k - 1), shares[k - 1])
+            if isinstance(unmixer, _PixelUnmixer)
+            else unmixer.signals(image(k - 1))
+        )
         if smooth_rows:
             g = cv2.filter2D(g, -1, _ROW_KERNEL[:, None], borderType=cv2.BORDER_CONSTANT)
         rows, cols = find_line_peaks(g, min_peak=min_peak, min_prominence=min_prominence)
@@ -825,9 +1102,22 @@ def decode_hybrid_images(
             ),
         )
         ok = _keep(ok, lowest >= min_edge_ratio * white_level[rows, cols], rejected, "edge")
+        if mixing == "pixel" and paint_edges:
+            # a paint edge across the line's profile: normalising by the white frame does
+            # not undo it (the blur acts on paint × light), so the centre moves
+            flat = np.ones(len(rows), bool)
+            for plane in lit_channels:
+                win = _window(plane, rows, cols, EDGE_RADIUS)
+                top = win.max(axis=1)
+                flat &= (top < PAINT_EDGE_FLOOR * white_level[rows, cols]) | (
+                    win.min(axis=1) >= min_edge_ratio * top
+                )
+            ok = _keep(ok, flat, rejected, "paint edge")
         # red on the left, blue on the right
         polarity = _interp_row(e, rows, x - 1.0) - _interp_row(e, rows, x + 1.0)
         ok = _keep(ok, polarity >= min_polarity, rejected, "polarity")
+        if direct is not None:
+            ok = _keep(ok, direct[rows, cols] >= MIN_DIRECT, rejected, "global")
         line_index, line_column = _region_lines(desc)
         rows, cols, x, region = rows[ok], cols[ok], x[ok], region[ok]
         sat_image = clipped[name] | sat_white
@@ -878,6 +1168,7 @@ def decode_hybrid_images(
         crosstalk=crosstalk,
         saturation=report,
         white=full_white,
+        rejected=rejected,
     )
 
 

@@ -33,7 +33,14 @@ from slscan.decode.codes import (
     write_view_codes,
 )
 from slscan.decode.graycode import THRESHOLD_MODES, decode_gray
-from slscan.decode.hybrid import DEFAULT_ESTIMATOR, ESTIMATORS, decode_hybrid, hybrid_pattern_ids
+from slscan.decode.hybrid import (
+    DEFAULT_ESTIMATOR,
+    DEFAULT_MIXING,
+    ESTIMATORS,
+    MIXING_MODES,
+    decode_hybrid,
+    hybrid_pattern_ids,
+)
 from slscan.decode.masks import saturation
 from slscan.decode.rangemap import (
     MAX_EDGE_FACTOR,
@@ -76,6 +83,16 @@ class DecodeConfig:
     """Samples dropped at either end of every line (and lone samples, from 1): line ends
     are 2-3x less accurate; trimming one row trades coverage for accuracy (see
     ``benchmarks/reconstruction.py``). 0 keeps them, at lower quality."""
+    mixing: str = DEFAULT_MIXING
+    """{"pixel", "global"}: hybrid colour unmixing per pixel from the session's own bands
+    (holds on saturated paint under physical colour), or one crosstalk matrix per view
+    (the decoder before 2026-11); see ``decode.hybrid.estimate_mixing``."""
+    global_light: bool = False
+    """Hybrid: estimate the global (indirect) light from the finest levels (Nayar et al.
+    2006), take it out of the line signal and bands, drop samples with little direct light
+    (needs ``mixing="pixel"``)."""
+    paint_edges: bool = False
+    """Hybrid: drop line samples whose profile crosses a paint edge (needs ``mixing="pixel"``)."""
     gray_threshold: str = "adaptive"
     """{"adaptive", "opencv"}: Gray-code bit thresholds from the images' noise and contrast,
     or OpenCV ``GrayCodePattern``'s fixed ones (40 DN white - black, 5 DN per bit); see
@@ -89,6 +106,10 @@ class DecodeConfig:
         if self.estimator not in ESTIMATORS:
             raise SlscanError(
                 f"unknown estimator {self.estimator!r}: expected one of {', '.join(ESTIMATORS)}"
+            )
+        if self.mixing not in MIXING_MODES:
+            raise SlscanError(
+                f"unknown mixing {self.mixing!r}: expected one of {', '.join(MIXING_MODES)}"
             )
         if self.gray_threshold not in THRESHOLD_MODES:
             raise SlscanError(
@@ -189,7 +210,14 @@ def decode_view(
     t = time.perf_counter()
     if method == "hybrid":
         _, _, descs = hybrid_pattern_ids(session)
-        res = decode_hybrid(session, view, estimator=config.estimator)
+        res = decode_hybrid(
+            session,
+            view,
+            estimator=config.estimator,
+            mixing=config.mixing,
+            global_light=config.global_light,
+            paint_edges=config.paint_edges,
+        )
         samples, mask, codes = res.samples, res.mask, res.codes
         code_max = 2 ** len(descs)
     else:
