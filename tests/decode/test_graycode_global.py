@@ -154,19 +154,19 @@ def test_separate_light_known_answer():
 
 
 def test_bit_reliable_rule():
-    black = np.zeros(5, np.float32)
     D = np.full(5, 0.2, np.float32)  # direct
     G = np.array([0.1, 0.6, 0.6, 0.6, 0.6], np.float32)  # global
     a = np.array([0.0, 0.5, 0.05, 0.95, 0.5], np.float32)  # the share of global in the lit image
     p = D + a * G  # the bit's pattern lights the pixel
     q = (1 - a) * G
-    ok = bit_reliable(p, q, black, D, G, min_direct=0.01)
-    # direct > global: certain; G > D with an even split: p = 0.5 > q = 0.3 but a split
-    # (a = 0.05) reads wrong (p = 0.23 < q = 0.57): the rule cannot tell them apart and
-    # refuses both; a = 0.95: p = 0.77 > G and q = 0.03 < D: certain
+    ok = bit_reliable(p, q, D, G, min_direct=0.01)
+    # direct > global: certain. G > D: p - q lies in [-0.4, 0.8] when the bit is 1 and in
+    # [-0.8, 0.4] when it is 0; an even split gives p - q = 0.2, which a 0 with a = 0.33
+    # gives too: uncertain; a = 0.05 reads wrong (p = 0.23 < q = 0.57; |p - q| = 0.34 <
+    # 0.4): uncertain; a = 0.95: p - q = 0.74 > 0.4, only a 1 gives it: certain
     assert ok.tolist() == [True, False, False, True, False]
     assert (p[2] > q[2]) is np.False_  # the case the rule guards against
-    assert not bit_reliable(p, q, black, D, G, min_direct=0.3).any()
+    assert not bit_reliable(p, q, D, G, min_direct=0.3).any()
 
 
 def test_inconsistent_codes_are_flagged():

@@ -84,11 +84,18 @@ PREFETCH = 2
 """Captures :func:`decode_gray` reads ahead of the decoder (each is dropped once used)."""
 
 SEPARATION_BITS = 3
-"""The finest column bits (and their inverses) whose per-pixel maximum and minimum split
-the light into direct and global parts (Nayar et al. 2006): stripes 2, 4 and 8 projector
-pixels wide for a full code, fine enough for global light to fall evenly on a pattern and
-its inverse, and varied enough that every pixel sits well inside a lit and an unlit
-stripe of one of them despite blur."""
+"""How many column bits (with their inverses) split the light into direct and global
+parts (Nayar et al. 2006): the finest ones the optics resolve (see
+``SEPARATION_MIN_CONTRAST``), fine enough for global light to fall evenly on a pattern and
+its inverse, and varied enough that every pixel sits well inside a lit and an unlit stripe
+of one of them."""
+
+SEPARATION_MIN_CONTRAST = 0.6
+"""The split skips the finest bits whose median ``|pattern - inverse| / (white - black)``
+over lit pixels is below this share of the best fine bit's: blur puts their direct light
+into the unlit image, which would read as global light (the kamino410 captures' 2 px
+stripes keep 0.50 of their 16 px stripes' contrast, the virtual rig's 0.51; their 4 px
+stripes 0.76 and 0.86)."""
 
 CONSISTENCY_RADIUS = 2
 """Half-size (px) of the window in which a decoded code must agree with most of its
@@ -455,24 +462,25 @@ def separate_light(highs: Sequence[np.ndarray], black: np.ndarray) -> tuple[np.n
     return direct, lmin
 
 
-def bit_reliable(p: np.ndarray, q: np.ndarray, black: np.ndarray, direct: np.ndarray,
-                 global_light: np.ndarray, min_direct: float) -> np.ndarray:
-    """Whether ``p > q`` reads a bit correctly despite global light (Gupta et al. 2011).
+def bit_reliable(p: np.ndarray, q: np.ndarray, direct: np.ndarray, global_light: np.ndarray,
+                 min_direct: float) -> np.ndarray:
+    """Whether ``p > q`` reads a bit correctly whatever share of the global light each
+    image got (Gupta et al., CVPR 2011; Xu and Aliaga's rule, made exact).
 
-    A pixel lit by the bit's pattern sees ``direct + a global`` in it and ``(1 - a)
-    global`` in the inverse, for some unknown ``0 <= a <= 1`` (low-frequency patterns
-    light half the scene, so ``a`` is far from 1/2 on concave or translucent surfaces).
-    The read is certain when ``direct > global`` (then ``p - q >= direct - global > 0``),
-    or, with more global light, when the darker image is below ``direct`` and the
-    brighter above ``global`` (no split of the global light explains it the other way
-    round); it is uncertain where ``direct`` itself is under ``min_direct``.
+    A pixel the bit's pattern lights sees ``p = direct + a global`` and ``q = (1 - a)
+    global`` (plus the same black level), for an unknown ``0 <= a <= 1``: low-frequency
+    patterns light half the scene, so on concave or translucent surfaces ``a`` is far from
+    1/2. So ``p - q`` lies in ``[direct - global, direct + global]`` when the bit is 1
+    and in the mirror interval when it is 0; the two overlap on ``|p - q| <= global -
+    direct``. The read is certain where ``|p - q| > global - direct`` (always where
+    ``direct > global``, Gupta's condition), and uncertain where ``direct`` itself is
+    under ``min_direct``. Gupta's second condition (the darker image below ``direct``,
+    the brighter above ``global``) implies this one.
     """
-    lo = np.minimum(p, q)
-    lo -= black
-    hi = np.maximum(p, q)
-    hi -= black
-    ok = direct > global_light
-    ok |= (lo < direct) & (hi > global_light)
+    margin = np.abs(p - q)
+    margin -= global_light
+    margin += direct
+    ok = margin > 0
     ok &= direct > min_direct
     return ok
 
@@ -503,6 +511,36 @@ def _inconsistent(value: np.ndarray, valid: np.ndarray, radius: int = CONSISTENC
             count[yd, xd] += there
             agree[yd, xd] += close
     return valid & (count >= min_neighbours) & (2 * agree.astype(np.int16) < count)
+
+
+def _separation_bits(diffs: _BitDiffs, contrast: np.ndarray, iy: np.ndarray, ix: np.ndarray,
+                     xor: bool, count: int) -> range:
+    """The column bits (indices into ``diffs``) the direct/global split uses: for XOR codes
+    all (every image is high-frequency; the more phases, the closer the per-pixel maximum
+    and minimum come to fully lit and unlit), else the ``count`` finest that blur leaves
+    their contrast: the finest bit is skipped when its median ``|pattern - inverse|
+    / (white - black)`` on the subsample ``(iy, ix)`` stays under
+    ``SEPARATION_MIN_CONTRAST`` times the best of the ``count + 2`` finest bits' (global
+    light lowers every high-frequency bit's contrast alike, blur the finest most)."""
+    n = len(diffs)
+    if xor:
+        return range(n)
+    c = contrast[iy, ix]
+    keep = c > 0
+    medians = {}
+    for k in range(max(0, n - count - 2), n):
+        if not keep.any():
+            break
+        d = diffs.read.fraction(diffs.pattern[k, iy, ix]) - diffs.read.fraction(diffs.inverse[k, iy, ix])
+        medians[k] = float(np.median(np.abs(d[keep]) / c[keep]))
+    last = n
+    if medians:
+        best = max(medians.values())
+        # at most the finest bit: a coarser one losing contrast is global light acting at
+        # the stripes' scale (subsurface scattering), which no finer bit would separate
+        if medians[n - 1] < SEPARATION_MIN_CONTRAST * best and n > count:
+            last = n - 1
+    return range(max(0, last - count), last)
 
 
 def _both(a: np.ndarray | None, b: np.ndarray | None) -> np.ndarray | None:
@@ -877,8 +915,7 @@ def decode_gray_images(
     if robust:  # direct/global split from the finest column bits (Nayar et al. 2006)
         # XOR codes: every image is high-frequency, and the more phases the closer the
         # per-pixel maximum and minimum come to fully lit and fully unlit under blur
-        first = 0 if col_bits.base is not None else max(0, len(col_pairs) - separation_bits)
-        fine = range(first, len(col_pairs))
+        fine = _separation_bits(col_diffs, contrast, iy, ix, col_bits.base is not None, separation_bits)
         direct, global_light = separate_light(
             (read.fraction(lv[k]) for k in fine for lv in (col_diffs.pattern, col_diffs.inverse)), black_box)
         min_direct = float(noise_sigmas * sigma)
@@ -896,7 +933,7 @@ def decode_gray_images(
         np.bitwise_or(code, pattern > inverse, out=code)  # the same sign as the fractions'
         ok &= strong(pattern, inverse)
         if reliable is not None:
-            reliable &= bit_reliable(read.fraction(pattern), read.fraction(inverse), black_box, direct,
+            reliable &= bit_reliable(read.fraction(pattern), read.fraction(inverse), direct,
                                      global_light, min_direct)
 
     col_code, col_strong, col_rel = start(col_bits)
@@ -959,8 +996,7 @@ def decode_gray_images(
             ratio = global_light[lit] / direct[lit]
         ratio = ratio[np.isfinite(ratio)]
         diagnostics["global_direct_median"] = float(np.median(ratio)) if len(ratio) else 0.0
-    del weak, all_strong, in_range, ratio_binds
-    black_box = None  # read by add_bit above; dropped before the edge search
+    del weak, all_strong, in_range, ratio_binds, black_box
 
     saturated = read.saturated[box]
     edges = _edges_banded(col_value, col_valid, lit, col_diffs, w_img, saturated, max_edge_gap)
