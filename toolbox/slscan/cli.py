@@ -99,7 +99,7 @@ def _cmd_capture(args: argparse.Namespace) -> int:
         sensor=Sensor(bit_depth=args.bit_depth, exposure=args.exposure, gain=args.gain, noise=not args.no_noise),
         **placement_settings(args),
     )
-    if config.patterns != "gray":
+    if config.patterns not in ("gray", "xor"):
         # keep two projector pixels per line on a smaller projector
         width = config.rig().projector.lens.width
         max_levels = int(math.log2(max(4, width))) - 1
