@@ -82,13 +82,14 @@ def kamino410_table(data: Path, repeat: int) -> None:
             )
 
 
-def _tile_row(label: str, config: VirtualCaptureConfig) -> str:
+def _tile_row(label: str, config: VirtualCaptureConfig, **options) -> str:
+    """One row of the tile table; ``options`` go to ``decode_gray``."""
     with tempfile.TemporaryDirectory() as tmp:
         session = capture_session(config, Path(tmp) / "session")
         view = session.views[0]
         truth = session.load_ground_truth(view)
         t = time.perf_counter()
-        edges = decode_gray(session, view).edges
+        edges = decode_gray(session, view, **options).edges
         t_dec = time.perf_counter() - t
     rig = session.calibration
     points = triangulate(edges, rig.camera, RigPlanes(rig.projector))

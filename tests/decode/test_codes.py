@@ -161,7 +161,7 @@ def test_the_valid_share_says_what_limited_it(gray_rows_session):
     assert share.noise_dn == pytest.approx(res.noise * 255)
     lit = res.contrast > 0.03
     assert share.lit == pytest.approx(lit.mean())
-    assert share.low_contrast + share.weak_bits + share.out_of_range == pytest.approx(
+    assert share.low_contrast + share.weak_bits + share.out_of_range + share.unreliable == pytest.approx(
         1 - (res.mask & lit).sum() / lit.sum())
     # a 10x noisier decode: dark lit pixels fall under 3 sigma, low contrast grows
     noisy = decode_gray(gray_rows_session, view, noise=res.noise * 10)

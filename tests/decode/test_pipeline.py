@@ -105,7 +105,9 @@ def test_gray_threshold_reaches_the_decoder(figurine, monkeypatch):
 
     monkeypatch.setattr(pipeline, "decode_gray", spy)
     res = decode_view(figurine, figurine.views[0], DecodeConfig(method="gray", gray_threshold="opencv"))
-    assert seen == [{"threshold": "opencv"}] and len(res.samples) > 1000
+    assert seen == [{"threshold": "opencv", "robust": True}] and len(res.samples) > 1000
+    decode_view(figurine, figurine.views[0], DecodeConfig(method="gray", gray_robust=False))
+    assert seen[-1] == {"threshold": "adaptive", "robust": False}
     with pytest.raises(SlscanError, match="unknown gray_threshold 'fixed'"):
         DecodeConfig(gray_threshold="fixed")
 

@@ -50,8 +50,8 @@ def _add_capture_options(p: argparse.ArgumentParser) -> None:
     from slscan.capture.command import add_placement_arguments
 
     add_placement_arguments(p)
-    p.add_argument("--patterns", choices=("hybrid", "gray", "both"), default="hybrid",
-                   help="coded patterns after white and black (default: hybrid)")
+    p.add_argument("--patterns", choices=("hybrid", "gray", "both", "xor"), default="hybrid",
+                   help="coded patterns after white and black (default: hybrid; xor: Gupta's XOR-04 Gray codes)")
     p.add_argument("--levels", type=int, default=9, help="hybrid subdivision levels (default 9: 511 lines)")
     p.add_argument("--gray-rows", action="store_true", help="also project row Gray codes")
     p.add_argument("--no-lit", action="store_true", help="skip the 6 ring-light images")
@@ -99,7 +99,7 @@ def _cmd_capture(args: argparse.Namespace) -> int:
         sensor=Sensor(bit_depth=args.bit_depth, exposure=args.exposure, gain=args.gain, noise=not args.no_noise),
         **placement_settings(args),
     )
-    if config.patterns != "gray":
+    if config.patterns not in ("gray", "xor"):
         # keep two projector pixels per line on a smaller projector
         width = config.rig().projector.lens.width
         max_levels = int(math.log2(max(4, width))) - 1
@@ -803,7 +803,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "order) and patterns.json describing each one.",
     )
     p.add_argument("--out", required=True, type=Path, help="folder to create")
-    p.add_argument("--family", choices=("hybrid", "gray", "both"), default="hybrid", help="default: hybrid")
+    p.add_argument("--family", choices=("hybrid", "gray", "both", "xor"), default="hybrid",
+                   help="default: hybrid (xor: Gupta's XOR-04 Gray codes)")
     p.add_argument("--width", type=int, default=1024, help="projector width, px (default 1024)")
     p.add_argument("--height", type=int, default=768, help="projector height, px (default 768)")
     p.add_argument("--levels", type=int, default=9, help="hybrid levels (default 9: 511 lines)")

@@ -67,8 +67,8 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
                           "default: virtual on the virtual rig, none on a real one")
     dev.add_argument("--light-count", type=int, default=6, help="manual lights: how many (default 6)")
     pat = p.add_argument_group("patterns")
-    pat.add_argument("--patterns", choices=("hybrid", "gray", "both"), default="hybrid",
-                     help="coded patterns after white and black (default: hybrid)")
+    pat.add_argument("--patterns", choices=("hybrid", "gray", "both", "xor"), default="hybrid",
+                     help="coded patterns after white and black (default: hybrid; xor: Gupta's XOR-04 Gray codes)")
     pat.add_argument("--levels", type=int, default=None,
                      help="hybrid levels (default: as many as keep 2 projector px per line, 9 at 1024 px)")
     pat.add_argument("--gray-rows", action="store_true", help="also project row Gray codes")

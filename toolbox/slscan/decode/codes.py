@@ -67,6 +67,8 @@ class ValidShare:
         ``out_of_range`` is None it also holds codes beyond the projector's size
     out_of_range : share of the lit pixels whose code lies beyond the projector's size,
         when the decoder reports it apart (None otherwise)
+    unreliable : share of the lit pixels left out by robust decoding: a bit global light
+        may have flipped, or a code disagreeing with its neighbours (0 without it)
     source : {"decoder", "estimated"}: counts reported by the decoder
         (``GrayResult.diagnostics``), or estimated here from the decoder's contrast, noise
         and mask with its default thresholds
@@ -79,6 +81,7 @@ class ValidShare:
     weak_bits: float
     out_of_range: float | None
     source: str
+    unreliable: float = 0.0
 
     @property
     def limited_by(self) -> str:
@@ -92,6 +95,8 @@ class ValidShare:
         lost = f"{self.low_contrast:.1%} to low contrast, {self.weak_bits:.1%} to weak bits"
         if self.out_of_range is not None:
             lost += f", {self.out_of_range:.1%} out of range"
+        if self.unreliable:
+            lost += f", {self.unreliable:.1%} unreliable (global light, inconsistent codes)"
         return (
             f"{self.decoded:.1%} of pixels decoded ({self.lit:.1%} lit); noise {self.noise_dn:.1f} DN; "
             f"lit pixels lost {lost} (most: {self.limited_by})"
@@ -154,6 +159,7 @@ def _from_diagnostics(diag: dict[str, Any], pixels: int, decoded: float) -> Vali
             weak_bits=share(float(diag["weak_bit_noise"]) + float(diag["weak_bit_ratio"])),
             out_of_range=share(diag["out_of_range"]),
             source="decoder",
+            unreliable=share(float(diag.get("unreliable_global", 0)) + float(diag.get("inconsistent", 0))),
         )
     lit = float(diag["lit"])
     counts = lit > 1

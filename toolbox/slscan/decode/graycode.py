@@ -58,7 +58,7 @@ from slscan.decode.masks import (
 from slscan.decode.samples import StripeSamples
 from slscan.errors import SlscanError
 from slscan.patterns import PatternImage
-from slscan.patterns.graycode import gray
+from slscan.patterns.graycode import CODES, gray
 
 log = logging.getLogger(__name__)
 
@@ -82,6 +82,29 @@ EDGE_BAND = 256
 
 PREFETCH = 2
 """Captures :func:`decode_gray` reads ahead of the decoder (each is dropped once used)."""
+
+SEPARATION_BITS = 3
+"""How many column bits (with their inverses) split the light into direct and global
+parts (Nayar et al. 2006): the finest ones the optics resolve (see
+``SEPARATION_MIN_CONTRAST``), fine enough for global light to fall evenly on a pattern and
+its inverse, and varied enough that every pixel sits well inside a lit and an unlit stripe
+of one of them."""
+
+SEPARATION_MIN_CONTRAST = 0.6
+"""The split skips the finest bits whose median ``|pattern - inverse| / (white - black)``
+over lit pixels is below this share of the best fine bit's: blur puts their direct light
+into the unlit image, which would read as global light (the kamino410 captures' 2 px
+stripes keep 0.50 of their 16 px stripes' contrast, the virtual rig's 0.51; their 4 px
+stripes 0.76 and 0.86)."""
+
+CONSISTENCY_RADIUS = 2
+"""Half-size (px) of the window in which a decoded code must agree with most of its
+valid neighbours (:func:`_inconsistent`)."""
+
+CODE_TOLERANCE = (2.0, 2.0)
+"""A neighbour ``d`` pixels away (Chebyshev) agrees when the codes differ by at most
+``a + b * d`` columns (rows): surfaces steeper than ``b`` projector pixels per camera pixel
+are rare, and a wrong low-order bit moves a code by 1 to 3."""
 
 
 @dataclass(frozen=True)
@@ -111,8 +134,16 @@ class GrayResult:
         was the noise term, or the share of ``white - black``; OpenCV's fixed
         ``white_threshold`` counts as a noise term); ``out_of_range`` (every bit read,
         code beyond the projector); ``valid`` (the mask); ``noise_dn`` (the noise in
-        DN of the captures) and ``threshold_mode``. ``lit = valid + weak_bit_noise +
-        weak_bit_ratio + out_of_range``.
+        DN of the captures) and ``threshold_mode``. With ``robust`` decoding also
+        ``unreliable_global`` (every bit readable and in range, but some bit failed
+        Gupta's direct/global rule: global light may have flipped it) and
+        ``inconsistent`` (the code disagrees with most valid neighbours), and
+        ``global_direct_median`` (median of global / direct over lit pixels).
+        ``lit = valid + weak_bit_noise + weak_bit_ratio + out_of_range +
+        unreliable_global + inconsistent``.
+    direct, global_light : (h, w) float32 direct and global light under full white,
+        fractions of full scale, from the finest bits (:func:`separate_light`); None
+        unless decoded with ``robust``
     """
 
     column: np.ndarray
@@ -125,6 +156,8 @@ class GrayResult:
     white: np.ndarray | None = None
     bits_used: dict[str, tuple[int, int]] = field(default_factory=dict)
     diagnostics: dict[str, float | int | str] = field(default_factory=dict)
+    direct: np.ndarray | None = None
+    global_light: np.ndarray | None = None
 
     @property
     def valid_fraction(self) -> float:
@@ -151,6 +184,9 @@ class GrayBits:
     pairs: tuple[tuple[str, str], ...]
     missing: tuple[int, ...]
     unused: tuple[int, ...]
+    code: str = "reflected-binary"
+    base: int | None = None
+    """XOR codes: the bit the others were XOR-ed with (None: plain Gray code)."""
 
     @property
     def coarse(self) -> int:
@@ -169,6 +205,7 @@ def gray_bits(descs: Sequence[PatternImage], axis: str) -> GrayBits:
     """
     found: dict[tuple[int, bool], str] = {}
     bits_seen = set()
+    codes_seen = set()
     for d in descs:
         if d.family != "gray" or d.axis != axis:
             continue
@@ -182,11 +219,17 @@ def gray_bits(descs: Sequence[PatternImage], axis: str) -> GrayBits:
             raise SlscanError(
                 f"pattern {d.id!r}: Gray-code description lacks {exc.args[0]!r}"
             ) from None
-        if d.params.get("code", "reflected-binary") != "reflected-binary":
+        code = d.params.get("code", "reflected-binary")
+        if code not in CODES:
             raise SlscanError(
-                f"pattern {d.id!r}: unsupported code {d.params['code']!r}, "
-                "expected reflected-binary"
+                f"pattern {d.id!r}: unsupported code {code!r}, expected one of {', '.join(CODES)}"
             )
+        if code == "xor":
+            if "base" not in d.params:
+                raise SlscanError(f"pattern {d.id!r}: XOR-code description lacks 'base'")
+            codes_seen.add((code, int(d.params["base"])))
+        else:
+            codes_seen.add((code, None))
         key = (bit, inverse)
         if key in found:
             raise SlscanError(
@@ -201,7 +244,14 @@ def gray_bits(descs: Sequence[PatternImage], axis: str) -> GrayBits:
         raise SlscanError(
             f"Gray-code {axis} patterns disagree on the number of bits: {sorted(bits_seen)}"
         )
+    if len(codes_seen) != 1:
+        raise SlscanError(
+            f"Gray-code {axis} patterns mix codes: {sorted(codes_seen, key=str)}"
+        )
+    code, base = codes_seen.pop()
     bits = bits_seen.pop()
+    if base is not None and not 0 <= base < bits:
+        raise SlscanError(f"XOR-code {axis} patterns: base bit {base} outside 0..{bits - 1}")
     present = []
     for bit in range(bits):
         have = [(bit, inverse) in found for inverse in (False, True)]
@@ -216,9 +266,21 @@ def gray_bits(descs: Sequence[PatternImage], axis: str) -> GrayBits:
         if have[0]:
             present.append(bit)
     missing = tuple(b for b in range(bits) if b not in present)
+    if base is not None and base in missing:
+        raise SlscanError(
+            f"XOR-code {axis} patterns lack their base bit {base}: no bit can be read without it"
+        )
     lead = next(iter(missing), bits)
-    pairs = tuple((found[(b, False)], found[(b, True)]) for b in range(lead))
-    return GrayBits(bits, pairs, missing, tuple(b for b in present if b > lead))
+    if base is not None and base >= lead:  # the leading run must hold the base
+        missing_after = [b for b in missing if b > base]
+        lead = next(iter(missing_after), bits)
+    pairs = tuple((found[(b, False)], found[(b, True)]) for b in range(lead) if b not in missing)
+    if len(pairs) != lead:  # a bit before the base is missing: nothing coarser decodes
+        raise SlscanError(
+            f"XOR-code {axis} patterns lack bit(s) {', '.join(map(str, [b for b in missing if b < lead]))}: "
+            "an XOR set decodes only with every bit down to its base"
+        )
+    return GrayBits(bits, pairs, missing, tuple(b for b in present if b > lead), code, base)
 
 
 def gray_pairs(descs: Sequence[PatternImage], axis: str) -> list[tuple[str, str]]:
@@ -302,24 +364,37 @@ class _Reader:
 
 class _BitDiffs:
     """``pattern - inverse`` of each bit, fractions of full scale, indexed like a (bits, h,
-    w) array (``d[k, rows, cols]``) but stored as the two captures' levels."""
+    w) array (``d[k, rows, cols]``) but stored as the two captures' levels.
 
-    def __init__(self, read: _Reader, pattern: np.ndarray, inverse: np.ndarray) -> None:
-        self.read, self.pattern, self.inverse = read, pattern, inverse
+    XOR codes (``base`` set): the difference of bit ``k != base`` comes with the sign of
+    the Gray bit it encodes, ``(pattern - inverse) * sign(base pattern - base inverse)``:
+    positive where the Gray bit is 1, zero crossings only at that bit's own boundaries
+    (the base bit is constant across them, so the crossing is the captured one)."""
+
+    def __init__(self, read: _Reader, pattern: np.ndarray, inverse: np.ndarray,
+                 base: int | None = None) -> None:
+        self.read, self.pattern, self.inverse, self.base = read, pattern, inverse, base
 
     def __len__(self) -> int:
         return len(self.pattern)
 
     def __getitem__(self, index) -> np.ndarray:
         f = self.read.fraction
-        return f(self.pattern[index]) - f(self.inverse[index])
+        d = f(self.pattern[index]) - f(self.inverse[index])
+        if self.base is None:
+            return d
+        k, *rest = index if isinstance(index, tuple) else (index,)
+        b = (self.base, *rest)
+        flip = (self.pattern[b] <= self.inverse[b]) & (np.asarray(k) != self.base)
+        return np.where(flip, -d, d)
 
     def rows(self, sl: slice) -> _BitDiffs:
-        return _BitDiffs(self.read, self.pattern[:, sl], self.inverse[:, sl])
+        return _BitDiffs(self.read, self.pattern[:, sl], self.inverse[:, sl], self.base)
 
     @property
     def T(self) -> _BitDiffs:
-        return _BitDiffs(self.read, self.pattern.transpose(0, 2, 1), self.inverse.transpose(0, 2, 1))
+        return _BitDiffs(self.read, self.pattern.transpose(0, 2, 1), self.inverse.transpose(0, 2, 1),
+                         self.base)
 
 
 # --- decoding -------------------------------------------------------------------------------
@@ -354,6 +429,136 @@ def estimate_noise(pattern_sums: np.ndarray, flat_sum: np.ndarray, where: np.nda
     idx = _noise_index(where, len(pattern_sums))
     resid = pattern_sums.reshape(len(pattern_sums), -1)[:, idx] - flat_sum.reshape(-1)[idx]
     return _mad_sigma(resid)
+
+
+def separate_light(highs: Sequence[np.ndarray], black: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Direct and global light at each pixel from high-frequency binary captures.
+
+    highs : captures (fractions of full scale) of high-frequency half-on patterns and their
+        inverses; black : the capture under full black
+
+    With ``L_max`` and ``L_min`` the per-pixel maximum and minimum over ``highs``: the
+    pixel is lit in the image giving ``L_max`` and unlit in the one giving ``L_min``, and
+    global light, spread from a wide surface area, is about half its full-white value in
+    both (Nayar, Krishnan, Grossberg, Raskar, SIGGRAPH 2006). So ``direct = L_max -
+    L_min`` (the global halves and the black level cancel) and ``global = 2 (L_min -
+    black)`` (the unlit image carries only global light over the black level). The
+    global estimate comes from ``L_min`` rather than ``white - direct`` so that it is
+    independent of the white frame, which clips first; blur puts some direct light into
+    ``L_min``, so both estimates err on the side of more global light, which makes the
+    reliability rule stricter, not looser.
+    """
+    lmax = lmin = None
+    for v in highs:
+        if lmax is None:
+            lmax, lmin = np.array(v, np.float32), np.array(v, np.float32)
+        else:
+            np.maximum(lmax, v, out=lmax)
+            np.minimum(lmin, v, out=lmin)
+    direct = lmax - lmin
+    lmin -= black
+    np.maximum(lmin, 0, out=lmin)
+    lmin *= 2
+    return direct, lmin
+
+
+def bit_reliable(p: np.ndarray, q: np.ndarray, direct: np.ndarray, global_light: np.ndarray,
+                 min_direct: float) -> np.ndarray:
+    """Whether ``p > q`` reads a bit correctly whatever share of the global light each
+    image got (Gupta et al., CVPR 2011; Xu and Aliaga's rule, made exact).
+
+    A pixel the bit's pattern lights sees ``p = direct + a global`` and ``q = (1 - a)
+    global`` (plus the same black level), for an unknown ``0 <= a <= 1``: low-frequency
+    patterns light half the scene, so on concave or translucent surfaces ``a`` is far from
+    1/2. So ``p - q`` lies in ``[direct - global, direct + global]`` when the bit is 1
+    and in the mirror interval when it is 0; the two overlap on ``|p - q| <= global -
+    direct``. The read is certain where ``|p - q| > global - direct`` (always where
+    ``direct > global``, Gupta's condition), and uncertain where ``direct`` itself is
+    under ``min_direct``. Gupta's second condition (the darker image below ``direct``,
+    the brighter above ``global``) implies this one.
+    """
+    margin = np.abs(p - q)
+    margin -= global_light
+    margin += direct
+    ok = margin > 0
+    ok &= direct > min_direct
+    return ok
+
+
+def _inconsistent(value: np.ndarray, valid: np.ndarray, radius: int = CONSISTENCY_RADIUS,
+                  tolerance: tuple[float, float] = CODE_TOLERANCE, min_neighbours: int = 3) -> np.ndarray:
+    """Valid pixels whose code disagrees with most of their valid neighbours.
+
+    A neighbour ``d`` pixels away (Chebyshev, up to ``radius``) agrees when the codes
+    differ by at most ``tolerance[0] + tolerance[1] * d``. A pixel with at least
+    ``min_neighbours`` valid neighbours of which fewer than half agree read a wrong
+    bit (a global-light flip, a speck of noise): its 3D point would be an outlier.
+    """
+    h, w = value.shape
+    count = np.zeros((h, w), np.uint8)
+    agree = np.zeros((h, w), np.uint8)
+    a, b = tolerance
+    v = value.astype(np.int32)
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            if dy == 0 and dx == 0:
+                continue
+            ys, yd = (slice(dy, h), slice(0, h - dy)) if dy >= 0 else (slice(0, h + dy), slice(-dy, h))
+            xs, xd = (slice(dx, w), slice(0, w - dx)) if dx >= 0 else (slice(0, w + dx), slice(-dx, w))
+            there = valid[ys, xs]
+            close = np.abs(v[ys, xs] - v[yd, xd]) <= a + b * max(abs(dy), abs(dx))
+            close &= there
+            count[yd, xd] += there
+            agree[yd, xd] += close
+    return valid & (count >= min_neighbours) & (2 * agree.astype(np.int16) < count)
+
+
+def _separation_bits(diffs: _BitDiffs, contrast: np.ndarray, iy: np.ndarray, ix: np.ndarray,
+                     xor: bool, count: int) -> range:
+    """The column bits (indices into ``diffs``) the direct/global split uses: for XOR codes
+    all (every image is high-frequency; the more phases, the closer the per-pixel maximum
+    and minimum come to fully lit and unlit), else the ``count`` finest that blur leaves
+    their contrast: the finest bit is skipped when its median ``|pattern - inverse|
+    / (white - black)`` on the subsample ``(iy, ix)`` stays under
+    ``SEPARATION_MIN_CONTRAST`` times the best of the ``count + 2`` finest bits' (global
+    light lowers every high-frequency bit's contrast alike, blur the finest most)."""
+    n = len(diffs)
+    if xor:
+        return range(n)
+    c = contrast[iy, ix]
+    keep = c > 0
+    medians = {}
+    for k in range(max(0, n - count - 2), n):
+        if not keep.any():
+            break
+        d = diffs.read.fraction(diffs.pattern[k, iy, ix]) - diffs.read.fraction(diffs.inverse[k, iy, ix])
+        medians[k] = float(np.median(np.abs(d[keep]) / c[keep]))
+    last = n
+    if medians:
+        best = max(medians.values())
+        # at most the finest bit: a coarser one losing contrast is global light acting at
+        # the stripes' scale (subsurface scattering), which no finer bit would separate
+        if medians[n - 1] < SEPARATION_MIN_CONTRAST * best and n > count:
+            last = n - 1
+    return range(max(0, last - count), last)
+
+
+def _both(a: np.ndarray | None, b: np.ndarray | None) -> np.ndarray | None:
+    """``a & b`` where None stands for all true."""
+    if a is None or b is None:
+        return b if a is None else a
+    return a & b
+
+
+def _fold_xor(code: np.ndarray, n: int, base: int | None) -> np.ndarray:
+    """XOR codes: the Gray bits of ``n``-bit captured ``code`` (in place), each bit but
+    ``base`` XOR-ed back with the base bit."""
+    if base is None:
+        return code
+    shift = n - 1 - base
+    base_bit = (code >> shift) & 1
+    code ^= base_bit * np.int32(((1 << n) - 1) ^ (1 << shift))
+    return code
 
 
 def _gray_to_value(code: np.ndarray) -> np.ndarray:
@@ -529,6 +734,9 @@ def decode_gray_images(
     white_threshold: float = OPENCV_WHITE_THRESHOLD,
     max_edge_gap: int = MAX_EDGE_GAP,
     edge_axes: str = "both",
+    robust: bool = True,
+    separation_bits: int = SEPARATION_BITS,
+    consistency_radius: int = CONSISTENCY_RADIUS,
     where: str = "",
 ) -> GrayResult:
     """Decode one view's Gray-code captures into projector columns (rows) and stripe edges.
@@ -568,6 +776,16 @@ def decode_gray_images(
     edge_axes : {"both", "rows"}
         Search edges along camera rows and columns (each boundary keeps the samples of
         the axis crossing it more steeply), or along rows only (as before).
+    robust : bool
+        Reject codes global light may have corrupted instead of giving wrong 3D points:
+        split each pixel's light into direct and global parts from the finest
+        ``separation_bits`` column bits (:func:`separate_light`), drop pixels where a
+        bit fails Gupta's rule (:func:`bit_reliable`; ``unreliable_global``), then
+        pixels whose code disagrees with most valid neighbours within
+        ``consistency_radius`` px (``inconsistent``; 0: no such test). False: the
+        decoder as it was before (no separation, no rejection).
+    separation_bits, consistency_radius : int
+        See ``robust``.
     where : str
         Prefix for error messages (e.g. the view folder).
 
@@ -596,6 +814,11 @@ def decode_gray_images(
         )
     if edge_axes not in ("both", "rows"):
         raise SlscanError(f"{where}edge_axes must be 'both' or 'rows', got {edge_axes!r}")
+    if separation_bits < 1 or consistency_radius < 0:
+        raise SlscanError(
+            f"{where}separation_bits must be at least 1 and consistency_radius at least 0, "
+            f"got {separation_bits} and {consistency_radius}"
+        )
     col_bits, row_bits = gray_bits(descs, "columns"), gray_bits(descs, "rows")
     if not col_bits.pairs:
         if col_bits.bits:
@@ -647,13 +870,15 @@ def decode_gray_images(
     idx = _noise_index(lit, len(col_pairs))
     iy, ix = np.divmod(idx, lit.shape[1])
     flat_sub = w_img[iy, ix] + b_img[iy, ix]
+    black_box = b_img if robust else None  # for the direct/global split
     del b_img
 
     # column bits: both captures' levels kept (1 byte a pixel each for 8-bit grey), for
     # the thresholds once the noise is known and for the edges; the noise residual read
     # on the subsample as they come
     shape = (len(col_pairs),) + contrast.shape
-    col_diffs = _BitDiffs(read, np.empty(shape, read.level_dtype), np.empty(shape, read.level_dtype))
+    col_diffs = _BitDiffs(read, np.empty(shape, read.level_dtype), np.empty(shape, read.level_dtype),
+                          col_bits.base)
     sub_sums = np.empty((len(col_pairs), len(idx)), np.float32)
     for k, (pid, inv) in enumerate(col_pairs):
         col_diffs.pattern[k] = read.levels(images[pid], pid)
@@ -686,31 +911,67 @@ def decode_gray_images(
         def strong(pattern: np.ndarray, inverse: np.ndarray) -> np.ndarray:
             return np.abs(read.fraction(pattern) - read.fraction(inverse)) > bit_threshold
 
-    def start() -> tuple[np.ndarray, np.ndarray]:
-        return np.zeros(contrast.shape, np.int32), np.ones(contrast.shape, bool)
+    direct = global_light = None
+    if robust:  # direct/global split from the finest column bits (Nayar et al. 2006)
+        # XOR codes: every image is high-frequency, and the more phases the closer the
+        # per-pixel maximum and minimum come to fully lit and fully unlit under blur
+        fine = _separation_bits(col_diffs, contrast, iy, ix, col_bits.base is not None, separation_bits)
+        direct, global_light = separate_light(
+            (read.fraction(lv[k]) for k in fine for lv in (col_diffs.pattern, col_diffs.inverse)), black_box)
+        min_direct = float(noise_sigmas * sigma)
 
-    def add_bit(code: np.ndarray, ok: np.ndarray, pattern: np.ndarray, inverse: np.ndarray) -> None:
+    def start(bits: GrayBits) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        # XOR codes need no reliability rule: every image is high-frequency, so global
+        # light falls evenly on pattern and inverse and cancels in their difference
+        rule = robust and bits.base is None
+        return (np.zeros(contrast.shape, np.int32), np.ones(contrast.shape, bool),
+                np.ones(contrast.shape, bool) if rule else None)
+
+    def add_bit(code: np.ndarray, ok: np.ndarray, reliable: np.ndarray | None,
+                pattern: np.ndarray, inverse: np.ndarray) -> None:
         code <<= 1
         np.bitwise_or(code, pattern > inverse, out=code)  # the same sign as the fractions'
         ok &= strong(pattern, inverse)
+        if reliable is not None:
+            reliable &= bit_reliable(read.fraction(pattern), read.fraction(inverse), direct,
+                                     global_light, min_direct)
 
-    col_code, col_strong = start()
+    col_code, col_strong, col_rel = start(col_bits)
     for k in range(len(col_pairs)):
-        add_bit(col_code, col_strong, col_diffs.pattern[k], col_diffs.inverse[k])
-    col_value = _gray_to_value(col_code)
+        add_bit(col_code, col_strong, col_rel, col_diffs.pattern[k], col_diffs.inverse[k])
+    col_value = _gray_to_value(_fold_xor(col_code, len(col_pairs), col_bits.base))
     col_in = col_value < -(-width // 2**col_bits.coarse)
     col_valid = lit & col_strong & col_in
-    all_strong, in_range = col_strong, col_in
+    all_strong, in_range, all_rel = col_strong, col_in, col_rel
     row_value = row_valid = None
     if row_pairs:  # row bits: folded into the code as they are read
-        row_code, row_strong = start()
+        row_code, row_strong, row_rel = start(row_bits)
         for pid, inv in row_pairs:
-            add_bit(row_code, row_strong, read.levels(images[pid], pid), read.levels(images[inv], inv))
-        row_value = _gray_to_value(row_code)
+            add_bit(row_code, row_strong, row_rel, read.levels(images[pid], pid),
+                    read.levels(images[inv], inv))
+        row_value = _gray_to_value(_fold_xor(row_code, len(row_pairs), row_bits.base))
         row_in = row_value < -(-height // 2**row_bits.coarse)
         row_valid = lit & row_strong & row_in
         all_strong, in_range = col_strong & row_strong, col_in & row_in
+        if robust:
+            all_rel = _both(col_rel, row_rel)
     mask = lit & all_strong & in_range
+    n_unreliable = n_inconsistent = 0
+    if robust:
+        if all_rel is None:
+            all_rel = np.ones_like(mask)
+        n_unreliable = int((mask & ~all_rel).sum())
+        if col_rel is not None:
+            col_valid &= col_rel
+        if row_valid is not None and row_rel is not None:
+            row_valid &= row_rel
+        if consistency_radius:
+            col_valid &= ~_inconsistent(col_value, col_valid, consistency_radius)
+            if row_valid is not None:
+                row_valid &= ~_inconsistent(row_value, row_valid, consistency_radius)
+        new_mask = col_valid if row_valid is None else col_valid & row_valid
+        n_inconsistent = int((mask & all_rel).sum()) - int(new_mask.sum())
+        mask = new_mask
 
     weak = lit & ~all_strong
     n_lit = int(lit.sum())
@@ -728,7 +989,14 @@ def decode_gray_images(
         "out_of_range": int((lit & all_strong & ~in_range).sum()),
         "valid": int(mask.sum()),
     }
-    del weak, all_strong, in_range, ratio_binds
+    if robust:
+        diagnostics["unreliable_global"] = n_unreliable
+        diagnostics["inconsistent"] = n_inconsistent
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = global_light[lit] / direct[lit]
+        ratio = ratio[np.isfinite(ratio)]
+        diagnostics["global_direct_median"] = float(np.median(ratio)) if len(ratio) else 0.0
+    del weak, all_strong, in_range, ratio_binds, black_box
 
     saturated = read.saturated[box]
     edges = _edges_banded(col_value, col_valid, lit, col_diffs, w_img, saturated, max_edge_gap)
@@ -747,6 +1015,9 @@ def decode_gray_images(
     column = to_map(col_value, col_valid, col_bits.coarse, width)
     row = None if row_value is None else to_map(row_value, row_valid, row_bits.coarse, height)
     mask = uncrop(mask, box, full_lit.shape, False)
+    if robust:
+        direct = uncrop(direct, box, full_lit.shape, 0.0)
+        global_light = uncrop(global_light, box, full_lit.shape, 0.0)
     log.debug(
         "%sGray code: %.1f%% pixels decoded, %d edges (%d along columns), noise %.2f DN",
         where,
@@ -768,6 +1039,8 @@ def decode_gray_images(
         noise=sigma,
         bits_used=bits_used,
         diagnostics=diagnostics,
+        direct=direct,
+        global_light=global_light,
     )
 
 

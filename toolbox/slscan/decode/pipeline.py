@@ -97,6 +97,10 @@ class DecodeConfig:
     """{"adaptive", "opencv"}: Gray-code bit thresholds from the images' noise and contrast,
     or OpenCV ``GrayCodePattern``'s fixed ones (40 DN white - black, 5 DN per bit); see
     ``decode.graycode``."""
+    gray_robust: bool = True
+    """Gray-code pixels whose code global light may have corrupted (a bit failing Gupta's
+    direct/global rule) or that disagree with their neighbours are left out instead of
+    giving wrong 3D points (``decode.graycode``, ``robust``); False: the decoder as before."""
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -221,7 +225,7 @@ def decode_view(
         samples, mask, codes = res.samples, res.mask, res.codes
         code_max = 2 ** len(descs)
     else:
-        res = decode_gray(session, view, threshold=config.gray_threshold)
+        res = decode_gray(session, view, threshold=config.gray_threshold, robust=config.gray_robust)
         samples, mask, codes, saturated = res.edges, res.mask, res.column, res.saturated
         code_max = session.projector_size[0]
         used, bits = res.bits_used.get("columns", (0, 0))
@@ -233,7 +237,7 @@ def decode_view(
         samples = samples.trim_line_ends(config.trim_line_ends)
     seconds["decode"] = time.perf_counter() - t
     projector_codes, share = _codes_of_view(session, view, res if method == "gray" else None, with_codes,
-                                           config.gray_threshold)
+                                           config.gray_threshold, config.gray_robust)
     t = time.perf_counter()
     points = triangulate(samples, rig.camera, planes)
     seconds["triangulate"] = time.perf_counter() - t
@@ -259,7 +263,8 @@ def decode_view(
 
 
 def _codes_of_view(
-    session: Session, view: ViewRecord, gray, codes: bool, threshold: str = "adaptive"
+    session: Session, view: ViewRecord, gray, codes: bool, threshold: str = "adaptive",
+    robust: bool = True,
 ) -> tuple[ProjectorCodes | None, ValidShare | None]:
     """The view's projector codes (when asked for) and the Gray-code decode's valid share:
     from ``gray`` (the view's :class:`GrayResult`) when the range map came from it, else
@@ -268,7 +273,7 @@ def _codes_of_view(
         return (codes_from_gray(gray, session, view.name) if codes else None), valid_share(gray)
     if not codes:
         return None, None
-    found = decode_codes(session, view, threshold=threshold)
+    found = decode_codes(session, view, threshold=threshold, robust=robust)
     return found, found.valid_share
 
 

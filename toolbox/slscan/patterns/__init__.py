@@ -24,6 +24,8 @@ from slscan.fsio import atomic_output_dir, read_json, write_json, write_png
 
 FAMILIES = ("flat", "hybrid", "gray")
 AXES = ("columns", "rows", "none")
+SET_FAMILIES = ("hybrid", "gray", "both", "xor")
+"""What :func:`standard_set` projects after white and black."""
 PATTERN_SET_FORMAT = "slscan.pattern-set"
 PATTERN_SET_VERSION = 1
 
@@ -96,19 +98,23 @@ def standard_set(
 ) -> list[PatternImage]:
     """White, black, then the family's patterns: the sequence projected for one range map.
 
-    family : {"hybrid", "gray", "both"}
+    family : {"hybrid", "gray", "both", "xor"}; ``"xor"``: Gupta's XOR-04 codes, Gray
+        code XOR-ed with its 4-px bit so every image is high-frequency
+        (:mod:`.graycode`; described as family ``"gray"`` with ``code: "xor"``)
     levels : hybrid subdivision levels (``2**levels - 1`` green lines)
-    rows : Gray code only: also project row codes
+    rows : Gray (XOR) code only: also project row codes
     """
     from slscan.patterns import flat, graycode, hybrid
 
-    if family not in ("hybrid", "gray", "both"):
-        raise SlscanError(f"unknown pattern family {family!r}: expected hybrid, gray or both")
+    if family not in SET_FAMILIES:
+        raise SlscanError(f"unknown pattern family {family!r}: expected one of {', '.join(SET_FAMILIES)}")
     images = flat.generate(width, height)
     if family in ("hybrid", "both"):
         images += hybrid.generate(width, height, levels=levels)
     if family in ("gray", "both"):
         images += graycode.generate(width, height, rows=rows)
+    if family == "xor":
+        images += graycode.generate(width, height, rows=rows, code="xor")
     return images
 
 

@@ -38,7 +38,8 @@ class VirtualCaptureConfig:
 
     scene : "object" (the built-in figurine), "tile", or a mesh file (PLY/OBJ/glTF)
     views : turntable positions, evenly spread over 360° about the object's vertical axis
-    patterns : {"hybrid", "gray", "both"}: which coded patterns follow white and black
+    patterns : {"hybrid", "gray", "both", "xor"}: which coded patterns follow white and black
+        ("xor": Gupta's XOR-04 Gray codes, every image high-frequency)
     levels : hybrid subdivision levels (9 at 1024 px gives 511 lines)
     gray_rows : also project row Gray codes
     lit_images : capture one image per ring light (for albedo)
