@@ -6,7 +6,10 @@ The scan_*.png of docs/scanning.md need no session (they scan the virtual rig, a
 projector window on a private Xvfb): .venv/bin/python docs/figures.py scan
 
 codes_kamino410.png of docs/reconstruction.md decodes the kamino410 capture_0 in
-../shared/data (or $SLSCAN_DATA): .venv/bin/python docs/figures.py codes"""
+../shared/data (or $SLSCAN_DATA): .venv/bin/python docs/figures.py codes
+
+The effect_*.png of docs/virtual-rig.md render the virtual rig at half size, each effect
+off and on: .venv/bin/python docs/figures.py optics"""
 
 from __future__ import annotations
 
@@ -329,10 +332,77 @@ def codes_figure() -> None:
     _write("codes_kamino410.png", _side_by_side(*panels))
 
 
+# --- lens and sensor effects (docs/virtual-rig.md) ----------------------------------------
+
+EFFECT_HEIGHT = 300  # px, each panel
+HALF_CROP = (slice(95, 385), slice(205, 505))  # the figurine in the half-size 720x480 view
+
+
+def _effect_capture(effects, pattern: str, *, scene: str = "object", optics=None, sensor=None) -> np.ndarray:
+    """One half-size capture of ``pattern`` (a pattern id) with ``effects`` on."""
+    import dataclasses
+
+    from slscan.virtual.device import VirtualCaptureConfig, capture_view
+    from slscan.virtual.devices import turntable_pose
+
+    config = VirtualCaptureConfig(scene=scene, camera_scale=0.5, projector_scale=0.5, levels=8, patterns="both",
+                                  lit_images=False, effects=effects)
+    if optics or sensor:
+        config = dataclasses.replace(config, optics=dataclasses.replace(config.optics, **(optics or {})),
+                                     sensor=dataclasses.replace(config.sensor, **(sensor or {})))
+    rig = config.rig()
+    world = config.build_scene()
+    desc = next(p for p in config.pattern_set(rig) if p.id == pattern)
+    images, _ = capture_view(world, rig, turntable_pose(rig, 0.0, world.placement), [desc], config)
+    return images[0][1]
+
+
+def optics_figures() -> None:
+    """effect_dof.png, effect_tone.png, effect_vignetting.png, effect_jpeg.png: each effect off
+    and on, side by side (half-size captures)."""
+    fine = "hybrid-08"  # the finest lines at half size
+    zoom = (slice(190, 250), slice(330, 410))  # camera px of the half-size view: lines on the body
+    off, on = _effect_capture((), fine), _effect_capture(("dof",), fine, optics={"projector_fnumber": 1.0,
+                                                                                  "projector_focus_mm": 1100.0})
+    panels = [_titled(_to_height(im[HALF_CROP], EFFECT_HEIGHT), t) for im, t in
+              ((off, "dof off (pinhole projector)"), (on, "dof: f/1, focus 1100 mm"))]
+    panels += [_titled(_to_height(im[zoom], EFFECT_HEIGHT, cv2.INTER_NEAREST), t) for im, t in
+               ((off, "off, zoomed"), (on, "f/1, zoomed"))]
+    _write("effect_dof.png", _side_by_side(*panels))
+
+    pattern = "hybrid-04"
+    off, on = _effect_capture((), pattern), _effect_capture(("tone",), pattern)
+    _write("effect_tone.png", _side_by_side(
+        _titled(_to_height(off[HALF_CROP], EFFECT_HEIGHT), "linear projector, RAW camera"),
+        _titled(_to_height(on[HALF_CROP], EFFECT_HEIGHT), "tone: gamma 2.2, sRGB camera")))
+
+    from slscan.rig import default_rig
+    from slscan.virtual.sensor import Sensor, cos4_map
+
+    camera = default_rig(scale=0.5).camera
+    flat = np.full((camera.height, camera.width, 3), 1.4, np.float32)  # a uniform white wall
+    sensor = Sensor(noise=False)
+    on = _effect_capture(("vignetting",), "white", scene="tile")
+    corner = float(cos4_map(camera)[0, 0])
+    _write("effect_vignetting.png", _side_by_side(
+        _titled(_to_height(sensor.expose(flat, camera=camera), EFFECT_HEIGHT), "flat field: no vignetting"),
+        _titled(_to_height(Sensor(noise=False, vignetting=1.0).expose(flat, camera=camera), EFFECT_HEIGHT),
+                f"vignetting: cos^4 law (corner {corner:.2f})"),
+        _titled(_to_height(on, EFFECT_HEIGHT), "white frame of the tile, vignetting on")))
+
+    off, on = _effect_capture((), fine), _effect_capture(("jpeg",), fine)
+    diff = np.clip(np.abs(on.astype(np.int16) - off.astype(np.int16)) * 8, 0, 255).astype(np.uint8)
+    _write("effect_jpeg.png", _side_by_side(*[
+        _titled(_to_height(im[zoom], EFFECT_HEIGHT, cv2.INTER_NEAREST), t) for im, t in
+        ((off, "PNG, zoomed"), (on, "JPEG quality 90"), (diff, "|difference| x 8"))]))
+
+
 if __name__ == "__main__":
     if sys.argv[1:] == ["scan"]:
         scan_figures()
     elif sys.argv[1:] == ["codes"]:
         codes_figure()
+    elif sys.argv[1:] == ["optics"]:
+        optics_figures()
     else:
         main(sys.argv[1])

@@ -403,6 +403,34 @@ def write_png(path: str | os.PathLike, image: np.ndarray) -> None:
     write_bytes(path, data.tobytes())
 
 
+def encode_jpeg(image: np.ndarray, quality: int) -> bytes:
+    """JPEG bytes of an RGB or grey uint8 ``image`` at ``quality`` (1–100, libjpeg through
+    OpenCV, 4:2:0 chroma subsampling as cameras save)."""
+    if image.dtype != np.uint8:
+        raise SlscanError(f"JPEG needs uint8 pixels, got {image.dtype}")
+    image = np.ascontiguousarray(image)
+    bgr = cv2.cvtColor(image, cv2.COLOR_RGB2BGR) if image.ndim == 3 else image
+    ok, data = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise SlscanError("could not encode the JPEG")
+    return data.tobytes()
+
+
+def write_jpeg(path: str | os.PathLike, image: np.ndarray, quality: int) -> None:
+    """Write an RGB or grey uint8 ``image`` as a JPEG at ``quality``, atomically."""
+    write_bytes(path, encode_jpeg(image, quality))
+
+
+def decode_image(data: bytes) -> np.ndarray:
+    """An encoded image (PNG, JPEG) decoded as stored: (h, w) grey or (h, w, 3) RGB."""
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise SlscanError("not a readable image")
+    if image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGRA2RGB if image.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+    return image
+
+
 def read_png(path: str | os.PathLike) -> np.ndarray:
     """Read a PNG as stored: (h, w) grey or (h, w, 3) RGB, uint8 or uint16."""
     path = Path(path)

@@ -15,6 +15,7 @@ paper Fig. 9).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -250,13 +251,13 @@ def scan(
             )
     n_lights = _plan_lights(plan, lights)
     images = [render(p) for p in plan.patterns]
-    records = [ImageRecord(file_name(i, p), "pattern", pattern=p.id) for i, p in enumerate(plan.patterns)]
-    records += [ImageRecord(f"{len(records) + k:02d}_lit-{k}.png", "lit", light=k) for k in range(n_lights)]
+    quality = cam.jpeg_quality
+    records = capture_records(plan.patterns, n_lights, jpeg=quality is not None)
     writer = SessionWriter(
         out, camera_size=cam.resolution, projector_size=proj.resolution, channels=cam.channels,
         bit_depth=cam.bit_depth, patterns=list(plan.patterns), calibration=calibration,
         calibration_source=calibration_source, device=device_info or devices.describe(),
-        overwrite=overwrite, incremental=incremental, resume=resume,
+        overwrite=overwrite, incremental=incremental, resume=resume, jpeg_quality=quality,
     )
     timings: list[ViewTiming] = []
     shooter = _Shooter(devices, plan)
@@ -329,6 +330,16 @@ def scan(
                 after_view(v, record, writer.session())
         proj.blank()
     return ScanResult(writer.session(), tuple(timings), done)
+
+
+def capture_records(patterns, n_lights: int, *, jpeg: bool = False) -> list[ImageRecord]:
+    """The records of one view's captures: each pattern in order, then one per ring light;
+    files ``.jpg`` when the camera saves JPEG."""
+    records = [ImageRecord(file_name(i, p), "pattern", pattern=p.id) for i, p in enumerate(patterns)]
+    records += [ImageRecord(f"{len(records) + k:02d}_lit-{k}.png", "lit", light=k) for k in range(n_lights)]
+    if jpeg:
+        records = [dataclasses.replace(r, file=r.file.removesuffix(".png") + ".jpg") for r in records]
+    return records
 
 
 def _set_lit_exposure(cam: Camera, factor: float, *, on: bool) -> None:

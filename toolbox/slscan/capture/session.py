@@ -28,7 +28,15 @@ import numpy as np
 
 from slscan import __version__
 from slscan.errors import SlscanError
-from slscan.fsio import Prefetched, atomic_output_dir, read_json, read_png, write_json, write_png
+from slscan.fsio import (
+    Prefetched,
+    atomic_output_dir,
+    read_json,
+    read_png,
+    write_jpeg,
+    write_json,
+    write_png,
+)
 from slscan.patterns import PatternImage
 from slscan.rig import Rig, _as_pose
 
@@ -562,6 +570,9 @@ class SessionWriter:
             folder = writer.view_folder("view_000")
             writer.write_image("view_000", record, image)
             writer.add_view(ViewRecord("view_000", ...))
+
+    ``jpeg_quality`` (1–100) saves captures named ``.jpg`` as JPEG at that quality (a
+    camera that shoots JPEG) and marks the session lossy.
     """
 
     def __init__(
@@ -581,8 +592,11 @@ class SessionWriter:
         resume: bool = False,
         lossy: bool = False,
         projector_rotation: int = 0,
+        jpeg_quality: int | None = None,
     ) -> None:
         self.out = Path(out)
+        self._jpeg_quality = jpeg_quality
+        lossy = lossy or jpeg_quality is not None
         self._meta = {
             "camera_size": tuple(camera_size), "projector_size": tuple(projector_size), "channels": channels,
             "bit_depth": bit_depth, "patterns": tuple(patterns), "calibration": calibration,
@@ -654,7 +668,13 @@ class SessionWriter:
         expected_dtype = np.uint8 if self._meta["bit_depth"] == 8 else np.uint16
         if image.dtype != expected_dtype:
             raise SlscanError(f"{rec.file}: expected {expected_dtype.__name__} pixels, got {image.dtype}")
-        write_png(self.view_folder(view_name) / rec.file, image)
+        path = self.view_folder(view_name) / rec.file
+        if image_format(path) == "jpeg":
+            if self._jpeg_quality is None:
+                raise SlscanError(f"{rec.file}: a JPEG capture, but the writer has no jpeg_quality")
+            write_jpeg(path, image, self._jpeg_quality)
+        else:
+            write_png(path, image)
 
     def discard_view(self, name: str) -> None:
         """Remove what was written of an unfinished view."""

@@ -113,6 +113,12 @@ class Camera(Device):
         """8 or 16 bits per sample."""
         return 8
 
+    @property
+    def jpeg_quality(self) -> int | None:
+        """The JPEG quality (1–100) the camera delivers its captures at, so the session
+        stores them as ``.jpg`` (``camera.lossy``); None: lossless frames (PNG)."""
+        return None
+
     def controls(self) -> dict[str, tuple[float, float]]:
         """Settable controls and their (min, max): e.g. ``{"exposure": (lo, hi), "gain": (lo, hi)}``.
 

@@ -14,10 +14,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from slscan.capture.driver import ScanDevices, ScanPlan, scan
+from slscan.capture.driver import ScanDevices, ScanPlan, capture_records, scan
 from slscan.capture.session import LIT, SHADOW, GroundTruth, ImageRecord, Session
 from slscan.errors import SlscanError
-from slscan.patterns import PatternImage, file_name, standard_set
+from slscan.patterns import PatternImage, standard_set
 from slscan.rig import Rig, default_rig, transform_points
 from slscan.virtual.devices import VirtualRig, turntable_pose
 from slscan.virtual.effects import apply_effects, parse_effects
@@ -25,7 +25,7 @@ from slscan.virtual.placement import check_pose_text, parse_pose, parse_units, p
 from slscan.virtual.render import Optics, ViewGeometry, shade_light, shade_pattern, trace_view
 from slscan.virtual.rigs import RigParams, load_rig_file
 from slscan.virtual.scenes import Scene, scene_by_name
-from slscan.virtual.sensor import Sensor
+from slscan.virtual.sensor import Sensor, jpeg_round_trip
 
 log = logging.getLogger(__name__)
 
@@ -166,17 +166,18 @@ def capture_view(
     """
     geom = geometry if geometry is not None else trace_view(scene, rig, rig_from_object)
     sensor, optics = config.sensor, config.optics
+    records = capture_records(patterns, len(rig.lights) if config.lit_images else 0, jpeg=bool(sensor.jpeg_quality))
     out = []
-    for i, desc in enumerate(patterns):
+    for i, rec in enumerate(records):
         rng = np.random.default_rng([config.seed, view_index, i])
-        image = sensor.expose(shade_pattern(geom, desc, optics), rng)
-        out.append((ImageRecord(file_name(i, desc), "pattern", pattern=desc.id), image))
-    if config.lit_images:
-        for k in range(len(rig.lights)):
-            i = len(patterns) + k
-            rng = np.random.default_rng([config.seed, view_index, i])
-            image = sensor.expose(shade_light(geom, k, rig, optics), rng, exposure_scale=config.lit_exposure)
-            out.append((ImageRecord(f"{i:02d}_lit-{k}.png", "lit", light=k), image))
+        if rec.kind == "pattern":
+            image = sensor.expose(shade_pattern(geom, patterns[i], optics), rng, camera=rig.camera)
+        else:
+            image = sensor.expose(shade_light(geom, rec.light, rig, optics), rng,
+                                  exposure_scale=config.lit_exposure, camera=rig.camera)
+        if sensor.jpeg_quality:  # what reading the session's .jpg gives back
+            image = jpeg_round_trip(image, sensor.jpeg_quality)
+        out.append((rec, image))
     return out, geom
 
 

@@ -106,7 +106,7 @@ class VirtualRig:
             add_light(radiance, self.geometry, k, self.rig)
         rng = np.random.default_rng([self.seed, *self.noise_stream, self.view_index, self.frame_index])
         self.frame_index += 1
-        return sensor.expose(radiance, rng)
+        return sensor.expose(radiance, rng, camera=self.rig.camera)
 
 
 class VirtualProjector(Projector):
@@ -158,6 +158,10 @@ class VirtualCamera(Camera):
     @property
     def bit_depth(self) -> int:
         return self.sensor.bit_depth
+
+    @property
+    def jpeg_quality(self) -> int | None:
+        return self.sensor.jpeg_quality or None
 
     def controls(self) -> dict[str, tuple[float, float]]:
         return {"exposure": self.exposure_range, "gain": GAIN_RANGE}
@@ -258,6 +262,10 @@ class ScreenLoopCamera(Camera):
     @property
     def bit_depth(self) -> int:
         return self.inner.bit_depth
+
+    @property
+    def jpeg_quality(self) -> int | None:
+        return self.inner.jpeg_quality
 
     def controls(self) -> dict[str, tuple[float, float]]:
         return self.inner.controls()

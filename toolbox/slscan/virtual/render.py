@@ -17,7 +17,10 @@ crosstalk), plus a white Blinn-Phong specular lobe, plus ``albedo_c * ambient_c`
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,10 +29,18 @@ from slscan.errors import SlscanError
 from slscan.patterns import PatternImage
 from slscan.patterns import profile as pattern_profile
 from slscan.rig import PinholeModel, Rig, transform_points
+from slscan.virtual.effects import Effect, register
 from slscan.virtual.scenes import Scene
 
 SHADOW_EPS = 0.05  # mm offset of shadow-ray origins along the normal
 MAX_FOOTPRINT = 64.0  # projector px; grazing surfaces are clamped
+# 0.7" XGA DMD (13.68 um pitch) behind the default rig's 1857 px projector focal length
+PROJECTOR_FOCAL_MM = 25.4
+COC_PER_SIGMA = 2.4  # a circle of confusion of diameter c blurs like a Gaussian of sigma c / 2.4
+DOF_FIRST_LEVEL = 0.1  # projector px: finest defocus blur level above none
+DOF_LEVEL_RATIO = 1.25  # neighbouring defocus blur levels differ by this factor
+REMAP_ROW = 4096  # points per row when sampling a 2-D projector image with cv2.remap
+IN_FOCUS = 1e-6  # projector px: a defocus below this is none (points at the focus distance)
 
 
 @dataclass(frozen=True)
@@ -45,6 +56,16 @@ class Optics:
         global crosstalk matrix undoes paint exactly); "physical": ``albedo_c * sum_k
         M[c, k] * p_k`` (each primary's leak into camera band c is reflected with the
         paint's reflectance in band c, as a real surface does)
+    projector_fnumber : f-number N of the projector lens; 0: a pinhole (infinite depth of
+        field, no defocus). Above 0 the projector is sharp only at ``projector_focus_mm``
+        (effect ``dof``: f/2)
+    projector_focus_mm : focus distance, mm along the projector axis (effect ``dof``: the
+        rig's working distance)
+    projector_focal_mm : the projector lens's focal length, mm (default 25.4: the default
+        rig's 1857 px focal length on a 0.7" XGA DMD of 13.68 um pitch); its aperture
+        diameter is ``projector_focal_mm / projector_fnumber``
+    projector_gamma : the projector's tone curve: pattern value v emits ``(v / 255) **
+        gamma``; 1: linear (a calibrated projector), effect ``tone``: 2.2 (uncalibrated)
     """
 
     projector_blur: float = 0.35
@@ -56,17 +77,50 @@ class Optics:
     )
     ambient: tuple[float, float, float] = (0.02, 0.02, 0.02)
     colour_model: str = "legacy"
+    projector_fnumber: float = 0.0
+    projector_focus_mm: float = 0.0
+    projector_focal_mm: float = PROJECTOR_FOCAL_MM
+    projector_gamma: float = 1.0
 
     def __post_init__(self) -> None:
         if self.colour_model not in ("legacy", "physical"):
             raise SlscanError(f"colour_model: expected 'legacy' or 'physical', got {self.colour_model!r}")
+        _check_number("optics.projector_blur", self.projector_blur, low=0.0)
+        _check_number("optics.projector_fnumber", self.projector_fnumber, low=0.0,
+                      expected="an f-number > 0 (0: a pinhole, no defocus)")
+        _check_number("optics.projector_focal_mm", self.projector_focal_mm, low=0.0, strict=True)
+        _check_number("optics.projector_gamma", self.projector_gamma, low=0.0, strict=True)
+        if self.projector_fnumber > 0:
+            _check_number("optics.projector_focus_mm", self.projector_focus_mm, low=self.projector_focal_mm,
+                          strict=True, expected=f"a focus distance in front of the projector, beyond its "
+                          f"focal length ({self.projector_focal_mm:g} mm)")
+
+    @property
+    def defocus(self) -> bool:
+        """The projector has a finite depth of field (``projector_fnumber`` > 0)."""
+        return self.projector_fnumber > 0
 
     def to_dict(self) -> dict:
         return {
             "projector_blur_px": self.projector_blur, "projector_black": self.projector_black,
             "crosstalk": [list(r) for r in self.crosstalk], "ambient": list(self.ambient),
-            "colour_model": self.colour_model,
+            "colour_model": self.colour_model, "projector_fnumber": self.projector_fnumber,
+            "projector_focus_mm": self.projector_focus_mm, "projector_focal_mm": self.projector_focal_mm,
+            "projector_gamma": self.projector_gamma,
         }
+
+
+def _check_number(key: str, value, *, low: float, strict: bool = False, high: float | None = None,
+                  expected: str | None = None) -> None:
+    """Raise naming ``key`` unless ``value`` is a finite number above ``low`` (``strict``) or
+    at least ``low``, and at most ``high``."""
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    ok = ok and (value > low if strict else value >= low) and (high is None or value <= high)
+    if not ok:
+        if expected is None:
+            bound = f"> {low:g}" if strict else f">= {low:g}"
+            expected = f"a number {bound}" + ("" if high is None else f" and <= {high:g}")
+        raise SlscanError(f"{key}: expected {expected}, got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -82,6 +136,8 @@ class ViewGeometry:
     proj_lit : bool, the projector reaches ``point`` (in frustum, facing, unoccluded)
     proj_diffuse, proj_specular : (h, w) float32 geometric factors for projector light
     light_diffuse, light_specular : (n_lights, h, w) float32, the same for ring lights
+    proj_depth : (h, w) float64 depth of ``point`` along the projector axis, mm (nan: no hit)
+    proj_focal_px : the projector's focal length, projector px
     """
 
     hit: np.ndarray
@@ -95,6 +151,8 @@ class ViewGeometry:
     proj_specular: np.ndarray
     light_diffuse: np.ndarray
     light_specular: np.ndarray
+    proj_depth: np.ndarray | None = None
+    proj_focal_px: float = 0.0
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -255,6 +313,8 @@ def trace_view(scene: Scene, rig: Rig, rig_from_object: np.ndarray) -> ViewGeome
         proj_specular=full(proj_spec.astype(np.float32), 0, np.float32),
         light_diffuse=full_stack(light_diffuse),
         light_specular=full_stack(light_spec),
+        proj_depth=full((point - proj.center) @ proj.axis, np.nan, np.float64),
+        proj_focal_px=float(proj.lens.fx),
     )
 
 
@@ -294,9 +354,18 @@ class _ProfileFilter:
 
 
 @functools.lru_cache(maxsize=64)
-def _profile_filter(blur: float, values_bytes: bytes, n: int) -> _ProfileFilter:
-    values = np.frombuffer(values_bytes, dtype=np.uint8).reshape(n, 3) / 255.0
+def _profile_filter(blur: float, values_bytes: bytes, n: int, gamma: float = 1.0) -> _ProfileFilter:
+    """The filter of an (n, 3) uint8 projector profile blurred by ``blur`` projector px,
+    emitted through the projector's tone curve ``(v / 255) ** gamma``."""
+    values = emitted(np.frombuffer(values_bytes, dtype=np.uint8).reshape(n, 3), gamma)
     return _ProfileFilter.build(values, blur)
+
+
+def emitted(values: np.ndarray, gamma: float = 1.0) -> np.ndarray:
+    """Relative light the projector emits, float64 in [0, 1], for pattern ``values`` uint8
+    through its tone curve ``(v / 255) ** gamma``."""
+    light = values / 255.0
+    return light if gamma == 1.0 else light**gamma
 
 
 def image_profile(image: np.ndarray) -> tuple[str, np.ndarray]:
@@ -308,6 +377,62 @@ def image_profile(image: np.ndarray) -> tuple[str, np.ndarray]:
     if (image == image[:, :1]).all():
         return "rows", image[:, 0]
     return "2d", image
+
+
+def defocus_sigma(geom: ViewGeometry, optics: Optics) -> np.ndarray:
+    """Gaussian sigma (k,) of the projector's thin-lens defocus at each hit pixel, projector px.
+
+    The circle of confusion of a point at depth ``d`` along the projector axis, focus
+    ``d_f``, focal length ``f`` and aperture diameter ``A = f / N`` has diameter
+    ``c = A f |d - d_f| / (d (d_f - f))`` on the DMD (mm), ``c * fx / f`` projector px;
+    its blur is taken as a Gaussian of sigma ``c / 2.4``. Zeros when the lens is a pinhole
+    and at the focus distance (below :data:`IN_FOCUS`: rounding of the traced depth).
+    """
+    d = geom.proj_depth[geom.hit] if geom.proj_depth is not None else None
+    if not optics.defocus or d is None:
+        return np.zeros(int(geom.hit.sum()))
+    f, d_f = optics.projector_focal_mm, optics.projector_focus_mm
+    aperture = f / optics.projector_fnumber
+    coc_px = geom.proj_focal_px * aperture * np.abs(d - d_f) / (np.maximum(d, f) * (d_f - f))
+    sigma = coc_px / COC_PER_SIGMA
+    sigma[sigma < IN_FOCUS] = 0.0
+    return sigma
+
+
+def defocus_levels(sigma: np.ndarray) -> list[tuple[float, float, np.ndarray, np.ndarray]]:
+    """Pixels grouped by defocus: ``[(sigma_lo, sigma_hi, index, weight), ...]``.
+
+    Defocus ``sigma`` (k,) px falls between two levels of a fixed ladder (0, then 0.1 px
+    growing by 1.25); a pixel's light is ``(1 - weight) * light(sigma_lo) + weight *
+    light(sigma_hi)`` with the weight linear in variance, so the blend has exactly the
+    variance of the pixel's own blur. Pixels with no defocus get weight 0 at level 0."""
+    ladder = [0.0, DOF_FIRST_LEVEL]
+    top = float(sigma.max()) if len(sigma) else 0.0
+    while ladder[-1] < top:
+        ladder.append(ladder[-1] * DOF_LEVEL_RATIO)
+    levels = np.asarray(ladder)
+    k = np.clip(np.searchsorted(levels, sigma, side="right") - 1, 0, len(levels) - 2)
+    out = []
+    for j in np.unique(k):
+        index = np.flatnonzero(k == j)
+        lo, hi = levels[j], levels[j + 1]
+        weight = np.clip((sigma[index] ** 2 - lo**2) / (hi**2 - lo**2), 0.0, 1.0)
+        out.append((float(lo), float(hi), index, weight))
+    return out
+
+
+def _blend_defocus(sigma: np.ndarray, sample: Callable[[float, np.ndarray], np.ndarray]) -> np.ndarray:
+    """Light (k, 3) of pixels with defocus ``sigma`` (k,), from ``sample(level, index)``: the
+    light of pixels ``index`` under defocus ``level`` px (see :func:`defocus_levels`)."""
+    light = np.empty((len(sigma), 3))
+    for lo, hi, index, weight in defocus_levels(sigma):
+        part = sample(lo, index)
+        blend = weight > 0
+        if blend.any():
+            sub = index[blend]
+            part[blend] += weight[blend, None] * (sample(hi, sub) - part[blend])
+        light[index] = part
+    return light
 
 
 def projector_light(geom: ViewGeometry, desc: PatternImage | None, optics: Optics) -> np.ndarray:
@@ -335,27 +460,45 @@ def projector_light_image(geom: ViewGeometry, image: np.ndarray | None, optics: 
         return _light_from_profile(geom, axis, values, optics)
     import cv2
 
-    plane = image.astype(np.float32) / 255.0
+    gamma = optics.projector_gamma
+    plane = image.astype(np.float32) / 255.0 if gamma == 1.0 else emitted(image, gamma).astype(np.float32)
     footprint = float(np.median(geom.proj_footprint[hit])) if hit.any() else 1.0
-    sigma = float(np.hypot(optics.projector_blur, footprint / np.sqrt(12.0)))
-    if sigma > 0:
-        plane = cv2.GaussianBlur(plane, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
     uv = geom.proj_uv[hit].astype(np.float32)
-    sampled = cv2.remap(plane, uv[:, 0:1], uv[:, 1:2], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-    light = sampled.reshape(-1, 3).astype(np.float64)
+
+    def sample(defocus: float, index: np.ndarray) -> np.ndarray:
+        sigma = float(np.hypot(np.hypot(optics.projector_blur, defocus), footprint / np.sqrt(12.0)))
+        blurred = cv2.GaussianBlur(plane, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT) if sigma > 0 else plane
+        at = uv[index]
+        # remap's maps must stay under 32767 rows and columns: lay the points out in rows
+        k = len(at)
+        cols = REMAP_ROW
+        padded = np.zeros((-(-k // cols) * cols, 2), np.float32)
+        padded[:k] = at
+        grid = padded.reshape(-1, cols, 2)
+        sampled = cv2.remap(blurred, grid[..., 0], grid[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        return sampled.reshape(-1, 3)[:k].astype(np.float64)
+
+    light = _blend_defocus(defocus_sigma(geom, optics), sample) if optics.defocus else sample(0.0, slice(None))
     black = optics.projector_black
     return black + (1 - black) * light
 
 
 def _light_from_profile(geom: ViewGeometry, axis: str, values: np.ndarray, optics: Optics) -> np.ndarray:
     hit = geom.hit
+    gamma = optics.projector_gamma
     if axis == "none":
-        light = np.broadcast_to(values[0] / 255.0, (int(hit.sum()), 3)).astype(np.float64)
+        light = np.broadcast_to(emitted(values[0], gamma), (int(hit.sum()), 3)).astype(np.float64)
     else:
         a = 0 if axis == "columns" else 1
         values = np.ascontiguousarray(values, dtype=np.uint8)
-        filt = _profile_filter(optics.projector_blur, values.tobytes(), len(values))
-        light = filt.sample(geom.proj_uv[..., a][hit], geom.proj_footprint[..., a][hit].astype(np.float64))
+        coord = geom.proj_uv[..., a][hit]
+        width = geom.proj_footprint[..., a][hit].astype(np.float64)
+
+        def sample(defocus: float, index) -> np.ndarray:
+            blur = float(np.hypot(optics.projector_blur, defocus))
+            return _profile_filter(blur, values.tobytes(), len(values), gamma).sample(coord[index], width[index])
+
+        light = _blend_defocus(defocus_sigma(geom, optics), sample) if optics.defocus else sample(0.0, slice(None))
     black = optics.projector_black
     return black + (1 - black) * light
 
@@ -401,3 +544,32 @@ def add_light(radiance: np.ndarray, geom: ViewGeometry, light_index: int, rig: R
     diffuse = albedo * intensity * geom.light_diffuse[light_index][hit][:, None]
     specular = intensity * geom.light_specular[light_index][hit][:, None]
     radiance[hit] += (diffuse + specular).astype(np.float32)
+
+
+DOF_FNUMBER = 2.0  # effect ``dof``: an f/2 projector lens
+PROJECTOR_GAMMA = 2.2  # effect ``tone``: a typical uncalibrated projector
+
+
+def _dof_on(optics: Optics, sensor, working_distance: float):
+    fnumber = optics.projector_fnumber or DOF_FNUMBER
+    focus = optics.projector_focus_mm or working_distance
+    return dataclasses.replace(optics, projector_fnumber=fnumber, projector_focus_mm=focus), sensor
+
+
+def _tone_on(optics: Optics, sensor, working_distance: float):
+    if optics.projector_gamma == 1.0:
+        optics = dataclasses.replace(optics, projector_gamma=PROJECTOR_GAMMA)
+    if sensor.response == "linear":
+        sensor = dataclasses.replace(sensor, response="srgb")
+    return optics, sensor
+
+
+register(Effect(
+    "dof", "projector depth of field: thin-lens defocus blur growing away from the focus distance "
+    "(f/2, focused at the working distance)",
+    "thin-lens circle of confusion, e.g. Hecht, Optics (5th ed.), sec. 5.7; Potmesil & Chakravarty, "
+    "'A lens and aperture camera model for synthetic image generation', SIGGRAPH 1981", _dof_on))
+register(Effect(
+    "tone", "tone curves: projector gamma 2.2 (uncalibrated) and an sRGB camera response (JPEG-shooting "
+    "camera) instead of linear RAW",
+    "IEC 61966-2-1 (sRGB); Poynton, Digital Video and HD (2nd ed.), ch. 27 (gamma)", _tone_on))
