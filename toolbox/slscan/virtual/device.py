@@ -22,7 +22,7 @@ from slscan.rig import Rig, default_rig, transform_points
 from slscan.virtual.devices import VirtualRig, turntable_pose
 from slscan.virtual.effects import apply_effects, parse_effects
 from slscan.virtual.placement import check_pose_text, parse_pose, parse_units, placement_record
-from slscan.virtual.render import Optics, ViewGeometry, shade_light, shade_pattern, trace_view
+from slscan.virtual.render import Optics, ViewGeometry, needs_trace, shade_light, shade_pattern, trace_view
 from slscan.virtual.rigs import RigParams, load_rig_file
 from slscan.virtual.scenes import Scene, scene_by_name
 from slscan.virtual.sensor import Sensor
@@ -163,8 +163,11 @@ def capture_view(
 
     Returns ``[(record, image), ...]`` and the traced geometry (reuse it for ground truth).
     """
-    geom = geometry if geometry is not None else trace_view(scene, rig, rig_from_object)
     sensor, optics = config.sensor, config.optics
+    if geometry is not None and not needs_trace(geometry, optics):
+        geom = geometry
+    else:  # traced here, or again when the given geometry lacks the transport the optics need
+        geom = trace_view(scene, rig, rig_from_object, optics)
     out = []
     for i, desc in enumerate(patterns):
         rng = np.random.default_rng([config.seed, view_index, i])

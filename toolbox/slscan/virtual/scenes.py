@@ -1,8 +1,9 @@
-"""Scenes for the virtual rig: the built-in figurine, the flat tile, and user meshes.
+"""Scenes for the virtual rig: the built-in figurine, the flat tile, the light-transport
+scenes (concave corner, marble bust, bronze vessel), and user meshes.
 
 A scene is a triangle mesh in its own object frame (mm) with shading normals, an albedo
-source, a specular lobe, and its placement on the turntable (see
-:mod:`slscan.virtual.placement`). The built-in scenes are modelled in place (y down like
+source, a material per triangle (specular lobe, subsurface mean free path), and its
+placement on the turntable (see :mod:`slscan.virtual.placement`). The built-in scenes are modelled in place (y down like
 the rig, front towards -z, i.e. towards the camera); a user mesh keeps its file's
 coordinates (scaled to mm) and is placed by a pose.
 """
@@ -88,6 +89,52 @@ class TextureAlbedo:
 
 
 @dataclass(frozen=True)
+class Material:
+    """How a region of a scene returns light, besides its albedo (which stays the scene's).
+
+    name : what docs and logs call it
+    specular : Blinn-Phong specular reflectance, 0 for matte
+    specular_colour : (3,) linear RGB tint of the specular lobe ((1, 1, 1): white, as a
+        dielectric's; a metal's highlight takes the metal's colour)
+    shininess : Blinn-Phong exponent
+    mean_free_path : mm, how far light travels under the surface before it leaves
+        (subsurface scattering, honoured by the ``subsurface`` effect); 0: none
+    """
+
+    name: str
+    specular: float = 0.0
+    specular_colour: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    shininess: float = 40.0
+    mean_free_path: float = 0.0
+
+    def __post_init__(self) -> None:
+        where = f"material {self.name!r}"
+        if not (math.isfinite(self.specular) and self.specular >= 0):
+            raise SlscanError(f"{where}: specular must be >= 0, got {self.specular}")
+        if len(self.specular_colour) != 3 or not all(0 <= c <= 1 for c in self.specular_colour):
+            raise SlscanError(f"{where}: specular_colour must be 3 values in [0, 1], got {self.specular_colour}")
+        if not (math.isfinite(self.shininess) and self.shininess > 0):
+            raise SlscanError(f"{where}: shininess must be > 0, got {self.shininess}")
+        if not (math.isfinite(self.mean_free_path) and self.mean_free_path >= 0):
+            raise SlscanError(f"{where}: mean_free_path must be >= 0 mm, got {self.mean_free_path}")
+
+    @property
+    def white_specular(self) -> bool:
+        return tuple(self.specular_colour) == (1.0, 1.0, 1.0)
+
+
+MATTE = Material("matte")
+"""A Lambertian surface (plaster, unglazed clay, matte paint)."""
+MARBLE = Material("marble", specular=0.04, shininess=60.0, mean_free_path=1.5)
+"""White marble: light travels ~1.5 mm under the surface (Jensen et al. 2001 measure
+1/sigma_tr of 1.5-2.2 mm for marble); a weak white polish highlight."""
+BRONZE = Material("bronze", specular=0.6, specular_colour=(0.95, 0.64, 0.54), shininess=90.0)
+"""Patinated bronze: dark coloured diffuse albedo (set by the scene), a strong copper-tinted
+highlight (a metal's specular takes its colour)."""
+MATERIALS = {m.name: m for m in (MATTE, MARBLE, BRONZE)}
+
+
+@dataclass(frozen=True)
 class Scene:
     """A mesh to scan.
 
@@ -101,6 +148,8 @@ class Scene:
         stands on the turntable (:mod:`slscan.virtual.placement`); None: the identity
         (the object frame is the turntable frame)
     mm_per_unit : the scale from the mesh file's units to the object frame's mm
+    materials : the scene's materials; empty: one, made from ``specular`` and ``shininess``
+    material_ids : (m,) int index into ``materials`` per triangle; None: all the first
     """
 
     name: str
@@ -112,12 +161,31 @@ class Scene:
     shininess: float = 40.0
     placement: np.ndarray | None = None
     mm_per_unit: float = 1.0
+    materials: tuple[Material, ...] = ()
+    material_ids: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if len(self.triangles) == 0:
             raise SlscanError(f"scene {self.name!r}: the mesh has no faces")
         if len(self.vertices) < 3:
             raise SlscanError(f"scene {self.name!r}: the mesh has fewer than 3 vertices")
+        if not self.materials:
+            own = Material("default", specular=self.specular, shininess=self.shininess)
+            object.__setattr__(self, "materials", (own,))
+        if self.material_ids is not None:
+            ids = np.asarray(self.material_ids)
+            if ids.shape != (len(self.triangles),):
+                raise SlscanError(f"scene {self.name!r}: material_ids must give one material per triangle "
+                                  f"({len(self.triangles)}), got shape {ids.shape}")
+            if len(ids) and (ids.min() < 0 or ids.max() >= len(self.materials)):
+                raise SlscanError(f"scene {self.name!r}: material_ids must lie in 0..{len(self.materials) - 1}")
+            object.__setattr__(self, "material_ids", ids.astype(np.int16))
+
+    def material_of(self, triangle_ids: np.ndarray) -> np.ndarray:
+        """Material index (k,) int16 of ``triangle_ids`` (k,)."""
+        if self.material_ids is None:
+            return np.zeros(len(triangle_ids), np.int16)
+        return self.material_ids[triangle_ids]
 
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
