@@ -36,7 +36,8 @@ Progress = Callable[[str], None]
 class VirtualCaptureConfig:
     """What the virtual rig captures and how.
 
-    scene : "object" (the built-in figurine), "tile", or a mesh file (PLY/OBJ/glTF)
+    scene : "object" (the built-in figurine), "tile", "concave", "marble", "bronze" (the
+        light-transport scenes, :mod:`slscan.virtual.scenes`), or a mesh file (PLY/OBJ/glTF)
     views : turntable positions, evenly spread over 360° about the object's vertical axis
     patterns : {"hybrid", "gray", "both"}: which coded patterns follow white and black
     levels : hybrid subdivision levels (9 at 1024 px gives 511 lines)

@@ -74,25 +74,31 @@ class SubsurfaceKernel:
 def _shifted(a: np.ndarray, dy: int, dx: int, fill) -> np.ndarray:
     """``a[y + dy, x + dx]`` over ``a``'s own grid, ``fill`` outside."""
     out = np.full_like(a, fill)
-    h, w = a.shape[:2]
-    ys, yd = slice(max(dy, 0), h + min(dy, 0)), slice(max(-dy, 0), h + min(-dy, 0))
-    xs, xd = slice(max(dx, 0), w + min(dx, 0)), slice(max(-dx, 0), w + min(-dx, 0))
-    out[yd, xd] = a[ys, xs]
+    dst, src = _slices(a.shape[:2], dy, dx)
+    out[dst] = a[src]
     return out
 
 
-def _pixel_area(point: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Surface area (h, w) mm^2 of each pixel and its footprint (h, w) mm, from the
-    neighbouring surface points (one-sided differences where a neighbour is missing)."""
+def _slices(shape: tuple[int, int], dy: int, dx: int):
+    """(dst, src) index pairs with ``dst`` pixel ``x`` and ``src`` pixel ``x + d``."""
+    h, w = shape
+    src = (slice(max(dy, 0), h + min(dy, 0)), slice(max(dx, 0), w + min(dx, 0)))
+    dst = (slice(max(-dy, 0), h + min(-dy, 0)), slice(max(-dx, 0), w + min(-dx, 0)))
+    return dst, src
+
+
+def _pixel_area(point: np.ndarray) -> np.ndarray:
+    """Surface area (h, w) mm^2 of each pixel from the neighbouring surface points: the
+    shorter one-sided difference along each axis, so a depth discontinuity next to a pixel
+    does not count as its surface (NaN where a pixel has no neighbour along an axis)."""
     def step(axis):
         fwd = np.diff(point, axis=axis, append=np.nan)
         bwd = np.diff(point, axis=axis, prepend=np.nan)
-        return np.where(np.isfinite(fwd), fwd, bwd)
+        nf = np.nan_to_num(np.linalg.norm(fwd, axis=-1), nan=np.inf)
+        nb = np.nan_to_num(np.linalg.norm(bwd, axis=-1), nan=np.inf)
+        return np.where((nf <= nb)[..., None], fwd, bwd)
 
-    du, dv = step(1), step(0)
-    area = np.linalg.norm(np.cross(du, dv), axis=-1)
-    foot = np.sqrt(area)
-    return area, foot
+    return np.linalg.norm(np.cross(step(1), step(0)), axis=-1)
 
 
 def subsurface_kernel(point: np.ndarray, material: np.ndarray, mean_free_paths: np.ndarray,
@@ -110,10 +116,11 @@ def subsurface_kernel(point: np.ndarray, material: np.ndarray, mean_free_paths: 
     sss = mfp > 0
     if not sss.any():
         return None
-    area_full, foot_full = _pixel_area(point)
-    foot = foot_full[sss & np.isfinite(foot_full) & (foot_full > 0)]
-    if len(foot) == 0:
-        return None
+    area_full = _pixel_area(point)
+    good = sss & np.isfinite(area_full) & (area_full > 0)
+    typical = float(np.median(area_full[good])) if good.any() else 1.0
+    area_full = np.where(good, area_full, typical)  # isolated pixels: a typical area
+    foot = np.sqrt(area_full[sss])
     reach = extent * float(mfp[sss].max())
     radius = int(min(SUBSURFACE_MAX_RADIUS, np.ceil(reach / max(float(np.percentile(foot, 5)), 1e-6))))
     ys, xs = np.nonzero(sss)
@@ -124,17 +131,20 @@ def subsurface_kernel(point: np.ndarray, material: np.ndarray, mean_free_paths: 
     sub_point = point[y0:y1, x0:x1].astype(np.float64)
     sub_mat = np.where(sss, material, -1)[y0:y1, x0:x1].astype(np.int16)
     sub_mfp = mfp[y0:y1, x0:x1].astype(np.float32)
-    area = np.where(sub_mat >= 0, np.nan_to_num(area_full[y0:y1, x0:x1]), 0).astype(np.float32)
+    area = np.where(sub_mat >= 0, area_full[y0:y1, x0:x1], 0).astype(np.float32)
+    # half the disc: w(x, x - d) is w_d(x - d), so each weight image serves d and -d
     dy, dx = np.mgrid[-radius:radius + 1, -radius:radius + 1]
-    keep = dy**2 + dx**2 <= radius**2
+    keep = (dy**2 + dx**2 <= radius**2) & ((dy > 0) | ((dy == 0) & (dx > 0)))
     offsets = np.stack([dy[keep], dx[keep]], axis=1)
     budget = len(offsets) * sub_mat.size * 4 <= SUBSURFACE_CACHE_BYTES
     kernel = SubsurfaceKernel(box, offsets, sub_mfp, sub_point, sub_mat, area, np.zeros_like(area), None)
     weights = []
-    norm = np.zeros(area.shape, np.float64)
+    norm = np.where(sub_mat >= 0, area, 0).astype(np.float64)  # d = 0: w = 1
     for d in offsets:
         wd = _offset_weight(kernel, int(d[0]), int(d[1]), extent)
-        norm += wd * _shifted(area, int(d[0]), int(d[1]), 0)
+        dst, src = _slices(area.shape, int(d[0]), int(d[1]))
+        norm[dst] += wd[dst] * area[src]  # y = x, receiver x + d
+        norm[src] += wd[dst] * area[dst]  # y = x + d, receiver x
         if budget:
             weights.append(wd)
     return SubsurfaceKernel(box, offsets, sub_mfp, sub_point, sub_mat, area, norm.astype(np.float32),
@@ -147,8 +157,6 @@ def _offset_weight(kernel: SubsurfaceKernel, dy: int, dx: int, extent: float = S
     mat = kernel.material
     other = _shifted(mat, dy, dx, -1)
     same = (mat >= 0) & (other == mat)
-    if dy == 0 and dx == 0:
-        return same.astype(np.float32)
     dist = np.linalg.norm(_shifted(kernel.point, dy, dx, np.nan) - kernel.point, axis=-1)
     mfp = np.where(same, kernel.mfp, 1.0)
     with np.errstate(invalid="ignore"):
@@ -165,12 +173,15 @@ def spread_subsurface(irradiance: np.ndarray, kernel: SubsurfaceKernel) -> np.nd
     scatter = kernel.material >= 0
     with np.errstate(invalid="ignore", divide="ignore"):
         source = np.where(scatter[..., None], sub * (kernel.area / kernel.norm)[..., None], 0.0)
-    source = np.nan_to_num(source)
-    gathered = np.zeros_like(sub)
+    source = np.nan_to_num(source).astype(np.float32)
+    gathered = source.copy()  # d = 0
     for i, d in enumerate(kernel.offsets):
         dy, dx = int(d[0]), int(d[1])
         wd = kernel.weights[i] if kernel.weights is not None else _offset_weight(kernel, dy, dx)
-        gathered += wd[..., None] * _shifted(source, dy, dx, 0.0)
+        dst, src = _slices(wd.shape, dy, dx)
+        wdd = wd[dst][..., None]
+        gathered[dst] += wdd * source[src]  # x receives from x + d
+        gathered[src] += wdd * source[dst]  # x + d receives from x
     sub[scatter] = gathered[scatter]
     return out
 
@@ -333,15 +344,17 @@ def interpolate_receivers(paths: IndirectPaths, values: np.ndarray, hit: np.ndar
     blur_m = cv2.GaussianBlur(mask, (0, 0), 1.0, borderType=cv2.BORDER_CONSTANT)
     with np.errstate(invalid="ignore", divide="ignore"):
         filled = np.where(mask[..., None] > 0, grid, blur_v / blur_m[..., None])
-    filled = np.nan_to_num(filled).astype(np.float32)
+    filled = np.nan_to_num(filled)
     ys, xs = np.nonzero(hit)
     off = paths.stride // 2
-    mx = ((xs - off) / paths.stride).astype(np.float32)[:, None]
-    my = ((ys - off) / paths.stride).astype(np.float32)[:, None]
-    out = np.empty((len(ys), k))
-    for c in range(k):
-        out[:, c] = cv2.remap(filled[..., c], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[:, 0]
-    return out
+    gx = np.clip((xs - off) / paths.stride, 0, gw - 1)
+    gy = np.clip((ys - off) / paths.stride, 0, gh - 1)
+    x0, y0 = np.minimum(gx.astype(int), max(gw - 2, 0)), np.minimum(gy.astype(int), max(gh - 2, 0))
+    x1, y1 = np.minimum(x0 + 1, gw - 1), np.minimum(y0 + 1, gh - 1)
+    fx, fy = (gx - x0)[:, None], (gy - y0)[:, None]
+    top = filled[y0, x0] * (1 - fx) + filled[y0, x1] * fx
+    bottom = filled[y1, x0] * (1 - fx) + filled[y1, x1] * fx
+    return top * (1 - fy) + bottom * fy
 
 
 # --- both, per view -------------------------------------------------------------------
