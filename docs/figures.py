@@ -361,7 +361,7 @@ def transport_figures() -> None:
     ids = ("white", "hybrid-08")
     off, on = _capture_images("marble", (), ids), _capture_images("marble", ("subsurface",), ids)
     box = (slice(95, 175), slice(300, 420))
-    zoom = lambda img: cv2.resize(img[box], None, fx=3, fy=3, interpolation=cv2.INTER_NEAREST)  # noqa: E731
+    zoom = lambda img: cv2.resize(img[box], None, fx=3, fy=3, interpolation=cv2.INTER_NEAREST)
     _write("effect_subsurface.png", _side_by_side(
         _titled(zoom(off["hybrid-08"]), "marble head, hybrid level 8: direct light"),
         _titled(zoom(on["hybrid-08"]), "subsurface on (mean free path 1.5 mm)")))

@@ -296,3 +296,15 @@ def test_shading_a_view_traced_without_transport_is_refused():
     white = standard_set(width=256, height=192, levels=7)[0]
     with pytest.raises(SlscanError, match="trace_view"):
         shade_pattern(geom, white, Optics(subsurface=True))
+
+
+def test_recipe_keys_switch_the_effects_and_are_checked():
+    from slscan.recipe.runner import parse_recipe
+
+    recipe = parse_recipe({"capture": {"scene": "marble", "effects": ["subsurface"],
+                                       "optics": {"interreflection": True, "interreflection_samples": 32}}},
+                          where="r.toml")
+    optics = recipe.steps[0][1].optics
+    assert (optics.subsurface, optics.interreflection, optics.interreflection_samples) == (True, True, 32)
+    with pytest.raises(SlscanError, match="optics.interreflection_samples"):
+        parse_recipe({"capture": {"optics": {"interreflection_samples": 0}}}, where="r.toml")
