@@ -39,7 +39,7 @@ from slscan.virtual.device import VirtualCaptureConfig, capture_session
 from slscan.virtual.effects import EFFECTS, parse_effects
 
 sys.path.insert(0, str(Path(__file__).parent))
-from reconstruction import coverage, true_surface_distance  # noqa: E402
+from reconstruction import coverage, true_surface_distance
 
 PLAIN: dict[str, dict] = {"hybrid": {}, "gray": {}, "xor": {}}
 """DecodeConfig options that switch the robust decoding off, per pattern family."""
@@ -85,8 +85,8 @@ def evaluate(session, view, family: str, decoder: str, scene) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scale", type=float, default=1.0,
-                        help="camera and projector size (1: the paper's; at 0.5 a pixel spans 1.4 mm and the
-                        mixed pixels at depth steps alone give 0.2-0.6 %% gross outliers under direct light)")
+                        help="camera and projector size (1: the paper's; at 0.5 a pixel spans 1.4 mm and the "
+                             "mixed pixels at depth steps alone give 0.2-0.6 %% gross outliers under direct light)")
     parser.add_argument("--scenes", default="object,concave,marble,bronze")
     parser.add_argument("--effects", default="none,EACH,all",
                         help="row groups: none, EACH (every effect alone), all, or a+b")

@@ -9,7 +9,9 @@ codes_kamino410.png of docs/reconstruction.md decodes the kamino410 capture_0 in
 ../shared/data (or $SLSCAN_DATA): .venv/bin/python docs/figures.py codes
 
 The effect_*.png of docs/virtual-rig.md render the virtual rig at half size, each effect
-off and on: .venv/bin/python docs/figures.py optics"""
+off and on: .venv/bin/python docs/figures.py optics
+The effect_*.png and scene_*.png of docs/virtual-rig.md render the light-transport scenes
+at half size with each effect off and on: .venv/bin/python docs/figures.py transport"""
 
 from __future__ import annotations
 
@@ -395,10 +397,63 @@ def optics_figures() -> None:
     _write("effect_jpeg.png", _side_by_side(*[
         _titled(_to_height(im[zoom], EFFECT_HEIGHT, cv2.INTER_NEAREST), t) for im, t in
         ((off, "PNG, zoomed"), (on, "JPEG quality 90"), (diff, "|difference| x 8"))]))
+# --- light transport (docs/virtual-rig.md) ----------------------------------------------
+
+TRANSPORT_SCALE = 0.5  # reduced-size captures: 720x480 camera, 512x384 projector
+
+
+def _capture_images(scene: str, effects: tuple[str, ...], pattern_ids: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """The named images of view 0 of ``scene`` at :data:`TRANSPORT_SCALE`, RGB uint8."""
+    from slscan.virtual.device import VirtualCaptureConfig, capture_view, turntable_pose
+
+    config = VirtualCaptureConfig(scene=scene, camera_scale=TRANSPORT_SCALE, projector_scale=TRANSPORT_SCALE,
+                                  levels=8, effects=effects, lit_images=False, patterns="both")
+    rig, world = config.rig(), config.build_scene()
+    patterns = [p for p in config.pattern_set(rig) if p.id in pattern_ids]
+    images, _ = capture_view(world, rig, turntable_pose(rig, 0.0, world.placement), patterns, config)
+    return {p.id: image for p, (_, image) in zip(patterns, images)}
+
+
+def _crop_box(image: np.ndarray, margin: int = 12) -> tuple[slice, slice]:
+    ys, xs = np.nonzero(image.max(axis=2) > 8)
+    return (slice(max(0, ys.min() - margin), ys.max() + margin),
+            slice(max(0, xs.min() - margin), xs.max() + margin))
+
+
+def transport_figures() -> None:
+    """effect_subsurface.png, effect_interreflection.png and scene_{concave,marble,bronze}.png."""
+    # subsurface: the finest hybrid lines on the marble head, zoomed 3x
+    ids = ("white", "hybrid-08")
+    off, on = _capture_images("marble", (), ids), _capture_images("marble", ("subsurface",), ids)
+    box = (slice(95, 175), slice(300, 420))
+    zoom = lambda img: cv2.resize(img[box], None, fx=3, fy=3, interpolation=cv2.INTER_NEAREST)
+    _write("effect_subsurface.png", _side_by_side(
+        _titled(zoom(off["hybrid-08"]), "marble head, hybrid level 8: direct light"),
+        _titled(zoom(on["hybrid-08"]), "subsurface on (mean free path 1.5 mm)")))
+
+    # inter-reflection: the cube corner under white and under the coarsest and finest Gray bits
+    ids = ("white", "gray-col-00", "gray-col-08")
+    off, on = _capture_images("concave", (), ids), _capture_images("concave", ("interreflection",), ids)
+    box = _crop_box(off["white"])
+    panels = []
+    for pid, label in (("white", "white"), ("gray-col-00", "Gray bit 0"), ("gray-col-08", "Gray bit 8")):
+        pair = np.vstack([off[pid][box], np.full((6, off[pid][box].shape[1], 3), 255, np.uint8), on[pid][box]])
+        panels.append(_titled(_to_height(pair, 360), f"{label}: direct (top),", "inter-reflection (bottom)"))
+    _write("effect_interreflection.png", _side_by_side(*panels))
+
+    # the scenes, every effect on: white and a hybrid pattern
+    for scene in ("concave", "marble", "bronze"):
+        images = _capture_images(scene, ("subsurface", "interreflection"), ("white", "hybrid-04"))
+        box = _crop_box(images["white"])
+        _write(f"scene_{scene}.png", _side_by_side(
+            _titled(_to_height(images["white"][box], 300), f"{scene}: white"),
+            _titled(_to_height(images["hybrid-04"][box], 300), "hybrid level 4")))
 
 
 if __name__ == "__main__":
-    if sys.argv[1:] == ["scan"]:
+    if sys.argv[1:] == ["transport"]:
+        transport_figures()
+    elif sys.argv[1:] == ["scan"]:
         scan_figures()
     elif sys.argv[1:] == ["codes"]:
         codes_figure()

@@ -44,8 +44,9 @@ def _add_capture_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument(
         "--scene", default="object",
-        help='"object" (built-in figurine, default), "tile" (flat plane test) or a mesh file '
-             "(PLY/OBJ/glTF/GLB/OFF/STL)",
+        help='"object" (built-in figurine, default), "tile" (flat plane test), "concave" (cube corner: '
+             'inter-reflection), "marble" (bust: subsurface), "bronze" (vessel: coloured highlights) or a '
+             "mesh file (PLY/OBJ/glTF/GLB/OFF/STL)",
     )
     from slscan.capture.command import add_placement_arguments
 

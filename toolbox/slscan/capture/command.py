@@ -96,7 +96,7 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
     cal.add_argument("--square", type=float, default=50.0, help="board square side, mm (default 50)")
     cal.add_argument("--target", choices=("chessboard", "charuco"), default="chessboard", help="board kind")
     sim = p.add_argument_group("virtual rig (--camera virtual or loop)")
-    sim.add_argument("--scene", default="object", help='"object" (figurine), "tile" or a mesh file')
+    sim.add_argument("--scene", default="object", help='"object" (figurine), "tile", "concave", "marble", "bronze" or a mesh file')
     add_placement_arguments(sim)
     sim.add_argument("--scale", type=float, default=0.5,
                      help="camera and projector resolution factor (default 0.5; 1: 1440x960 and 1024x768)")

@@ -22,7 +22,14 @@ from slscan.rig import Rig, default_rig, transform_points
 from slscan.virtual.devices import VirtualRig, turntable_pose
 from slscan.virtual.effects import apply_effects, parse_effects
 from slscan.virtual.placement import check_pose_text, parse_pose, parse_units, placement_record
-from slscan.virtual.render import Optics, ViewGeometry, shade_light, shade_pattern, trace_view
+from slscan.virtual.render import (
+    Optics,
+    ViewGeometry,
+    needs_trace,
+    shade_light,
+    shade_pattern,
+    trace_view,
+)
 from slscan.virtual.rigs import RigParams, load_rig_file
 from slscan.virtual.scenes import Scene, scene_by_name
 from slscan.virtual.sensor import Sensor, jpeg_round_trip
@@ -36,7 +43,8 @@ Progress = Callable[[str], None]
 class VirtualCaptureConfig:
     """What the virtual rig captures and how.
 
-    scene : "object" (the built-in figurine), "tile", or a mesh file (PLY/OBJ/glTF)
+    scene : "object" (the built-in figurine), "tile", "concave", "marble", "bronze" (the
+        light-transport scenes, :mod:`slscan.virtual.scenes`), or a mesh file (PLY/OBJ/glTF)
     views : turntable positions, evenly spread over 360° about the object's vertical axis
     patterns : {"hybrid", "gray", "both", "xor"}: which coded patterns follow white and black
         ("xor": Gupta's XOR-04 Gray codes, every image high-frequency)
@@ -164,8 +172,11 @@ def capture_view(
 
     Returns ``[(record, image), ...]`` and the traced geometry (reuse it for ground truth).
     """
-    geom = geometry if geometry is not None else trace_view(scene, rig, rig_from_object)
     sensor, optics = config.sensor, config.optics
+    if geometry is not None and not needs_trace(geometry, optics):
+        geom = geometry
+    else:  # traced here, or again when the given geometry lacks the transport the optics need
+        geom = trace_view(scene, rig, rig_from_object, optics)
     records = capture_records(patterns, len(rig.lights) if config.lit_images else 0, jpeg=bool(sensor.jpeg_quality))
     out = []
     for i, rec in enumerate(records):

@@ -85,7 +85,7 @@ class VirtualRig:
 
     def place(self, view_index: int, pose: np.ndarray) -> ViewGeometry:
         """Put the object at ``pose`` for view ``view_index`` and trace the view."""
-        self.geometry = trace_view(self.scene, self.rig, pose)
+        self.geometry = trace_view(self.scene, self.rig, pose, self.optics)
         self.pose, self.view_index, self.frame_index = pose, view_index, 0
         return self.geometry
 
@@ -103,7 +103,7 @@ class VirtualRig:
             raise DeviceError("virtual rig: no object placed (move the stage to a view first)")
         radiance = shade_image(self.geometry, projected, self.optics)
         for k in sorted(self.lights_on):
-            add_light(radiance, self.geometry, k, self.rig)
+            add_light(radiance, self.geometry, k, self.rig, self.optics)
         rng = np.random.default_rng([self.seed, *self.noise_stream, self.view_index, self.frame_index])
         self.frame_index += 1
         return sensor.expose(radiance, rng, camera=self.rig.camera)

@@ -54,7 +54,7 @@ def register(effect: Effect) -> Effect:
 
 def _load() -> dict[str, Effect]:
     # the modules that own the effects register them when imported
-    import slscan.virtual.render  # noqa: F401
+    import slscan.virtual.render
     import slscan.virtual.sensor  # noqa: F401
 
     return EFFECTS

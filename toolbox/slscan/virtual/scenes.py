@@ -1,8 +1,9 @@
-"""Scenes for the virtual rig: the built-in figurine, the flat tile, and user meshes.
+"""Scenes for the virtual rig: the built-in figurine, the flat tile, the light-transport
+scenes (concave corner, marble bust, bronze vessel), and user meshes.
 
 A scene is a triangle mesh in its own object frame (mm) with shading normals, an albedo
-source, a specular lobe, and its placement on the turntable (see
-:mod:`slscan.virtual.placement`). The built-in scenes are modelled in place (y down like
+source, a material per triangle (specular lobe, subsurface mean free path), and its
+placement on the turntable (see :mod:`slscan.virtual.placement`). The built-in scenes are modelled in place (y down like
 the rig, front towards -z, i.e. towards the camera); a user mesh keeps its file's
 coordinates (scaled to mm) and is placed by a pose.
 """
@@ -88,6 +89,52 @@ class TextureAlbedo:
 
 
 @dataclass(frozen=True)
+class Material:
+    """How a region of a scene returns light, besides its albedo (which stays the scene's).
+
+    name : what docs and logs call it
+    specular : Blinn-Phong specular reflectance, 0 for matte
+    specular_colour : (3,) linear RGB tint of the specular lobe ((1, 1, 1): white, as a
+        dielectric's; a metal's highlight takes the metal's colour)
+    shininess : Blinn-Phong exponent
+    mean_free_path : mm, how far light travels under the surface before it leaves
+        (subsurface scattering, honoured by the ``subsurface`` effect); 0: none
+    """
+
+    name: str
+    specular: float = 0.0
+    specular_colour: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    shininess: float = 40.0
+    mean_free_path: float = 0.0
+
+    def __post_init__(self) -> None:
+        where = f"material {self.name!r}"
+        if not (math.isfinite(self.specular) and self.specular >= 0):
+            raise SlscanError(f"{where}: specular must be >= 0, got {self.specular}")
+        if len(self.specular_colour) != 3 or not all(0 <= c <= 1 for c in self.specular_colour):
+            raise SlscanError(f"{where}: specular_colour must be 3 values in [0, 1], got {self.specular_colour}")
+        if not (math.isfinite(self.shininess) and self.shininess > 0):
+            raise SlscanError(f"{where}: shininess must be > 0, got {self.shininess}")
+        if not (math.isfinite(self.mean_free_path) and self.mean_free_path >= 0):
+            raise SlscanError(f"{where}: mean_free_path must be >= 0 mm, got {self.mean_free_path}")
+
+    @property
+    def white_specular(self) -> bool:
+        return tuple(self.specular_colour) == (1.0, 1.0, 1.0)
+
+
+MATTE = Material("matte")
+"""A Lambertian surface (plaster, unglazed clay, matte paint)."""
+MARBLE = Material("marble", specular=0.04, shininess=60.0, mean_free_path=1.5)
+"""White marble: light travels ~1.5 mm under the surface (Jensen et al. 2001 measure
+1/sigma_tr of 1.5-2.2 mm for marble); a weak white polish highlight."""
+BRONZE = Material("bronze", specular=0.6, specular_colour=(0.95, 0.64, 0.54), shininess=90.0)
+"""Patinated bronze: dark coloured diffuse albedo (set by the scene), a strong copper-tinted
+highlight (a metal's specular takes its colour)."""
+MATERIALS = {m.name: m for m in (MATTE, MARBLE, BRONZE)}
+
+
+@dataclass(frozen=True)
 class Scene:
     """A mesh to scan.
 
@@ -101,6 +148,8 @@ class Scene:
         stands on the turntable (:mod:`slscan.virtual.placement`); None: the identity
         (the object frame is the turntable frame)
     mm_per_unit : the scale from the mesh file's units to the object frame's mm
+    materials : the scene's materials; empty: one, made from ``specular`` and ``shininess``
+    material_ids : (m,) int index into ``materials`` per triangle; None: all the first
     """
 
     name: str
@@ -112,12 +161,31 @@ class Scene:
     shininess: float = 40.0
     placement: np.ndarray | None = None
     mm_per_unit: float = 1.0
+    materials: tuple[Material, ...] = ()
+    material_ids: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if len(self.triangles) == 0:
             raise SlscanError(f"scene {self.name!r}: the mesh has no faces")
         if len(self.vertices) < 3:
             raise SlscanError(f"scene {self.name!r}: the mesh has fewer than 3 vertices")
+        if not self.materials:
+            own = Material("default", specular=self.specular, shininess=self.shininess)
+            object.__setattr__(self, "materials", (own,))
+        if self.material_ids is not None:
+            ids = np.asarray(self.material_ids)
+            if ids.shape != (len(self.triangles),):
+                raise SlscanError(f"scene {self.name!r}: material_ids must give one material per triangle "
+                                  f"({len(self.triangles)}), got shape {ids.shape}")
+            if len(ids) and (ids.min() < 0 or ids.max() >= len(self.materials)):
+                raise SlscanError(f"scene {self.name!r}: material_ids must lie in 0..{len(self.materials) - 1}")
+            object.__setattr__(self, "material_ids", ids.astype(np.int16))
+
+    def material_of(self, triangle_ids: np.ndarray) -> np.ndarray:
+        """Material index (k,) int16 of ``triangle_ids`` (k,)."""
+        if self.material_ids is None:
+            return np.zeros(len(triangle_ids), np.int16)
+        return self.material_ids[triangle_ids]
 
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -336,18 +404,175 @@ def load_mesh_scene(path: str | os.PathLike, *, units: str | float | None = "aut
                  mm_per_unit=mm_per_unit)
 
 
-BUILTIN_SCENES = ("object", "tile")
+# --- light-transport scenes ------------------------------------------------------------
+
+
+def _rotation_from_to(a, b) -> np.ndarray:
+    """Rotation (3, 3) turning unit direction ``a`` onto ``b`` (not opposite)."""
+    a = np.asarray(a, float) / np.linalg.norm(a)
+    b = np.asarray(b, float) / np.linalg.norm(b)
+    axis = np.cross(a, b)
+    if np.linalg.norm(axis) < 1e-12:
+        return np.eye(3)
+    return rotation_about_axis(axis, math.acos(float(np.clip(a @ b, -1, 1))))
+
+
+def _grid_quad(origin, du, dv, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """A flat n x n grid of quads from ``origin`` spanned by ``du``, ``dv`` (vertices, triangles)."""
+    s, t = np.meshgrid(np.linspace(0, 1, n + 1), np.linspace(0, 1, n + 1), indexing="ij")
+    verts = np.asarray(origin, float) + s.reshape(-1, 1) * np.asarray(du, float) + t.reshape(-1, 1) * np.asarray(dv, float)
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    idx = lambda i, j: i * (n + 1) + j
+    a, b, c, d = idx(i, j), idx(i + 1, j), idx(i, j + 1), idx(i + 1, j + 1)
+    tris = np.concatenate([np.stack([a, b, d], -1).reshape(-1, 3), np.stack([a, d, c], -1).reshape(-1, 3)])
+    return verts, tris.astype(np.int32)
+
+
+@dataclass(frozen=True)
+class _PaintedParts:
+    """Albedo from a function of (object-frame points, part index)."""
+
+    paint: object
+    part_of_triangle: np.ndarray
+    part_of_vertex: np.ndarray
+
+    def at(self, points, triangle_ids, bary):
+        return self.paint(points, self.part_of_triangle[triangle_ids])
+
+    def vertex_colors(self, vertices):
+        return self.paint(vertices, self.part_of_vertex)
+
+
+def _assemble(name: str, parts: list, paint, materials: tuple[Material, ...], material_of_part: dict,
+              *, smooth: bool = True) -> Scene:
+    """A scene from ``parts`` [(vertices, triangles, part index)]."""
+    offsets = np.cumsum([0] + [len(p[0]) for p in parts[:-1]])
+    vertices = np.concatenate([p[0] for p in parts])
+    triangles = np.concatenate([p[1] + o for p, o in zip(parts, offsets)]).astype(np.int32)
+    part_t = np.concatenate([np.full(len(p[1]), p[2]) for p in parts])
+    part_v = np.concatenate([np.full(len(p[0]), p[2]) for p in parts])
+    normals = np.concatenate([vertex_normals(p[0], p[1]) for p in parts]) if smooth else None
+    ids = np.array([material_of_part[int(k)] for k in part_t], dtype=np.int16)
+    first = materials[0]
+    return Scene(name, vertices, triangles, normals, _PaintedParts(paint, part_t, part_v),
+                 specular=first.specular, shininess=first.shininess, materials=materials, material_ids=ids)
+
+
+def concave_corner(*, side: float = 300.0, albedo: float = 0.8, detail: float = 1.0) -> Scene:
+    """A cube corner seen from inside along its diagonal: three perpendicular matte panels
+    ``side`` mm square (about 420 mm across in the image), every panel lighting the other
+    two (strong inter-reflection, Gupta et al. 2011's V-groove). One vertical crease."""
+    n = max(2, round(24 * detail))
+    parts = [
+        _grid_quad([0, 0, 0], [0, side, 0], [0, 0, side], n) + (0,),   # x = 0
+        _grid_quad([0, 0, 0], [0, 0, side], [side, 0, 0], n) + (1,),   # y = 0
+        _grid_quad([0, 0, 0], [side, 0, 0], [0, side, 0], n) + (2,),   # z = 0
+    ]
+    diag = np.ones(3) / np.sqrt(3)
+    r = _rotation_from_to(diag, [0, 0, -1])  # the diagonal towards the camera: the corner's inside faces it
+    crease = r @ np.array([0.0, 1.0, 0.0])
+    crease_to = np.array([0.0, -1.0, 0.0]) - (np.array([0.0, -1.0, 0.0]) @ [0, 0, -1]) * np.array([0, 0, -1.0])
+    crease_now = crease - (crease @ [0, 0, -1]) * np.array([0, 0, -1.0])
+    spin = math.atan2(np.cross(crease_now, crease_to) @ [0, 0, -1.0], crease_now @ crease_to)
+    r = rotation_about_axis([0, 0, -1], spin) @ r
+    centre = np.full(3, side / 3)
+    parts = [((v - centre) @ r.T, t, k) for v, t, k in parts]
+
+    def paint(points, part):
+        return np.full((len(points), 3), [albedo, albedo, albedo * 0.97], np.float32)
+
+    return _assemble("concave", parts, paint, (MATTE,), {0: 0, 1: 0, 2: 0}, smooth=False)
+
+
+def _marble_paint(points: np.ndarray, part: np.ndarray) -> np.ndarray:
+    """White marble with faint grey veins; a dark stone plinth (part 4)."""
+    x, y, z = points.T
+    vein = np.abs(np.sin((x + 0.6 * y + 0.3 * z) / 11.0 + 1.5 * np.sin(y / 27.0 + z / 31.0))) < 0.06
+    color = np.tile(np.array([0.86, 0.84, 0.80], np.float32), (len(points), 1))
+    color[vein] = [0.58, 0.58, 0.60]
+    color[part == 4] = [0.22, 0.22, 0.24]
+    return color
+
+
+def marble_bust(*, detail: float = 1.0) -> Scene:
+    """A bust-like marble object, about 440 mm tall: a head with a nose and carved ~1 mm
+    relief, a neck, shoulders, on a matte dark-stone plinth (a material border)."""
+    parts = []
+
+    def add(verts, tris, part, relief=0.0):
+        normals = vertex_normals(verts, tris)
+        if relief:
+            verts = verts + relief * _relief(verts)[:, None] * normals
+        parts.append((verts, tris, part))
+
+    n = max(16, round(200 * detail))
+    v, t = _uv_sphere(n // 2, n)
+    add(v * [70.0, 90.0, 78.0] + [0, -160, 0], t, 0, relief=1.0)               # head
+    v, t = _uv_sphere(max(8, n // 8), max(12, n // 4))
+    add(v * [13.0, 24.0, 16.0] + [0, -150, -72], t, 1)                           # nose
+    v, t = _cylinder(34.0, -90.0, 10.0, max(24, n // 4))
+    add(v, t, 2)                                                                   # neck
+    v, t = _uv_sphere(n // 2, n)
+    keep = v[t].max(axis=1)[:, 1] < 0.55                                           # chest and shoulders,
+    add(v * [160.0, 110.0, 85.0] + [0, 90, 0], t[keep], 3, relief=1.0)           # cut flat below
+    v, t = _cylinder(95.0, 150.0, 195.0, max(32, n // 3))
+    add(v, t, 4)                                                                   # plinth
+    return _assemble("marble", parts, _marble_paint, (MARBLE, MATTE), {0: 0, 1: 0, 2: 0, 3: 0, 4: 1})
+
+
+def _bronze_paint(points: np.ndarray, part: np.ndarray) -> np.ndarray:
+    """Dark bronze with green patina patches; a matte stone base (part 4)."""
+    x, y, z = points.T
+    patina = np.sin(x / 14.0 + 0.5) * np.sin(y / 17.0) * np.cos(z / 12.0) > 0.55
+    color = np.tile(np.array([0.40, 0.24, 0.11], np.float32), (len(points), 1))
+    color[patina] = [0.14, 0.26, 0.20]
+    color[part == 4] = [0.45, 0.44, 0.42]
+    return color
+
+
+def bronze_vessel(*, detail: float = 1.0) -> Scene:
+    """A bronze vessel, about 380 mm tall: an open hemispherical bowl tilted towards the
+    camera (its inside lights itself with coloured highlights), two ring handles, a stem,
+    on a matte stone base."""
+    parts = []
+    n = max(16, round(160 * detail))
+    v, t = _uv_sphere(n // 2, n)
+    keep = v[t].max(axis=1)[:, 1] <= 1e-9                       # the half towards -y: a bowl opening to +y
+    used = np.unique(t[keep])
+    remap = np.full(len(v), -1)
+    remap[used] = np.arange(len(used))
+    bowl_v, bowl_t = v[used] * 125.0, remap[t[keep]]
+    r = _rotation_from_to([0, 1, 0], [0, -math.sin(math.radians(35)), -math.cos(math.radians(35))])
+    bowl_v = bowl_v @ r.T + [0, -60, 0]
+    parts.append((bowl_v, bowl_t.astype(np.int32), 0))
+    for side in (-1, 1):
+        v, t = _torus(38.0, 9.0, max(24, n // 4), max(12, n // 10))
+        v = v @ rotation_about_axis([0, 1, 0], math.radians(90)).T + [side * 150, -70, 20]
+        parts.append((v, t, 1))
+    v, t = _cylinder(22.0, 20.0, 120.0, max(24, n // 4))
+    parts.append((v, t, 2))
+    v, t = _uv_sphere(max(8, n // 8), max(16, n // 4))
+    parts.append((v * [45.0, 18.0, 45.0] + [0, 70, 0], t, 3))   # a knop on the stem
+    v, t = _cylinder(90.0, 120.0, 160.0, max(32, n // 3))
+    parts.append((v, t, 4))
+    return _assemble("bronze", parts, _bronze_paint, (BRONZE, MATTE), {0: 0, 1: 0, 2: 0, 3: 0, 4: 1})
+
+
+BUILTIN_SCENES = ("object", "tile", "concave", "marble", "bronze")
+_BUILDERS = {"object": builtin_object, "tile": flat_tile, "concave": concave_corner, "marble": marble_bust,
+             "bronze": bronze_vessel}
 
 
 def scene_by_name(name: str, *, units: str | float | None = None, pose: np.ndarray | None = None,
                   **kwargs) -> Scene:
-    """``"object"`` (built-in figurine), ``"tile"``, or a mesh file path (``units``: see
-    :func:`load_mesh_scene`), placed on the turntable at ``pose`` (``turntable_from_object``;
-    None: the default placement)."""
+    """``"object"`` (built-in figurine), ``"tile"``, the light-transport scenes ``"concave"``
+    (cube corner), ``"marble"`` (bust), ``"bronze"`` (vessel), or a mesh file path
+    (``units``: see :func:`load_mesh_scene`), placed on the turntable at ``pose``
+    (``turntable_from_object``; None: the default placement)."""
     if name in BUILTIN_SCENES:
         if units is not None and not (isinstance(units, str) and units.strip().lower() == "auto"):
             raise SlscanError(f"scene_units: the built-in scene {name!r} is modelled in mm; units are for a mesh file")
-        scene = builtin_object(**kwargs) if name == "object" else flat_tile(**kwargs)
+        scene = _BUILDERS[name](**kwargs)
         return scene if pose is None else dataclasses.replace(scene, placement=np.asarray(pose, dtype=float))
     return load_mesh_scene(name, units="auto" if units is None else units, pose=pose, **kwargs)
 
