@@ -21,8 +21,8 @@ reach the surface; and separately lit by all of them) and **non-grazing** (true 
 within 75° of the viewing ray). Errors per channel are relative RMS,
 ``RMS(estimate - truth) / RMS(truth)``; "within 5 %" is the share of pixels whose RGB
 error ``|estimate - truth| / |truth|`` is under 5 %. Truth is the simulator's albedo at
-the pixel centre, and the same blurred by the camera's optical blur (σ = 0.5 px; no
-un-shading can be sharper than the images it comes from).
+the pixel centre, and the same blurred by the camera's optical blur (its ``blur_sigma``,
+0.6 px by default; no un-shading can be sharper than the images it comes from).
 
 Each un-shading runs in a fresh interpreter on the same files (the range map as PLY, the
 lights as JSON, as the pipeline's albedo stage reads them), its imports paid before it is

@@ -41,7 +41,7 @@ from slscan.virtual.effects import EFFECTS, parse_effects
 sys.path.insert(0, str(Path(__file__).parent))
 from reconstruction import coverage, true_surface_distance
 
-PLAIN: dict[str, dict] = {"hybrid": {}, "gray": {}, "xor": {}}
+PLAIN: dict[str, dict] = {"hybrid": {"mixing": "global"}, "gray": {"gray_robust": False}, "xor": {"gray_robust": False}}
 """DecodeConfig options that switch the robust decoding off, per pattern family."""
 
 CAPTURE_FAMILY = {"hybrid": "both", "gray": "both", "xor": "xor"}

@@ -170,7 +170,10 @@ def test_stereo_recovers_the_virtual_figurine(two_cameras, subpixel, median_mm, 
     assert st["matched"] > 0.35 * st["codes_a"]
     assert st["matched"] + st["rejected_epipolar"] + st["rejected_ray_gap"] + st["rejected_behind"] == st["common"]
     rm = result.range_map
-    assert len(rm.vertices) > 5000 and len(rm.faces) > 5000
+    # 4392 vertices and 4202 faces measured at the default camera blur σ 0.6 px (5706 and
+    # 5514 at σ 0.5, the colour model changes nothing): at half size a projector pixel is
+    # about a camera pixel, and more of the finest Gray-code cells drown in the blur
+    assert len(rm.vertices) > 4000 and len(rm.faces) > 4000
     d = _true_distance(rm.vertices, view.rig_from_object)
     assert np.median(d) < median_mm
     assert np.percentile(d, 95) < p95_mm
@@ -200,7 +203,7 @@ def test_capture_and_decode_commands(tmp_path, capsys):
     meta = json.loads((maps / "stereo_cam0_cam1" / "range_maps.json").read_text())
     assert meta["stereo"]["cameras"] == ["cam0", "cam1"] and meta["views"][0]["metrics"]["matched"] > 500
     rm = read_ply(maps / "stereo_cam0_cam1" / "view_000.ply")
-    assert len(rm.faces) > 500
+    assert len(rm.faces) > 400  # 470 at camera blur σ 0.6 px (650-700 at σ 0.5): see above
     for cam in ("cam0", "cam1"):  # each camera with the projector, as a single-camera session
         assert (maps / cam / "view_000.ply").is_file()
     assert "points from" in capsys.readouterr().err

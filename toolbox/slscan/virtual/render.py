@@ -9,13 +9,31 @@ box-filtered over the camera pixel's footprint after the projector's own blur, s
 lines render with the right sub-pixel position and width. Optical blur, noise and
 quantisation are the sensor's job (:mod:`slscan.virtual.sensor`).
 
-Radiometry (linear, relative units): a white Lambertian surface facing the projector at
-the working distance, lit by full white, has radiance 1. Camera channel ``c`` receives
-``sum_k M[c, k] * albedo_k * p_k * E`` from projector primary ``k`` (``M``: colour
-crosstalk), plus the material's Blinn-Phong specular lobe (white, or tinted for metals),
-plus ``albedo_c * ambient_c``. Global light transport (subsurface scattering,
-inter-reflections: :mod:`slscan.virtual.transport`) acts on the per-primary irradiance
-``p_k * E`` before the colour step when switched on.
+Radiometry (linear, relative units; ``E`` is 1 on a surface facing the projector at the
+working distance, with cos θ and inverse-square falloff elsewhere). Under the default
+``Optics.colour_model="physical"``, camera channel ``c`` receives
+``albedo_c * sum_k M[c, k] * p_k * E`` from projector primary ``k`` (``M``: colour
+crosstalk, the camera bands' response to each primary): the paint acts after the
+crosstalk, so the leak of primary ``k`` into band ``c`` is reflected with the paint's
+reflectance in band ``c``, as a real surface does. ``colour_model="legacy"`` (the virtual
+rig's earlier model, ``sum_k M[c, k] * albedo_k * p_k * E``) filters the primaries by the
+paint first, which the decoder's one global crosstalk matrix then undoes exactly: paint
+never shifts a decoded line there, as it does on a real rig.
+
+Everything else is the same in both models and already physical. The specular lobe is
+white (a dielectric reflects the source's spectrum unfiltered by the paint; a metal's
+material tints it): projector light adds ``s * sum_k M[c, k] * p_k``. Ambient light adds ``albedo_c * ambient_c``. The
+ring lights are broadband white sources, and their ``intensity`` is what each camera
+band reads off a white surface facing them at the reference distance (the light
+calibration measures exactly that): camera channel ``c`` sees ``albedo_c * I_c`` diffuse
+plus ``s * I_c`` specular. A white light seen through the camera's bands has no
+per-primary crosstalk to undo, so the ring-light images, and the albedo recovered from
+them, do not depend on the colour model; the projector's full white reads
+``albedo_c * sum_k M[c, k]`` (1.12, 1.14, 1.16 times the albedo with the default ``M``).
+
+Global light transport (subsurface scattering, inter-reflections:
+:mod:`slscan.virtual.transport`) acts on the per-primary irradiance ``p_k * E`` before the
+colour step when switched on.
 """
 
 from __future__ import annotations
@@ -51,15 +69,28 @@ IN_FOCUS = 1e-6  # projector px: a defocus below this is none (points at the foc
 class Optics:
     """Projector and scene light that every image of a view shares.
 
-    projector_blur : Gaussian sigma of the projector's defocus, projector px
+    projector_blur : Gaussian sigma of the projector lens's point spread at its focus,
+        projector px (the projector pixel itself, a box, is rendered apart). The default
+        0.4 is an XGA (1024 × 768) DLP projector's lens: a 0.7" DMD of 13.7 µm pitch, so
+        f = 1857 px is a 25.4 mm lens, at f/2.4 as data projectors are. In quadrature:
+        diffraction (Airy, 550 nm: σ = 0.42 λ N = 0.55 µm = 0.04 px); lens aberrations
+        at focus, MTF 0.5 at the panel's Nyquist frequency (36.5 lp/mm) as typical of
+        such lenses (a Gaussian with MTF(½ cycle/px) = exp(-π²σ²/2) = 0.5: σ = 0.37 px);
+        focus set by eye within Δ = 20 mm of the working distance s = 1300 mm (blur
+        circle f² / (N (s − f)) · Δ / (s + Δ) = 3.2 µm = 0.23 px across, σ = diameter / 4
+        = 0.06 px): √(0.04² + 0.37² + 0.06²) = 0.38, rounded to 0.4 px. Defocus away from
+        the focus distance is an effect of its own. The DMD's fill factor
+        (≈ 0.92) and a 3-LCD projector's panel misconvergence are not modelled.
     projector_black : light the projector leaks when showing black, fraction of white
     crosstalk : (3, 3) camera channel (rows) response to projector primaries (columns)
     ambient : (3,) ambient irradiance, fraction of the projector's white
-    colour_model : "legacy": camera channel c sees ``sum_k M[c, k] * albedo_k * p_k`` (the
-        paint filters the projector's primaries before the crosstalk, so the decoder's one
-        global crosstalk matrix undoes paint exactly); "physical": ``albedo_c * sum_k
-        M[c, k] * p_k`` (each primary's leak into camera band c is reflected with the
-        paint's reflectance in band c, as a real surface does)
+    colour_model : {"physical", "legacy"}: "physical" (default): camera channel c sees
+        ``albedo_c * sum_k M[c, k] * p_k`` (each primary's leak into camera band c is
+        reflected with the paint's reflectance in band c, as a real surface does);
+        "legacy": ``sum_k M[c, k] * albedo_k * p_k`` (the paint filters the projector's
+        primaries before the crosstalk, so the decoder's one global crosstalk matrix
+        undoes paint exactly). Ring-light and specular terms are the same in both (see
+        the module's docstring).
     projector_fnumber : f-number N of the projector lens; 0: a pinhole (infinite depth of
         field, no defocus). Above 0 the projector is sharp only at ``projector_focus_mm``
         (effect ``dof``: f/2)
@@ -84,7 +115,7 @@ class Optics:
         it is gathered on this grid and interpolated)
     """
 
-    projector_blur: float = 0.35
+    projector_blur: float = 0.4
     projector_black: float = 0.01
     crosstalk: tuple[tuple[float, float, float], ...] = (
         (1.0, 0.10, 0.02),
@@ -92,7 +123,7 @@ class Optics:
         (0.02, 0.14, 1.0),
     )
     ambient: tuple[float, float, float] = (0.02, 0.02, 0.02)
-    colour_model: str = "legacy"
+    colour_model: str = "physical"
     projector_fnumber: float = 0.0
     projector_focus_mm: float = 0.0
     projector_focal_mm: float = PROJECTOR_FOCAL_MM
@@ -104,7 +135,7 @@ class Optics:
 
     def __post_init__(self) -> None:
         if self.colour_model not in ("legacy", "physical"):
-            raise SlscanError(f"colour_model: expected 'legacy' or 'physical', got {self.colour_model!r}")
+            raise SlscanError(f"optics.colour_model: expected 'physical' or 'legacy', got {self.colour_model!r}")
         _check_number("optics.projector_blur", self.projector_blur, low=0.0)
         _check_number("optics.projector_fnumber", self.projector_fnumber, low=0.0,
                       expected="an f-number > 0 (0: a pinhole, no defocus)")
