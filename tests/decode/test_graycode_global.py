@@ -63,12 +63,14 @@ def test_xor_patterns_xor_back_to_gray_code(width):
     on = {(d.params["bit"], d.params["inverse"]): profile(d)[:, 0] > 0 for d in descs}
     for bit in range(bits):
         assert np.array_equal(on[(bit, True)], ~on[(bit, False)])
-        decoded = on[(bit, False)] ^ (on[(base, False)] if bit != base else False)
+        decoded = on[(bit, False)] ^ (on[(base, False)] if bit < base else False)
         truth = (graycode.gray(np.arange(width)) >> (bits - 1 - bit)) & 1
         assert np.array_equal(decoded, truth.astype(bool))
         # every image is high-frequency: no stripe wider than the base's 4 px
         runs = np.diff(np.flatnonzero(np.diff(on[(bit, False)].astype(int))))
         assert runs.max() <= 4
+        # ... and none narrower than 2 px (1 px stripes blur away: their edges drift)
+        assert runs.min() >= 2
 
 
 def test_xor_set_in_standard_set_and_session(tmp_path):
@@ -110,6 +112,38 @@ def test_xor_synthetic_decodes_like_gray(robust):
     assert len(e) > 0.9 * len(plain.edges)
     x_true = (e.projector_column - B_U) / A_U
     assert np.abs(e.x - x_true).max() < 0.02
+
+
+def _edge_errors(session, res) -> np.ndarray:
+    """Projector px between each edge's projector column (an integer + 0.5) and the true
+    projector column at its camera position (linear between the two pixels around it)."""
+    u = session.load_ground_truth(session.views[0]).projector_uv[..., 0].astype(np.float64)
+    e = res.edges
+    x0 = np.floor(e.x).astype(int)
+    ok = (x0 >= 0) & (x0 + 1 < u.shape[1])
+    r, x0, f = e.row[ok], x0[ok], (e.x - np.floor(e.x))[ok]
+    truth = u[r, x0] + f * (u[r, x0 + 1] - u[r, x0])
+    err = truth - e.projector_column[ok]
+    return err[np.isfinite(err)]
+
+
+@pytest.mark.parametrize("effects", [(), ("tone",)])
+def test_xor_edges_at_true_boundaries(tmp_path, effects):
+    """Known answer on the flat tile: the XOR set's edges sit at the true column boundaries
+    (integer + 0.5 projector px) as closely as plain Gray code's, and a camera with an sRGB
+    curve (``tone``: blur light in the dark stripes turns bright) still decodes as much."""
+    found = {}
+    for pat in ("gray", "xor"):
+        config = VirtualCaptureConfig(scene="tile", patterns=pat, camera_scale=0.25, projector_scale=0.25,
+                                      lit_images=False, effects=effects)
+        session = capture_session(config, tmp_path / pat)
+        res = decode_gray(session, session.views[0])
+        err = _edge_errors(session, res)
+        found[pat] = (len(err), float(np.sqrt(np.mean(err**2))), res.mask.sum())
+    n_gray, rms_gray, valid_gray = found["gray"]
+    n_xor, rms_xor, valid_xor = found["xor"]
+    assert rms_xor < 0.1 and rms_xor < 1.2 * rms_gray
+    assert n_xor > 0.95 * n_gray and valid_xor > 0.95 * valid_gray
 
 
 def test_xor_virtual_capture_decodes_to_truth(tmp_path):

@@ -186,7 +186,7 @@ class GrayBits:
     unused: tuple[int, ...]
     code: str = "reflected-binary"
     base: int | None = None
-    """XOR codes: the bit the others were XOR-ed with (None: plain Gray code)."""
+    """XOR codes: the bit the coarser ones were XOR-ed with (None: plain Gray code)."""
 
     @property
     def coarse(self) -> int:
@@ -366,7 +366,7 @@ class _BitDiffs:
     """``pattern - inverse`` of each bit, fractions of full scale, indexed like a (bits, h,
     w) array (``d[k, rows, cols]``) but stored as the two captures' levels.
 
-    XOR codes (``base`` set): the difference of bit ``k != base`` comes with the sign of
+    XOR codes (``base`` set): the difference of bit ``k < base`` comes with the sign of
     the Gray bit it encodes, ``(pattern - inverse) * sign(base pattern - base inverse)``:
     positive where the Gray bit is 1, zero crossings only at that bit's own boundaries
     (the base bit is constant across them, so the crossing is the captured one)."""
@@ -385,7 +385,7 @@ class _BitDiffs:
             return d
         k, *rest = index if isinstance(index, tuple) else (index,)
         b = (self.base, *rest)
-        flip = (self.pattern[b] <= self.inverse[b]) & (np.asarray(k) != self.base)
+        flip = (self.pattern[b] <= self.inverse[b]) & (np.asarray(k) < self.base)
         return np.where(flip, -d, d)
 
     def rows(self, sl: slice) -> _BitDiffs:
@@ -403,6 +403,30 @@ class _BitDiffs:
 def _mad_sigma(resid: np.ndarray) -> float:
     mad = float(np.median(np.abs(resid - np.median(resid))))
     return 1.4826 * mad / np.sqrt(2.0)
+
+
+def _xor_noise(diffs: _BitDiffs, base: int, iy: np.ndarray, ix: np.ndarray) -> float:
+    """XOR codes: standard deviation of ``pattern - inverse`` from how far each image coarser
+    than ``base`` departs from the base image (or its inverse) on the subsample ``(iy, ix)``.
+
+    Away from its own (rare) boundaries, image ``k < base`` shows the base stripes or
+    their inverse, blurred alike, so the difference is noise alone; ``pattern + inverse``
+    against ``white + black`` (:func:`estimate_noise`) is not, for high-frequency stripes:
+    blur leaks light into the unlit stripes, and a camera curve steep in the darks (sRGB)
+    turns a 3 % leak into 19 %, which at every pixel of every image outweighs the noise.
+    """
+    f = diffs.read.fraction
+    pb, qb = f(diffs.pattern[base, iy, ix]), f(diffs.inverse[base, iy, ix])
+    base_on = pb > qb
+    resid = []
+    for k in range(base):
+        pk, qk = f(diffs.pattern[k, iy, ix]), f(diffs.inverse[k, iy, ix])
+        same = (pk > qk) == base_on
+        resid.append(np.where(same, pk - pb, pk - qb))
+        resid.append(np.where(same, qk - qb, qk - pb))
+    resid = np.concatenate(resid)
+    # each residual is the difference of two images' noise, as ``pattern - inverse`` is
+    return 1.4826 * float(np.median(np.abs(resid - np.median(resid))))
 
 
 def _noise_index(where: np.ndarray, bits: int) -> np.ndarray:
@@ -551,13 +575,13 @@ def _both(a: np.ndarray | None, b: np.ndarray | None) -> np.ndarray | None:
 
 
 def _fold_xor(code: np.ndarray, n: int, base: int | None) -> np.ndarray:
-    """XOR codes: the Gray bits of ``n``-bit captured ``code`` (in place), each bit but
-    ``base`` XOR-ed back with the base bit."""
+    """XOR codes: the Gray bits of ``n``-bit captured ``code`` (in place), each bit coarser
+    than ``base`` XOR-ed back with the base bit (the finer ones are captured plain)."""
     if base is None:
         return code
     shift = n - 1 - base
     base_bit = (code >> shift) & 1
-    code ^= base_bit * np.int32(((1 << n) - 1) ^ (1 << shift))
+    code ^= base_bit * np.int32(((1 << n) - 1) ^ ((1 << (shift + 1)) - 1))
     return code
 
 
@@ -885,7 +909,10 @@ def decode_gray_images(
         col_diffs.inverse[k] = read.levels(images[inv], inv)
         sub_sums[k] = read.fraction(col_diffs.pattern[k, iy, ix]) + read.fraction(
             col_diffs.inverse[k, iy, ix])
-    estimated = _mad_sigma(sub_sums - flat_sub) if len(idx) else 0.0
+    if col_bits.base and len(idx):
+        estimated = _xor_noise(col_diffs, col_bits.base, iy, ix)
+    else:
+        estimated = _mad_sigma(sub_sums - flat_sub) if len(idx) else 0.0
     del sub_sums, flat_sub
     if noise is not None:
         sigma = float(noise)

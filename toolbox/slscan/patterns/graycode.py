@@ -13,13 +13,16 @@ params of each image:
 - ``base`` : XOR codes only: the bit every other bit is XOR-ed with
 
 XOR codes (Gupta, Agrawal, Veeraraghavan, Narasimhan, "Structured light 3D scanning in
-the presence of global illumination", CVPR 2011): image ``bit`` shows Gray bit ``bit``
-XOR Gray bit ``base``, and image ``base`` shows bit ``base`` itself. With ``base`` a fine
-bit (``bits - 2``: stripes 4 projector pixels wide, "XOR-04"; ``bits - 1``: 2 px,
+the presence of global illumination", CVPR 2011): image ``bit < base`` shows Gray bit
+``bit`` XOR Gray bit ``base``; images ``bit >= base`` show their Gray bit itself (the
+base, and the bits finer than it, already high-frequency: XOR-ing the 2 px bit with the
+4 px base would leave stripes 1 px wide, too fine to locate their edges). With ``base`` a
+fine bit (``bits - 2``: stripes 4 projector pixels wide, "XOR-04"; ``bits - 1``: 2 px,
 "XOR-02") every image is high-frequency, so global light (inter-reflections, subsurface
 scattering) falls about evenly on a pattern and its inverse, and cancels in
 ``pattern - inverse``; plain Gray code's low bits (half the field lit) do not have that
-property. Decoding reads each image's bit and XORs it back with the base image's bit.
+property. Decoding reads each image's bit and XORs the coarse ones back with the base
+image's bit.
 """
 
 from __future__ import annotations
@@ -68,8 +71,8 @@ def generate(width: int, height: int, *, rows: bool = False, code: str = "reflec
              base_width: int = XOR_BASE_WIDTH) -> list[PatternImage]:
     """(pattern, inverse) pairs for the columns, most significant bit first; rows if asked.
 
-    code : {"reflected-binary", "xor"}; ``"xor"`` XORs every bit with the one whose stripes
-        are ``base_width`` projector pixels wide (see the module notes)
+    code : {"reflected-binary", "xor"}; ``"xor"`` XORs every coarser bit with the one whose
+        stripes are ``base_width`` projector pixels wide (see the module notes)
     """
     if code not in CODES:
         raise SlscanError(f"unknown Gray-code variant {code!r}: expected one of {CODES}")
@@ -100,7 +103,7 @@ def profile(desc: PatternImage) -> np.ndarray:
     p = desc.params
     at = np.arange(size)
     on = bit_of(at, p["bits"], p["bit"])
-    if p.get("code", "reflected-binary") == "xor" and p["bit"] != p["base"]:
+    if p.get("code", "reflected-binary") == "xor" and p["bit"] < p["base"]:
         on = on ^ bit_of(at, p["bits"], p["base"])
     if p["inverse"]:
         on = 1 - on
