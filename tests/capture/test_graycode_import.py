@@ -317,10 +317,47 @@ def test_old_sessions_load_as_lossless_and_upright(tmp_path: Path):
     out = tmp_path / "session"
     import_graycode(src, out, preset="3dunderworld", projector_size=PROJECTOR, rotation=0)
     meta = json.loads((out / "session.json").read_text())
-    del meta["camera"]["lossy"], meta["projector"]["rotation"]
+    del meta["camera"]["lossy"], meta["camera"]["response"], meta["projector"]["rotation"]
     (out / "session.json").write_text(json.dumps(meta))
     session = load_session(out)
-    assert session.lossy is False and session.projector_rotation == 0
+    assert session.lossy is False and session.projector_rotation == 0 and session.response == "linear"
+
+
+@pytest.mark.parametrize(("ext", "given", "expected"), [
+    (".jpg", None, "srgb"), (".png", None, "linear"), (".jpg", "linear", "linear"), (".png", "srgb", "srgb"),
+])
+def test_the_camera_response_defaults_to_srgb_for_jpeg(tmp_path: Path, ext: str, given, expected: str):
+    from slscan.cli import main
+
+    src = _underworld(tmp_path, ext)
+    out = tmp_path / "session"
+    args = ["import", str(src), "--format", "graycode", "--preset", "3dunderworld", "--projector",
+            f"{PROJECTOR[0]}x{PROJECTOR[1]}", "--out", str(out), "--quiet"]
+    assert main(args + (["--response", given] if given else [])) == 0
+    session = load_session(out)
+    assert session.response == expected
+    assert json.loads((out / "session.json").read_text())["camera"]["response"] == expected
+    # what decoding reads: the stored values, or their inverse sRGB as fractions of full scale
+    view = session.views[0]
+    stored = session.read_image(view, view.images[0])
+    linear = session.read_image(view, view.images[0], linear=True)
+    if expected == "linear":
+        assert linear is stored or np.array_equal(linear, stored)
+    else:
+        assert linear.dtype == np.float32 and linear.max() <= 1.0
+        assert linear[stored == 128].min() == pytest.approx(0.2158605, abs=1e-6)
+
+
+def test_a_bad_camera_response_is_named(tmp_path: Path):
+    src = _underworld(tmp_path)
+    with pytest.raises(SlscanError, match="camera response must be one of linear, srgb, got 'gamma'"):
+        import_graycode(src, tmp_path / "s", preset="3dunderworld", projector_size=PROJECTOR, response="gamma")
+    import_graycode(src, tmp_path / "ok", preset="3dunderworld", projector_size=PROJECTOR)
+    meta = json.loads((tmp_path / "ok" / "session.json").read_text())
+    meta["camera"]["response"] = "raw"
+    (tmp_path / "ok" / "session.json").write_text(json.dumps(meta))
+    with pytest.raises(SlscanError, match=r"session.json: camera.response must be one of linear, srgb, got 'raw'"):
+        load_session(tmp_path / "ok")
 
 
 def test_decode_warns_once_on_lossy_captures(tmp_path: Path, caplog: pytest.LogCaptureFixture):

@@ -522,7 +522,7 @@ def _cmd_import(args: argparse.Namespace) -> int:
 
         with _ProgressBar(1, f"importing {args.format}", args.quiet) as bar:
             session = import_kamino410(args.src, args.out, projector_size=args.projector,
-                                       overwrite=args.overwrite, progress=bar.set)
+                                       overwrite=args.overwrite, progress=bar.set, response=args.response)
     else:
         from slscan.capture.graycode_import import import_graycode
 
@@ -532,9 +532,10 @@ def _cmd_import(args: argparse.Namespace) -> int:
             session = import_graycode(
                 args.src, args.out, preset=args.preset, order=args.order, projector_size=args.projector,
                 rotation=args.rotation, pattern=args.pattern, missing_bits=args.missing_bits or "error",
-                overwrite=args.overwrite, progress=bar.set,
+                overwrite=args.overwrite, progress=bar.set, response=args.response,
             )
     lossy = ", lossy (JPEG) captures" if session.lossy else ""
+    lossy += ", sRGB camera response (decoding linearises)" if session.response == "srgb" else ""
     _console().print(f"[green]wrote[/] {args.out}: {len(session.views)} view(s) from {args.src}{lossy}")
     return 0
 
@@ -682,7 +683,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("session", type=Path, help="capture-session folder, or a multi-camera folder (cameras.json)")
     p.add_argument("--out", required=True, type=Path, help="folder for the range maps (and projector codes)")
     p.add_argument("--method", choices=("auto", "hybrid", "gray"), default="auto",
-                   help="which patterns to decode (default auto: hybrid when captured)")
+                   help="which patterns to decode (default auto: hybrid when captured, but Gray code "
+                        "when the captures are lossy (JPEG) and have it)")
     p.add_argument("--estimator", choices=ESTIMATORS, default=DEFAULT_ESTIMATOR,
                    help=f"green-line sub-pixel estimator (default {DEFAULT_ESTIMATOR})")
     p.add_argument("--trim-line-ends", type=int, default=0, metavar="ROWS",
@@ -814,6 +816,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_patterns)
 
     from slscan.capture.graycode_import import MISSING_BITS, PRESETS
+    from slscan.capture.session import RESPONSES
 
     p = sub.add_parser(
         "import", help="turn another tool's captures into a capture session",
@@ -849,6 +852,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--missing-bits", choices=MISSING_BITS,
                    help="graycode: images missing from a numbered set are an error (default), or drop: "
                         "import the most significant bits that are complete")
+    p.add_argument("--response", choices=RESPONSES,
+                   help="the camera's tone curve, recorded as camera.response (decoding undoes srgb); "
+                        "default: srgb for JPEG captures (cameras apply it before saving JPEG), linear "
+                        "for PNG and TIFF")
     p.add_argument("--out", required=True, type=Path, help="capture-session folder to create")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -258,6 +258,7 @@ def scan(
         bit_depth=cam.bit_depth, patterns=list(plan.patterns), calibration=calibration,
         calibration_source=calibration_source, device=device_info or devices.describe(),
         overwrite=overwrite, incremental=incremental, resume=resume, jpeg_quality=quality,
+        response=cam.response,
     )
     timings: list[ViewTiming] = []
     shooter = _Shooter(devices, plan)

@@ -51,6 +51,7 @@ from pathlib import Path
 
 from slscan.capture.session import (
     IMAGE_FORMATS,
+    RESPONSES,
     ROTATIONS,
     ImageRecord,
     Session,
@@ -377,6 +378,7 @@ def import_graycode(
     overwrite: bool = False,
     progress: Callable[[int, int], None] | None = None,
     tool: str | None = None,
+    response: str | None = None,
 ) -> Session:
     """Turn a folder of Gray-code captures into an slscan capture session.
 
@@ -413,13 +415,17 @@ def import_graycode(
         Called after each image is copied.
     tool : str, optional
         What ``device.tool`` says (default: the preset's, else "graycode").
+    response : {"linear", "srgb"}, optional
+        The camera's tone curve (``camera.response``; decoding undoes "srgb"). Default:
+        "srgb" for JPEG captures (cameras apply the sRGB curve before saving JPEG),
+        "linear" for PNG and TIFF (RAW-derived or machine-vision frames).
 
     Returns
     -------
     Session
         The written session: ``calibration`` None, no poses, one pattern image per file
         named ``NN_<pattern id>.<ext>`` (NN its position in the order), ``lossy`` True for
-        JPEG captures, ``projector_rotation`` as given.
+        JPEG captures, ``response`` as above, ``projector_rotation`` as given.
 
     Raises
     ------
@@ -438,6 +444,8 @@ def import_graycode(
     rotation = chosen.rotation if rotation is None else int(rotation)
     if rotation not in ROTATIONS:
         raise SlscanError(f"projector rotation {rotation} is not one of {ROTATIONS} (degrees)")
+    if response is not None and response not in RESPONSES:
+        raise SlscanError(f"camera response must be one of {', '.join(RESPONSES)}, got {response!r}")
     if missing_bits not in MISSING_BITS:
         raise SlscanError(f"missing_bits must be one of {MISSING_BITS}, got {missing_bits!r}")
     pattern = pattern or chosen.pattern
@@ -454,6 +462,8 @@ def import_graycode(
     }
     keep, dropped = _bits_kept(placed, slots)
     fmt, (cw, ch, channels, depth), lossy = _image_format(placed)
+    if response is None:
+        response = "srgb" if fmt == "jpeg" else "linear"
 
     patterns = flat.generate(pw, ph) + [
         PatternImage(s.pattern_id, "gray", pw, ph, s.axis,
@@ -466,8 +476,9 @@ def import_graycode(
     if dropped:
         device["missing_bits"] = dropped
     logger.info(
-        "importing %d view(s) of Gray-code captures from %s: order %r, %s, camera %dx%d, projector "
-        "%dx%d turned %d degrees", len(placed), src, spec.text, fmt.upper(), cw, ch, pw, ph, rotation,
+        "importing %d view(s) of Gray-code captures from %s: order %r, %s (%s response), camera %dx%d, "
+        "projector %dx%d turned %d degrees", len(placed), src, spec.text, fmt.upper(), response, cw, ch, pw, ph,
+        rotation,
     )
     total = sum(sum(1 for i in p if _kept(slots[i], keep)) for p in placed.values())
     done = 0
@@ -483,6 +494,7 @@ def import_graycode(
         overwrite=overwrite,
         lossy=lossy,
         projector_rotation=rotation,
+        response=response,
     ) as writer:
         for folder, files in placed.items():
             view_dir = writer.view_folder(folder.name)

@@ -62,6 +62,7 @@ def import_kamino410(
     projector_size: tuple[int, int] | None = None,
     overwrite: bool = False,
     progress: Callable[[int, int], None] | None = None,
+    response: str | None = None,
 ) -> Session:
     """Turn kamino410/procam-calibration Gray-code captures into an slscan capture session.
 
@@ -81,6 +82,9 @@ def import_kamino410(
         Replace an existing non-empty ``out``.
     progress : callable ``(done, total)``, optional
         Called after each image is copied.
+    response : {"linear", "srgb"}, optional
+        The camera's tone curve (default: "srgb" for JPEG captures, else "linear"; see
+        :func:`~slscan.capture.graycode_import.import_graycode`).
 
     Returns
     -------
@@ -113,7 +117,7 @@ def import_kamino410(
         _verify_patterns(pattern_dir, capture_sequence(pw, ph))
     return import_graycode(
         src, out, preset="kamino410", projector_size=(pw, ph), overwrite=overwrite,
-        progress=progress, tool=TOOL,
+        progress=progress, tool=TOOL, response=response,
     )
 
 

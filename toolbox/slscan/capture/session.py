@@ -15,6 +15,7 @@ internals, so real captures drop in.
 
 from __future__ import annotations
 
+import functools
 import os
 import shutil
 import struct
@@ -124,6 +125,10 @@ class Session:
     channels : 1 (grey) or 3 (RGB); bit_depth : 8 or 16
     calibration : the rig's calibration when known (the virtual rig writes its truth)
     lossy : the captures went through lossy compression (JPEG, imported as they were)
+    response : the camera's tone curve, ``"linear"`` (RAW-like: values proportional to
+        light) or ``"srgb"`` (the sRGB curve most cameras apply before saving JPEG);
+        decoders read captures through :meth:`Session.read_image` ``(linear=True)``, which
+        undoes it
     projector_rotation : {0, 90, 180, 270} degrees the projector is turned about its axis
         relative to the camera; with 90 or 270 its column stripes appear horizontal in the
         captures (see :meth:`camera_axis`)
@@ -141,6 +146,7 @@ class Session:
     device: dict = field(default_factory=dict)
     lossy: bool = False
     projector_rotation: int = 0
+    response: str = "linear"
 
     def camera_axis(self, axis: str) -> str:
         """The camera image axis, ``"x"`` (along rows) or ``"y"`` (along columns), that
@@ -181,18 +187,25 @@ class Session:
     def image_path(self, view: ViewRecord, rec: ImageRecord) -> Path:
         return self.root / view.name / rec.file
 
-    def read_image(self, view: ViewRecord, rec: ImageRecord) -> np.ndarray:
-        """Read one capture, checking it against the session's size, channels and depth."""
+    def read_image(self, view: ViewRecord, rec: ImageRecord, *, linear: bool = False) -> np.ndarray:
+        """Read one capture, checking it against the session's size, channels and depth.
+
+        linear : undo the camera's tone curve (:attr:`response`) for measuring light: an
+            sRGB session's captures come back as float32 fractions of full scale through
+            :func:`linearise`; a linear session's as stored (decoders take both)
+        """
         path = self.image_path(view, rec)
         image = read_capture(path)
         _check_image(path, image.shape, image.dtype.itemsize * 8, self)
-        return image
+        return linearise(image, self.response) if linear else image
 
-    def prefetch_images(self, view: ViewRecord, records: Sequence[ImageRecord]) -> Prefetched:
+    def prefetch_images(self, view: ViewRecord, records: Sequence[ImageRecord], *,
+                        linear: bool = False) -> Prefetched:
         """The captures ``records`` of ``view`` by pattern id, read (and checked like
-        :meth:`read_image`) in that order by a background thread; use it in a ``with`` block."""
+        :meth:`read_image`, ``linear`` likewise) in that order by a background thread;
+        use it in a ``with`` block."""
         by_id = {rec.pattern: rec for rec in records}
-        return Prefetched(lambda pid: self.read_image(view, by_id[pid]), list(by_id))
+        return Prefetched(lambda pid: self.read_image(view, by_id[pid], linear=linear), list(by_id))
 
     def load_ground_truth(self, view: ViewRecord) -> GroundTruth:
         if view.ground_truth is None:
@@ -208,6 +221,7 @@ class Session:
             "camera": {
                 "width": self.camera_size[0], "height": self.camera_size[1],
                 "channels": self.channels, "bit_depth": self.bit_depth, "lossy": self.lossy,
+                "response": self.response,
             },
             "projector": {
                 "width": self.projector_size[0], "height": self.projector_size[1],
@@ -358,6 +372,38 @@ def _check_jpeg_end(path: Path) -> None:
         f.seek(max(0, os.fstat(f.fileno()).st_size - 1024))
         if b"\xff\xd9" not in f.read():
             raise SlscanError(f"{path}: JPEG file is truncated (no end-of-image marker)")
+
+
+RESPONSES = ("linear", "srgb")
+"""Camera tone curves a session records (``camera.response``)."""
+
+
+@functools.lru_cache(maxsize=4)
+def _srgb_lut(top: int) -> np.ndarray:
+    """The inverse sRGB curve (IEC 61966-2-1) of the codes 0..top, float32 fractions of
+    full scale; code ``top`` maps to exactly 1.0 (clipping stays detectable)."""
+    v = np.arange(top + 1, dtype=np.float64) / top
+    lin = np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+    lin[-1] = 1.0
+    return lin.astype(np.float32)
+
+
+def linearise(image: np.ndarray, response: str) -> np.ndarray:
+    """A capture with the camera's tone curve undone: ``"srgb"`` gives float32 fractions
+    of full scale in [0, 1] (an integer capture through a lookup table: full scale from
+    its dtype); ``"linear"`` returns ``image`` itself."""
+    if response == "linear":
+        return image
+    if response != "srgb":
+        raise SlscanError(f"camera response must be one of {', '.join(RESPONSES)}, got {response!r}")
+    image = np.asarray(image)
+    if image.dtype in (np.uint8, np.uint16):
+        return _srgb_lut(int(np.iinfo(image.dtype).max))[image]
+    if np.issubdtype(image.dtype, np.floating):
+        v = np.clip(image, 0, 1).astype(np.float32)
+        return np.where(v <= 0.04045, v / np.float32(12.92),
+                        ((v + np.float32(0.055)) / np.float32(1.055)) ** np.float32(2.4)).astype(np.float32)
+    raise SlscanError(f"cannot linearise {image.dtype} pixels; expected uint8, uint16 or float in [0, 1]")
 
 
 def read_capture(path: Path) -> np.ndarray:
@@ -538,6 +584,7 @@ def load_session(path: str | os.PathLike, *, validate: bool = True) -> Session:
             device=d.get("device", {}),
             lossy=bool(cam.get("lossy", False)),
             projector_rotation=int(proj.get("rotation", 0)),
+            response=str(cam.get("response", "linear")),  # sessions older than the field: linear
         )
     except KeyError as exc:
         raise SlscanError(f"{meta_path}: missing field {exc.args[0]!r}") from None
@@ -545,6 +592,10 @@ def load_session(path: str | os.PathLike, *, validate: bool = True) -> Session:
         raise SlscanError(f"{meta_path}: a field has the wrong type ({exc})") from None
     if session.channels not in (1, 3) or session.bit_depth not in (8, 16):
         raise SlscanError(f"{meta_path}: camera must have 1 or 3 channels and 8 or 16 bits")
+    if session.response not in RESPONSES:
+        raise SlscanError(
+            f"{meta_path}: camera.response must be one of {', '.join(RESPONSES)}, got {session.response!r}"
+        )
     if session.projector_rotation not in ROTATIONS:
         raise SlscanError(
             f"{meta_path}: projector rotation {session.projector_rotation} is not one of {ROTATIONS} (degrees)"
@@ -572,7 +623,8 @@ class SessionWriter:
             writer.add_view(ViewRecord("view_000", ...))
 
     ``jpeg_quality`` (1–100) saves captures named ``.jpg`` as JPEG at that quality (a
-    camera that shoots JPEG) and marks the session lossy.
+    camera that shoots JPEG) and marks the session lossy; ``response`` records the
+    camera's tone curve (``camera.response``: "linear" or "srgb").
     """
 
     def __init__(
@@ -593,7 +645,10 @@ class SessionWriter:
         lossy: bool = False,
         projector_rotation: int = 0,
         jpeg_quality: int | None = None,
+        response: str = "linear",
     ) -> None:
+        if response not in RESPONSES:
+            raise SlscanError(f"camera response must be one of {', '.join(RESPONSES)}, got {response!r}")
         self.out = Path(out)
         self._jpeg_quality = jpeg_quality
         lossy = lossy or jpeg_quality is not None
@@ -601,7 +656,7 @@ class SessionWriter:
             "camera_size": tuple(camera_size), "projector_size": tuple(projector_size), "channels": channels,
             "bit_depth": bit_depth, "patterns": tuple(patterns), "calibration": calibration,
             "calibration_source": calibration_source, "device": device or {},
-            "lossy": bool(lossy), "projector_rotation": int(projector_rotation),
+            "lossy": bool(lossy), "projector_rotation": int(projector_rotation), "response": response,
         }
         self._overwrite = overwrite
         self._incremental = incremental or resume

@@ -916,8 +916,9 @@ def decode_gray_images(
     del sub_sums, flat_sub
     if noise is not None:
         sigma = float(noise)
-    else:  # at least the quantisation noise of a difference of two images (0.41 DN)
-        sigma = max(estimated, np.sqrt(2 / 12) / read.scale)
+    else:  # at least the quantisation noise of a difference of two images (0.41 DN;
+        # float captures count 255 DN to full scale, as ``read.dn`` says)
+        sigma = max(estimated, np.sqrt(2 / 12) / read.dn)
 
     ratio_binds = None
     if threshold == "opencv":
@@ -1006,7 +1007,7 @@ def decode_gray_images(
     n_weak_ratio = 0 if ratio_binds is None else int((weak & ratio_binds).sum())
     diagnostics = {
         "threshold_mode": threshold,
-        "noise_dn": float(sigma * read.scale),
+        "noise_dn": float(sigma * read.dn),
         "pixels": int(full_lit.size),
         "lit": n_lit,
         "low_contrast": int(full_lit.size) - n_lit,
@@ -1152,7 +1153,10 @@ def decode_gray(session: Session, view: ViewRecord | str, **options) -> GrayResu
     pairs = gray_pairs(descs, "columns") + gray_pairs(descs, "rows")
     ids = [white_id, black_id, *(p for pair in pairs for p in pair)]
     records = {pid: view.image_for(pid) for pid in ids}
-    with _Streamed(lambda pid: session.read_image(view, records[pid]), ids) as images:
+    # in linear light: an sRGB camera's curve undone (float fractions of full scale then)
+    with _Streamed(lambda pid: session.read_image(view, records[pid], linear=True), ids) as images:
         white, black = images[white_id], images[black_id]
         result = decode_gray_images(images, descs, white, black, where=where, **options)
-        return replace(result, white=white)
+    if session.response != "linear":  # colour downstream from the capture as the camera saved it
+        white = session.read_image(view, records[white_id])
+    return replace(result, white=white)

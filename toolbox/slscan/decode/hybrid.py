@@ -85,7 +85,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -1231,17 +1231,22 @@ def decode_hybrid(
     recs = [record(d.id) for d in descs]
     # read in the order decoding uses them, in the background: level k is decoded while
     # level k + 1 loads
-    with session.prefetch_images(view, [*flat, *recs]) as images:
-        return decode_hybrid_images(
+    # in linear light: an sRGB camera's curve undone (float fractions of full scale then)
+    linear = session.response != "linear"
+    with session.prefetch_images(view, [*flat, *recs], linear=linear) as images:
+        result = decode_hybrid_images(
             images[white_id],
             images[black_id],
             images,
             descs,
             estimator=estimator,
             min_contrast=min_contrast,
-            bit_depth=session.bit_depth,
+            bit_depth=None if linear else session.bit_depth,
             names=[r.file for r in recs],
             flat_names=(flat[0].file, flat[1].file),
             where=where,
             **options,
         )
+    if linear:  # colour and clipping downstream from the capture as the camera saved it
+        result = replace(result, white=session.read_image(view, flat[0]))
+    return result

@@ -14,7 +14,7 @@ import logging
 import os
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -69,7 +69,8 @@ class DecodeConfig:
 
     method: str = "auto"
     """{"auto", "hybrid", "gray"}: which patterns to decode; "auto" takes the hybrid
-    pattern when the session has it, else Gray code."""
+    pattern when the session has it, else Gray code, and Gray code for lossy (JPEG)
+    sessions that have both (:func:`choose_method`)."""
     estimator: str = DEFAULT_ESTIMATOR
     """Sub-pixel medial-axis estimator of the hybrid green lines (see ``decode.hybrid``)."""
     max_edge_factor: float = MAX_EDGE_FACTOR
@@ -174,11 +175,42 @@ class ViewDecode:
         }
 
 
+LOSSY_HYBRID_ERROR = (
+    "on the virtual rig, JPEG at quality 90 with 4:2:0 chroma, the hybrid pattern's mean error "
+    "rose from 0.13 to 0.89 mm with 32 % of points more than 1 mm off (Gray code: 0.12 to 0.15 mm; "
+    "benchmarks/light_transport.py --effects none,jpeg)"
+)
+"""What lossy captures measurably cost the hybrid decoder (``choose_method``'s reasons)."""
+
+_told: set[tuple[str, str]] = set()  # (session root, message kind) already logged
+
+
+def _once(session: Session, kind: str) -> bool:
+    key = (str(session.root), kind)
+    if key in _told:
+        return False
+    _told.add(key)
+    return True
+
+
 def choose_method(session: Session, method: str = "auto") -> str:
-    """The decode method for ``session``: the one asked, or the hybrid pattern when present."""
+    """The decode method for ``session``: the one asked, or with "auto" the hybrid pattern
+    when present, except for a lossy (JPEG) session that also has Gray-code patterns: its
+    4:2:0 chroma smears the hybrid's one-pixel green lines and thin bands, so Gray code is
+    taken (logged once per session). A lossy session with only the hybrid pattern is
+    decoded with it, with one warning naming the measured cost (:data:`LOSSY_HYBRID_ERROR`)."""
     families = {p.family for p in session.patterns}
     if method == "auto":
         method = "hybrid" if "hybrid" in families else "gray"
+        if method == "hybrid" and session.lossy and "gray" in families:
+            method = "gray"
+            if _once(session, "auto"):
+                log.info("%s: decoding the Gray-code patterns, not the hybrid: the captures are lossy "
+                         "(JPEG), and %s", session.root, LOSSY_HYBRID_ERROR)
+    if method == "hybrid" and session.lossy and "gray" not in families and _once(session, "lossy hybrid"):
+        log.warning("%s: decoding the hybrid pattern from lossy (JPEG) captures: expect large errors; %s. "
+                    "Capture PNG, or add Gray-code patterns (auto then decodes those)",
+                    session.root, LOSSY_HYBRID_ERROR)
     wanted = {"hybrid": "hybrid", "gray": "gray"}[method]
     if wanted not in families:
         raise SlscanError(f"{session.root}: the session has no {wanted} patterns to decode")
@@ -331,13 +363,15 @@ def decode_session(
         require_gray_codes(session)
     executor = fit_workers(executor, session)
     warn_if_lossy(session)
+    # the method chosen (and why, said) once here, not in every worker
+    chosen = replace(config, method=choose_method(session, config.method))
     executor.start(len(session.views), [__name__])  # helper processes import while we set up
     results = []
     unusable = {}
     with atomic_output_dir(out, overwrite=overwrite) as tmp:
         entries = []
         code_entries = []  # every view's, usable or not: codes do not need a range map
-        tasks = [(session, view.name, config, planes, tmp, codes) for view in session.views]
+        tasks = [(session, view.name, chosen, planes, tmp, codes) for view in session.views]
         for index, (view, result) in enumerate(zip(session.views, executor.map(_decode_task, tasks))):
             if rec is not None:
                 rm = result.range_map

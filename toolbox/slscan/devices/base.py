@@ -119,6 +119,12 @@ class Camera(Device):
         stores them as ``.jpg`` (``camera.lossy``); None: lossless frames (PNG)."""
         return None
 
+    @property
+    def response(self) -> str:
+        """The camera's tone curve, recorded as ``camera.response``: "linear" (RAW-like,
+        the default) or "srgb" (decoders undo it)."""
+        return "linear"
+
     def controls(self) -> dict[str, tuple[float, float]]:
         """Settable controls and their (min, max): e.g. ``{"exposure": (lo, hi), "gain": (lo, hi)}``.
 

@@ -163,6 +163,10 @@ class VirtualCamera(Camera):
     def jpeg_quality(self) -> int | None:
         return self.sensor.jpeg_quality or None
 
+    @property
+    def response(self) -> str:
+        return self.sensor.response
+
     def controls(self) -> dict[str, tuple[float, float]]:
         return {"exposure": self.exposure_range, "gain": GAIN_RANGE}
 
@@ -266,6 +270,10 @@ class ScreenLoopCamera(Camera):
     @property
     def jpeg_quality(self) -> int | None:
         return self.inner.jpeg_quality
+
+    @property
+    def response(self) -> str:
+        return self.inner.response
 
     def controls(self) -> dict[str, tuple[float, float]]:
         return self.inner.controls()

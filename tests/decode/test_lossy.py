@@ -1,0 +1,101 @@
+"""Captures through a camera's tone curve and lossy compression: decoding in linear light
+(``camera.response``), and which pattern family ``method="auto"`` decodes."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+import pytest
+
+from slscan.capture.session import linearise
+from slscan.decode.graycode import decode_gray
+from slscan.decode.hybrid import decode_hybrid
+from slscan.decode.pipeline import choose_method
+from slscan.errors import SlscanError
+from slscan.virtual.device import VirtualCaptureConfig, capture_session
+from slscan.virtual.sensor import Sensor, srgb_oetf
+
+
+def test_linearise_inverts_the_srgb_curve():
+    x = np.linspace(0, 1, 1001, dtype=np.float32)
+    for dtype, top in ((np.uint8, 255), (np.uint16, 65535)):
+        coded = np.rint(srgb_oetf(x) * top).astype(dtype)
+        back = linearise(coded, "srgb")
+        assert back.dtype == np.float32
+        # within half a code step of the curve's slope (steepest at full scale: 2.4 / top)
+        assert np.max(np.abs(back - x)) <= 1.25 / top + 1e-6
+        assert back[-1] == 1.0 and back[0] == 0.0  # full scale stays detectable as clipped
+    assert linearise(np.float32([0.5]), "srgb")[0] == pytest.approx(0.2140411, abs=1e-6)
+    raw = np.zeros((2, 2), np.uint8)
+    assert linearise(raw, "linear") is raw
+    with pytest.raises(SlscanError, match="camera response must be one of linear, srgb, got 'log'"):
+        linearise(raw, "log")
+
+
+@pytest.fixture(scope="module")
+def tone_sessions(tmp_path_factory: pytest.TempPathFactory):
+    """The same noise-free view through a linear and through an sRGB camera response."""
+    out = {}
+    for response in ("linear", "srgb"):
+        config = VirtualCaptureConfig(scene="object", views=1, patterns="both", gray_rows=False, levels=6,
+                                      lit_images=False, camera_scale=0.25, projector_scale=0.25,
+                                      sensor=Sensor(noise=False, response=response))
+        out[response] = capture_session(config, tmp_path_factory.mktemp(response) / "session")
+    return out
+
+
+def _positions(session, family: str) -> dict[tuple[int, float], float]:
+    view = session.views[0]
+    samples = decode_hybrid(session, view).samples if family == "hybrid" else decode_gray(session, view).edges
+    return {(int(r), float(c)): float(x) for r, c, x in zip(samples.row, samples.projector_column, samples.x)}
+
+
+@pytest.mark.parametrize(("family", "p95_px"), [("hybrid", 0.12), ("gray", 0.03)])
+def test_an_srgb_capture_decodes_like_the_linear_one(tone_sessions, family: str, p95_px: float):
+    linear, srgb = tone_sessions["linear"], tone_sessions["srgb"]
+    assert (linear.response, srgb.response) == ("linear", "srgb")
+
+    def moved(session) -> tuple[float, np.ndarray]:
+        a, b = _positions(linear, family), _positions(session, family)
+        common = a.keys() & b.keys()
+        return len(common) / len(a), np.array([b[k] - a[k] for k in common])
+
+    share, dx = moved(srgb)
+    assert share >= 0.97
+    assert np.percentile(np.abs(dx), 95) <= p95_px and abs(dx.mean()) <= 0.01
+    # the same captures read as if linear: the curve bends the profiles, the axes move
+    _, bent = moved(dataclasses.replace(srgb, response="linear"))
+    assert np.percentile(np.abs(bent), 95) > 1.5 * p95_px
+
+
+def test_decoding_returns_the_white_as_stored(tone_sessions):
+    srgb = tone_sessions["srgb"]
+    view = srgb.views[0]
+    stored = srgb.read_image(view, view.image_for(srgb.flat_frame_ids()[0]))
+    for result in (decode_hybrid(srgb, view), decode_gray(srgb, view)):
+        assert result.white.dtype == np.uint8 and np.array_equal(result.white, stored)
+
+
+def test_auto_decodes_gray_code_from_lossy_captures(tone_sessions, tmp_path, caplog):
+    both = dataclasses.replace(tone_sessions["linear"], root=tmp_path / "both")
+    assert choose_method(both) == "hybrid"  # lossless: the hybrid pattern
+    lossy = dataclasses.replace(both, lossy=True)
+    with caplog.at_level(logging.INFO, logger="slscan.decode.pipeline"):
+        assert [choose_method(lossy) for _ in range(3)] == ["gray"] * 3
+        assert choose_method(lossy, "hybrid") == "hybrid"  # asked for: no reason to refuse
+    said = [r for r in caplog.records if "decoding the Gray-code patterns, not the hybrid" in r.getMessage()]
+    assert len(said) == 1 and "lossy" in said[0].getMessage() and said[0].levelno == logging.INFO
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
+
+
+def test_a_lossy_hybrid_only_session_warns_once_with_the_measured_cost(tone_sessions, tmp_path, caplog):
+    hybrid_only = dataclasses.replace(
+        tone_sessions["linear"], root=tmp_path / "hybrid_only", lossy=True,
+        patterns=tuple(p for p in tone_sessions["linear"].patterns if p.family != "gray"),
+    )
+    with caplog.at_level(logging.WARNING, logger="slscan.decode.pipeline"):
+        assert [choose_method(hybrid_only) for _ in range(2)] == ["hybrid"] * 2
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warned) == 1 and "0.89 mm" in warned[0] and "lossy" in warned[0]
