@@ -1,7 +1,7 @@
 """Decoding accuracy on saturated paint and across camera blur, on the virtual rig.
 
     .venv/bin/python benchmarks/colour_blur.py [--scale 0.5 | --full] [--seed 0]
-        [--decoder-option KEY=VALUE ...]
+        [--decoder-option KEY=VALUE ...] [--variant KEY=VALUE ...]
 
 A neutral tile (400 x 300 mm, tilted 15° and 8°, as the built-in ``tile``) with a sphere
 (radius 60 mm) in front of it; a saturated red and a saturated blue patch on the tile, a
@@ -26,7 +26,10 @@ the smallest mean of the sweep, per decoder and class; target <= 1.3).
 ``--scale`` shrinks both sensors (default 0.5: 720 x 480 camera, a few minutes);
 ``--full`` is the paper's 1440 x 960 (the blur's σ stays in camera px, so a reduced run
 blurs twice as many mm). ``--decoder-option KEY=VALUE`` (repeatable; JSON values) sets a
-``DecodeConfig`` field for both decoders, to compare decoder settings on the same images.
+``DecodeConfig`` field for both decoders, to compare decoder settings on the same images;
+``--variant KEY=VALUE`` (repeatable) decodes the hybrid pattern once more per variant with
+that field set on top (decoder column ``hybrid KEY=VALUE``), side by side in the same run,
+e.g. ``--variant max_line_sigma=0 --variant max_line_sigma=0.1``.
 """
 
 from __future__ import annotations
@@ -177,9 +180,14 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0, help="noise seed (the same for every rendering)")
     parser.add_argument("--decoder-option", dest="options", action="append", default=[], metavar="KEY=VALUE",
                         help="DecodeConfig field for both decoders (repeatable)")
+    parser.add_argument("--variant", dest="variants", action="append", default=[], metavar="KEY=VALUE",
+                        help="decode the hybrid pattern again with this DecodeConfig field on top (repeatable)")
     args = parser.parse_args()
     scale = 1.0 if args.full else args.scale
     options = parse_options(args.options)
+    methods = [("hybrid", "hybrid", options)]
+    methods += [(f"hybrid {item}", "hybrid", {**options, **parse_options([item])}) for item in args.variants]
+    methods.append(("gray", "gray", options))
     logging.basicConfig(level=logging.ERROR, format="%(message)s")
     levels = min(9, int(np.log2(1024 * scale)) - 1)
     scene = tile_and_sphere()
@@ -196,13 +204,14 @@ def main() -> None:
                 session = capture_session(config, Path(tmp) / f"r{i}", scene=scene)
             except SlscanError as e:
                 raise SystemExit(f"capture failed: {e}") from None
-            for method in ("hybrid", "gray"):
-                results[(label, model, camera, projector, method)] = measure(session, scene, method, options)
+            for name, method, opts in methods:
+                results[(label, model, camera, projector, name)] = measure(session, scene, method, opts)
 
     print(f"tile and sphere, one view, scale {scale} ({round(1440 * scale)}x{round(960 * scale)} camera), "
           f"hybrid {levels} levels + Gray code, seed {args.seed}; decoder options: {options or 'defaults'}; "
           f"{time.perf_counter() - t0:.0f} s")
-    header = (f"{'rendering':<18}{'model':<10}{'cam σ':>6}{'proj σ':>7}  {'decoder':<8}{'paint':<12}{'vertices':>9}"
+    width = max(8, *(len(name) + 1 for name, _, _ in methods))
+    header = (f"{'rendering':<18}{'model':<10}{'cam σ':>6}{'proj σ':>7}  {'decoder':<{width}}{'paint':<12}{'vertices':>9}"
               f"{'mean mm':>9}{'p95 mm':>8}{'>1mm %':>8}{'cover %':>8}{'x neutral':>10}{'x best':>8}")
     print(header)
     print("-" * len(header))
@@ -212,14 +221,14 @@ def main() -> None:
             for name, row in by_class.items():
                 key = (method, name)
                 best[key] = min(best.get(key, math.inf), row[1])
-    for method in ("hybrid", "gray"):
+    for method in (name for name, _, _ in methods):
         for (label, model, camera, projector, m), by_class in results.items():
             if m != method:
                 continue
             neutral = by_class["neutral"][1]
             for name, (n, mean, p95, gross, cover) in by_class.items():
                 rel_best = f"{mean / best[(method, name)]:>8.2f}" if model == "physical" else f"{'':>8}"
-                print(f"{label:<18}{model:<10}{camera:>6.2f}{projector:>7.2f}  {method:<8}{name:<12}{n:>9d}"
+                print(f"{label:<18}{model:<10}{camera:>6.2f}{projector:>7.2f}  {method:<{width}}{name:<12}{n:>9d}"
                       f"{mean:>9.4f}{p95:>8.4f}{100 * gross:>8.2f}{100 * cover:>8.1f}{mean / neutral:>10.2f}{rel_best}")
             print()
 

@@ -155,8 +155,9 @@ def test_both_render_paths_honour_each_effect(effect, tmp_path):
     """The driver's rig (``VirtualRig.render``) and ``capture_view`` render the same images,
     and the effect changes them."""
     config = VirtualCaptureConfig(**SMALL, effects=(effect,))
-    if effect == "dof":  # the tile sits near the focus distance: a stronger lens shows it
-        config = dataclasses.replace(config, optics=dataclasses.replace(config.optics, projector_fnumber=1.0))
+    if effect == "dof":  # the tile sits near the focus distance: a stronger lens focused nearer shows it
+        config = dataclasses.replace(config, optics=dataclasses.replace(config.optics, projector_fnumber=1.0,
+                                                                        projector_focus_mm=1100.0))
     session, images = _session_images(config, tmp_path, "on")
     rig = config.rig()
     rendered, _ = capture_view(config.build_scene(), rig, session.views[0].rig_from_object,

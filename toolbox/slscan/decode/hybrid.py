@@ -36,7 +36,10 @@ capture session):
 6. **Medial axis**: local maxima of ``g`` along each camera row (after a ``[1, 2, 1] / 4``
    filter across rows) that stand above the neighbouring bands, refined to sub-pixel by
    one of :data:`ESTIMATORS`.
-7. **Rejection**: ambiguous bits (``e`` near 0.5); low or flat peaks; a peak without red
+7. **Rejection**: with ``max_line_sigma`` > 0, lines too weak against the image noise to
+   place their axis (:func:`line_axis_sigma`: the camera noise, :func:`estimate_noise`,
+   carried through the unmixing; on saturated paint the line comes back faintly);
+   ambiguous bits (``e`` near 0.5); low or flat peaks; a peak without red
    on its left and blue on its right; a line next to a drop of the white frame (a
    silhouette, shadow or crease truncates its profile); samples whose projector column
    disagrees with every linear prediction from their neighbours along the row (a wrong
@@ -131,6 +134,11 @@ DEFAULT_MIN_EDGE_RATIO = 0.6
 """Lines whose white-frame neighbourhood falls below this fraction of the line's own white
 level are cut by a silhouette or shadow edge, and dropped."""
 
+DEFAULT_MAX_LINE_SIGMA = 0.0
+"""Largest expected axis standard deviation (camera px) of a kept line sample
+(:func:`line_axis_sigma`); 0 keeps every sample (off)."""
+
+NOISE_BINS = 16  # white-frame levels over which the shot-noise gain is fitted
 EDGE_RADIUS = 2  # px each side checked for a white-frame edge
 PROMINENCE_RADIUS = 3  # px each side searched for the neighbouring band minimum
 PLATEAU_WIDTH = 7  # px, band pixels used for crosstalk must be this deep inside a band
@@ -172,7 +180,8 @@ class HybridResult:
     saturation : per-image saturation, white, black, then the pattern images in level order
     white : (h, w, 3) the white capture as given (for colour and saturation downstream)
     rejected : line maxima dropped, by reason ("sub-pixel fit", "ambiguous bit", "edge",
-        "polarity", "global": too little direct light, "order": inconsistent index)
+        "polarity", "global": too little direct light, "weak line": the line's contrast
+        against the noise cannot place its axis, "order": inconsistent index)
     """
 
     samples: StripeSamples
@@ -724,6 +733,104 @@ class _PixelUnmixer:
         return g, e
 
 
+# --- line reliability ----------------------------------------------------------------------
+
+
+def estimate_noise(
+    white: np.ndarray, black: np.ndarray, mask: np.ndarray, *, row_step: int = 1
+) -> tuple[float, float]:
+    """Noise model of one capture from the view itself: ``σ²(I) = a + b (I − B)`` (DN²).
+
+    white, black : (h, w, 3) the projector-white and -black captures (integer captures add
+        the quantisation's 1/12 DN² to ``a``)
+    mask : (h, w) bool lit pixels
+    row_step : use every ``row_step``-th row
+
+    ``a`` is the black frame's noise per channel (as :func:`~slscan.decode.masks.noise_sigma`,
+    which measures it on the channels' maximum), squared; ``b`` (DN² per DN) the shot-noise gain, fitted through the origin to ``σ² − a`` of the
+    white frame in ``NOISE_BINS`` bins of its black-subtracted level (all channels pooled),
+    ``σ²`` from the median absolute deviation of horizontal neighbour differences (a
+    paint edge moves the median little). Returns ``(a, b)``.
+    """
+    dark = np.diff(np.asarray(black[::row_step], np.float32), axis=1).ravel()
+    a = float((1.4826 * np.median(np.abs(dark - np.median(dark)))) ** 2 / 2.0) if dark.size else 0.0
+    w = np.asarray(white[::row_step], np.float32)
+    level = w - np.asarray(black[::row_step], np.float32)
+    both = (mask[::row_step, 1:] & mask[::row_step, :-1])[..., None]
+    both = np.broadcast_to(both, level[:, 1:].shape)
+    lv = (0.5 * (level[:, 1:] + level[:, :-1]))[both]
+    diff = np.diff(w, axis=1)[both]
+    if lv.size < 10 * NOISE_BINS:
+        return a, 0.0
+    edges = np.quantile(lv, np.linspace(0.0, 1.0, NOISE_BINS + 1))
+    bins = np.clip(np.searchsorted(edges, lv, side="right") - 1, 0, NOISE_BINS - 1)
+    centres, variances = [], []
+    for i in range(NOISE_BINS):
+        d = diff[bins == i]
+        if d.size < 10:
+            continue
+        mad = np.median(np.abs(d - np.median(d)))
+        centres.append(float(np.median(lv[bins == i])))
+        variances.append(float((1.4826 * mad) ** 2 / 2.0))
+    c, v = np.array(centres), np.array(variances)
+    b = float(np.sum((v - a) * c) / np.sum(c * c)) if np.sum(c * c) > 0 else 0.0
+    if np.issubdtype(np.asarray(black).dtype, np.integer):
+        a += 1.0 / 12.0  # quantisation, 1 DN steps (a clean black frame's jitter misses it)
+    return a, max(b, 0.0)
+
+
+def signal_gains(signals, black: np.ndarray, *, step: float = 256.0) -> np.ndarray:
+    """``∂g/∂I_c`` (3, h, w) float32: how the line signal moves with each camera channel.
+
+    signals : ``image -> (g, e)``, affine in the image (both unmixers are)
+    black : (h, w, 3) a capture to linearise about (any, the map is affine)
+    """
+    base = np.asarray(black, np.float32)
+    g0 = signals(base)[0]
+    out = np.empty((3, *g0.shape), np.float32)
+    for c in range(3):
+        probe = base.copy()
+        probe[..., c] += np.float32(step)
+        out[c] = (signals(probe)[0] - g0) / np.float32(step)
+    return out
+
+
+def line_axis_sigma(
+    g: np.ndarray,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    g_sigma: np.ndarray,
+    *,
+    radius: int = PROMINENCE_RADIUS,
+) -> np.ndarray:
+    """Expected standard deviation (camera px) of each line sample's sub-pixel axis.
+
+    g : (h, w) the line signal the maxima were found in
+    rows, cols : (k,) integer maxima
+    g_sigma : (h, w) the noise standard deviation of ``g`` (same units)
+
+    The line's amplitude ``A`` is its maximum over the higher of the band minima within
+    ``radius`` px either side (as :func:`find_line_peaks`), its Gaussian width ``s`` (px)
+    from the curvature of ``ln g`` at the maximum (clipped to 0.5..3 px). For the
+    three-point Gaussian estimator on a centred Gaussian profile, error propagation gives
+    ``σ_x = s² σ_g / (√2 A e^(−1/(2 s²)))`` (≈ ``σ_g / A`` px for ``s`` 0.6..1 px, i.e.
+    width over SNR); the other estimators are within a small factor of it.
+    Non-positive amplitudes give ``inf``.
+    """
+    rows = np.asarray(rows, np.intp)
+    cols = np.asarray(cols, np.intp)
+    f = _window(g, rows, cols, radius).astype(np.float64)
+    floor = np.maximum(f[:, :radius].min(axis=1), f[:, radius + 1 :].min(axis=1))
+    amp = f[:, radius] - floor
+    t = np.log(np.maximum(f[:, radius - 1 : radius + 2] - floor[:, None], _EPS))
+    curvature = t[:, 0] - 2.0 * t[:, 1] + t[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(curvature < -_EPS, 1.0 / np.sqrt(np.maximum(-curvature, _EPS)), 3.0)
+        s = np.clip(s, 0.5, 3.0)
+        sigma = s * s * g_sigma[rows, cols] / (np.sqrt(2.0) * amp * np.exp(-0.5 / (s * s)))
+    return np.where(amp > 0, sigma, np.inf)
+
+
 # --- indexing ------------------------------------------------------------------------------
 
 
@@ -896,6 +1003,22 @@ def _keep(ok: np.ndarray, cond: np.ndarray, rejected: dict[str, int], reason: st
     return ok & cond
 
 
+def _line_noise(
+    gains: np.ndarray, image: np.ndarray, black: np.ndarray, noise: tuple[float, float], smooth_rows: bool
+) -> np.ndarray:
+    """Standard deviation (h, w) of the line signal of ``image``: the camera noise
+    (``noise``, :func:`estimate_noise`) through the unmixing gains (:func:`signal_gains`)
+    and the row filter."""
+    a, b = noise
+    var = np.zeros(gains.shape[1:], np.float32)
+    for c in range(3):
+        level = np.maximum(np.asarray(image[..., c], np.float32) - np.asarray(black[..., c], np.float32), 0.0)
+        var += gains[c] * gains[c] * (np.float32(a) + np.float32(b) * level)
+    if smooth_rows:
+        var = cv2.filter2D(var, -1, (_ROW_KERNEL * _ROW_KERNEL)[:, None], borderType=cv2.BORDER_CONSTANT)
+    return np.sqrt(var)
+
+
 def decode_hybrid_images(
     white: np.ndarray,
     black: np.ndarray,
@@ -913,6 +1036,7 @@ def decode_hybrid_images(
     mixing: str = DEFAULT_MIXING,
     global_light: bool = False,
     paint_edges: bool = False,
+    max_line_sigma: float = DEFAULT_MAX_LINE_SIGMA,
     crosstalk: np.ndarray | None = None,
     bit_depth: int | None = None,
     names: Sequence[str] | None = None,
@@ -956,6 +1080,10 @@ def decode_hybrid_images(
         least ``PAINT_EDGE_FLOOR`` of the white changes by more than ``min_edge_ratio``
         within ``EDGE_RADIUS`` px (a paint edge across the line's profile); fewer wrong
         samples near paint edges, less coverage
+    max_line_sigma : drop line samples whose expected axis standard deviation
+        (:func:`line_axis_sigma`, camera px; the noise from :func:`estimate_noise`
+        carried through the unmixing) exceeds this: a line the paint returns too little of
+        to place (rejected as "weak line"); 0 keeps every sample
     crosstalk : (3, 3) camera × projector-primary response; None estimates it from the
         captures (:func:`estimate_crosstalk`); the first guess of the bands with
         ``mixing="pixel"``
@@ -981,6 +1109,8 @@ def decode_hybrid_images(
         raise SlscanError(
             f"unknown colour mixing {mixing!r}: expected one of {', '.join(MIXING_MODES)}"
         )
+    if not max_line_sigma >= 0:
+        raise SlscanError(f"max_line_sigma must be >= 0 camera px, got {max_line_sigma!r}")
     prefix = f"{where}: " if where else ""
     order, names = _check_inputs(white, black, images, descs, names, prefix)
     descs = [descs[i] for i in order]
@@ -1068,20 +1198,33 @@ def decode_hybrid_images(
     redness: list[np.ndarray] = []
     parts: list[tuple[np.ndarray, ...]] = []
     line_maps: dict[str, np.ndarray] = {}
-    rejected = dict.fromkeys(("sub-pixel fit", "ambiguous bit", "edge", "polarity", "paint edge", "global"), 0)
+    rejected = dict.fromkeys(
+        ("sub-pixel fit", "weak line", "ambiguous bit", "edge", "polarity", "paint edge", "global"), 0
+    )
+    noise = estimate_noise(white, black, mask, row_step=crosstalk_step) if max_line_sigma > 0 else None
+    gains: dict[tuple, np.ndarray] = {}
     n_peaks = 0
     for k, (desc, name) in enumerate(zip(descs, names), start=1):
-        g, e = (
-            unmixer.signals(image(k - 1), shares[k - 1])
-            if isinstance(unmixer, _PixelUnmixer)
-            else unmixer.signals(image(k - 1))
-        )
+        raw = image(k - 1)
+
+        def signals(im: np.ndarray, k: int = k) -> tuple[np.ndarray, np.ndarray]:
+            if isinstance(unmixer, _PixelUnmixer):
+                return unmixer.signals(im, shares[k - 1])
+            return unmixer.signals(im)
+
+        g, e = signals(raw)
         if smooth_rows:
             g = cv2.filter2D(g, -1, _ROW_KERNEL[:, None], borderType=cv2.BORDER_CONSTANT)
         rows, cols = find_line_peaks(g, min_peak=min_peak, min_prominence=min_prominence)
         n_peaks += len(rows)
         x, ok = subpixel_peaks(g, rows, cols, estimator=estimator)
         rejected["sub-pixel fit"] += int((~ok).sum())
+        if noise is not None:
+            key = tuple(np.round(shares[k - 1], 6)) if direct is not None else ()
+            if key not in gains:
+                gains[key] = signal_gains(signals, black)
+            sigma = line_axis_sigma(g, rows, cols, _line_noise(gains[key], raw, black, noise, smooth_rows))
+            ok = _keep(ok, sigma <= max_line_sigma, rejected, "weak line")
         lines = np.zeros((h, w), bool)  # every maximum, kept or not, for the saturation report
         for o in (-1, 0, 1):
             lines[rows, np.clip(cols + o, 0, w - 1)] = True

@@ -35,6 +35,7 @@ from slscan.decode.codes import (
 from slscan.decode.graycode import THRESHOLD_MODES, decode_gray
 from slscan.decode.hybrid import (
     DEFAULT_ESTIMATOR,
+    DEFAULT_MAX_LINE_SIGMA,
     DEFAULT_MIXING,
     ESTIMATORS,
     MIXING_MODES,
@@ -94,6 +95,11 @@ class DecodeConfig:
     (needs ``mixing="pixel"``)."""
     paint_edges: bool = False
     """Hybrid: drop line samples whose profile crosses a paint edge (needs ``mixing="pixel"``)."""
+    max_line_sigma: float = DEFAULT_MAX_LINE_SIGMA
+    """Hybrid: line samples whose expected axis standard deviation (camera px), from the
+    line's contrast against the image noise, exceeds this are dropped ("weak line": e.g.
+    the green line on saturated red or blue paint); 0 keeps all (``decode.hybrid``,
+    ``line_axis_sigma``)."""
     gray_threshold: str = "adaptive"
     """{"adaptive", "opencv"}: Gray-code bit thresholds from the images' noise and contrast,
     or OpenCV ``GrayCodePattern``'s fixed ones (40 DN white - black, 5 DN per bit); see
@@ -124,6 +130,10 @@ class DecodeConfig:
         for name in ("max_edge_factor", "max_gap_columns"):
             if not getattr(self, name) > 0:
                 raise SlscanError(f"{name} must be positive, got {getattr(self, name)!r}")
+        if not (isinstance(self.max_line_sigma, (int, float)) and self.max_line_sigma >= 0):
+            raise SlscanError(
+                f"max_line_sigma must be >= 0 camera px (0: off), got {self.max_line_sigma!r}"
+            )
         if not 0 < self.max_view_angle_deg <= 90:
             raise SlscanError(
                 f"max_view_angle_deg must be in (0, 90] degrees, got {self.max_view_angle_deg!r}"
@@ -253,6 +263,7 @@ def decode_view(
             mixing=config.mixing,
             global_light=config.global_light,
             paint_edges=config.paint_edges,
+            max_line_sigma=config.max_line_sigma,
         )
         samples, mask, codes = res.samples, res.mask, res.codes
         code_max = 2 ** len(descs)
