@@ -16,13 +16,15 @@ from slscan.texture.pipeline import TextureConfig, auto_size, texture_model
 
 DEMO = Path(__file__).parents[2] / "recipes" / "demo.toml"
 OLD_RENDERING = [
-    'capture.optics.colour_model="legacy"', "capture.optics.projector_blur=0.35", "capture.sensor.blur_sigma=0.5"
+    'capture.optics.colour_model="legacy"', "capture.optics.projector_blur=0.35", "capture.sensor.blur_sigma=0.5",
+    'decode.mixing="global"', "decode.paint_edges=false",
 ]
 """The virtual rig's rendering before its physical colour model and lens-model blurs. At
 quarter size the demo's registration is fragile: the baked colour's PSNR (below) is
 23.6 / 14.9 / 23.8 dB for capture seeds 0 / 1 / 2 with this rendering and 15.3 / 16.7 /
 15.0 dB with the defaults (the turntable axis spread 0.04° becomes 1.4°), so this test of
-the texture stage keeps the rendering it was tuned on until registration holds."""
+the texture stage keeps the rendering (and the hybrid decoder: one global crosstalk
+matrix, no paint-edge rejection) it was tuned on until registration holds."""
 
 
 @pytest.fixture(scope="module")

@@ -1035,7 +1035,7 @@ def decode_hybrid_images(
     smooth_rows: bool = True,
     mixing: str = DEFAULT_MIXING,
     global_light: bool = False,
-    paint_edges: bool = False,
+    paint_edges: bool = True,
     max_line_sigma: float = DEFAULT_MAX_LINE_SIGMA,
     crosstalk: np.ndarray | None = None,
     bit_depth: int | None = None,

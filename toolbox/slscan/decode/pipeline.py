@@ -93,7 +93,7 @@ class DecodeConfig:
     """Hybrid: estimate the global (indirect) light from the finest levels (Nayar et al.
     2006), take it out of the line signal and bands, drop samples with little direct light
     (needs ``mixing="pixel"``)."""
-    paint_edges: bool = False
+    paint_edges: bool = True
     """Hybrid: drop line samples whose profile crosses a paint edge (needs ``mixing="pixel"``)."""
     max_line_sigma: float = DEFAULT_MAX_LINE_SIGMA
     """Hybrid: line samples whose expected axis standard deviation (camera px), from the
