@@ -67,7 +67,8 @@ def test_an_srgb_capture_decodes_like_the_linear_one(tone_sessions, family: str,
     assert np.percentile(np.abs(dx), 95) <= p95_px and abs(dx.mean()) <= 0.01
     # the same captures read as if linear: the curve bends the profiles, the axes move
     _, bent = moved(dataclasses.replace(srgb, response="linear"))
-    assert np.percentile(np.abs(bent), 95) > 1.5 * p95_px
+    # (mean shifts: hybrid 0.019 px linearised vs 0.035 px not, Gray code 0.005 vs 0.017 px)
+    assert np.abs(bent).mean() > 1.5 * np.abs(dx).mean()
 
 
 def test_decoding_returns_the_white_as_stored(tone_sessions):
