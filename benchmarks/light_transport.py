@@ -65,8 +65,19 @@ def effect_sets(text: str) -> list[tuple[str, tuple[str, ...]]]:
     return out
 
 
+def decoder_options(family: str, decoder: str) -> dict:
+    """DecodeConfig options of ``decoder``: "robust" (the defaults) or "plain", optionally
+    followed by ``@key=value`` overrides (e.g. ``robust@gray_drop_bits=0``)."""
+    name, *extra = decoder.split("@")
+    options = dict(PLAIN[family]) if name == "plain" else {}
+    for item in extra:
+        key, value = item.split("=", 1)
+        options[key] = int(value) if value.lstrip("-").isdigit() else value
+    return options
+
+
 def evaluate(session, view, family: str, decoder: str, scene) -> dict:
-    options = PLAIN[family] if decoder == "plain" else {}
+    options = decoder_options(family, decoder)
     config = DecodeConfig(method=METHOD[family], **options)
     t = time.process_time()
     result = decode_view(session, view, config)
@@ -91,16 +102,19 @@ def main() -> None:
     parser.add_argument("--effects", default="none,EACH,all",
                         help="row groups: none, EACH (every effect alone), all, or a+b")
     parser.add_argument("--families", default="hybrid,gray,xor")
-    parser.add_argument("--decoders", default="robust,plain")
+    parser.add_argument("--decoders", default="robust,plain",
+                        help="robust, plain, each optionally with @key=value DecodeConfig overrides "
+                             "(e.g. robust@gray_drop_bits=0)")
     args = parser.parse_args()
     logging.basicConfig(level=logging.ERROR)
     levels = min(9, int(np.log2(1024 * args.scale)) - 1)
     families = [f.strip() for f in args.families.split(",")]
     decoders = [d.strip() for d in args.decoders.split(",")]
+    dw = max(8, max(len(d) for d in decoders) + 1)
     groups = effect_sets(args.effects)
     print(f"virtual rig at {args.scale}x the paper's size, {levels} hybrid levels; effects: "
           + ", ".join(f"{e.name} ({e.summary})" for e in EFFECTS.values()))
-    header = (f"{'scene':<9}{'effects':<17}{'family':<8}{'decoder':<8}{'vertices':>9}{'mean mm':>9}"
+    header = (f"{'scene':<9}{'effects':<17}{'family':<8}{'decoder':<{dw}}{'vertices':>9}{'mean mm':>9}"
               f"{'p95 mm':>8}{'gross %':>9}{'coverage':>9}{'x direct':>9}{'render s':>9}{'decode s':>9}")
     print(header)
     direct: dict[tuple, float] = {}
@@ -133,17 +147,17 @@ def main() -> None:
                         ratio = m["mean"] / direct[key] if key in direct else np.nan
                         if label == "all":
                             worst.setdefault((family, decoder), []).append((scene_name, ratio, m["gross"]))
-                        print(f"{scene_name:<9}{label:<17}{family:<8}{decoder:<8}{m['vertices']:>9d}"
+                        print(f"{scene_name:<9}{label:<17}{family:<8}{decoder:<{dw}}{m['vertices']:>9d}"
                               f"{m['mean']:>9.4f}{m['p95']:>8.3f}{m['gross']:>9.3f}{m['coverage']:>9.3f}"
                               f"{ratio:>9.2f}{render_s[CAPTURE_FAMILY[family]]:>9.1f}{m['cpu']:>9.2f}",
                               flush=True)
     if worst:
         print("\nall effects on, against the targets (mean <= 1.5x direct, gross <= 0.1 %):")
-        print(f"{'family':<8}{'decoder':<8}{'worst x direct':>16}{'worst gross %':>15}{'meets':>7}")
+        print(f"{'family':<8}{'decoder':<{dw}}{'worst x direct':>16}{'worst gross %':>15}{'meets':>7}")
         for (family, decoder), rows in worst.items():
             r = max(x[1] for x in rows)
             g = max(x[2] for x in rows)
-            print(f"{family:<8}{decoder:<8}{r:>16.2f}{g:>15.3f}{'yes' if r <= 1.5 and g <= 0.1 else 'no':>7}")
+            print(f"{family:<8}{decoder:<{dw}}{r:>16.2f}{g:>15.3f}{'yes' if r <= 1.5 and g <= 0.1 else 'no':>7}")
 
 
 if __name__ == "__main__":

@@ -456,3 +456,61 @@ def test_adaptive_diagnostics_say_what_limited_the_mask():
     assert noisy["weak_bit_noise"] > d["weak_bit_noise"] and noisy["valid"] < d["valid"]
     with pytest.raises(SlscanError, match="unknown Gray-code threshold 'fixed'"):
         decode_gray_images(images, descs, white, black, threshold="fixed")
+
+
+def _washed_out(images, descs, white, black, bits: set[int], x0: int):
+    """The column bits ``bits`` washed out (pattern = inverse = mid grey) right of ``x0``,
+    as subsurface scattering washes out the finest stripes."""
+    out = dict(images)
+    mid = ((white.astype(np.int32) + black) // 2).astype(white.dtype)
+    for d in descs:
+        if d.axis == "columns" and d.params["bit"] in bits:
+            img = out[d.id].copy()
+            img[:, x0:] = mid[:, x0:]
+            out[d.id] = img
+    return out
+
+
+@pytest.mark.parametrize("robust", [True, False])
+def test_per_pixel_bit_dropping_keeps_the_coarse_code(robust):
+    images, descs, white, black = _synthetic(np.uint8, 1, rows=False)
+    x0 = CAM[0] // 2
+    washed = _washed_out(images, descs, white, black, {4, 5}, x0)
+    full = decode_gray_images(images, descs, white, black, robust=robust)
+    old = decode_gray_images(washed, descs, white, black, robust=robust)
+    one = decode_gray_images(washed, descs, white, black, robust=robust, drop_bits=1)
+    res = decode_gray_images(washed, descs, white, black, robust=robust, drop_bits=2)
+    assert not (old.column[:, x0:] >= 0).any()  # every bit or none
+    assert not (one.column[:, x0:] >= 0).any()  # two bits lost, one may be dropped
+    # left of the wash: exactly as before
+    np.testing.assert_array_equal(res.column[:, : x0 - 2], full.column[:, : x0 - 2])
+    # right of it: the centre of the block of 4 columns holding the truth
+    u = A_U * np.arange(CAM[0], dtype=float) + B_U
+    truth = np.broadcast_to(np.floor(u + 0.5).astype(int), res.column.shape)
+    right = np.zeros(res.column.shape, bool)
+    right[:, x0:] = True
+    decoded = right & (res.column >= 0)
+    assert decoded.sum() > 0.8 * right.sum()
+    np.testing.assert_array_equal(res.column[decoded], truth[decoded] // 4 * 4 + 2)
+    assert res.diagnostics["bits_dropped"] == int(decoded.sum())
+    # edges right of the wash only between blocks of 4, each at its exact position
+    e = res.edges
+    coarse = e.x > x0
+    assert coarse.sum() > 0 and np.all(e.projector_column[coarse] % 4 == 3.5)
+    truth_x = (e.projector_column - B_U) / A_U
+    assert np.max(np.abs(e.x - truth_x)) < 0.01
+    # every block boundary right of the wash, in every row, once
+    blocks = np.unique(e.projector_column[coarse])
+    expected = [c for c in np.arange(3.5, PROJ[0], 4) if x0 < (c - B_U) / A_U < CAM[0] - 1]
+    np.testing.assert_array_equal(blocks, expected)
+    assert coarse.sum() == CAM[1] * len(expected)
+    # left of it every boundary, as the full decode has them
+    np.testing.assert_array_equal(e.subset(e.x < x0 - 2).stripe, full.edges.subset(full.edges.x < x0 - 2).stripe)
+    # stripes count columns (the boundary's low column) at every level
+    np.testing.assert_array_equal(e.projector_column, e.stripe + 0.5)
+
+
+def test_drop_bits_must_be_a_count():
+    images, descs, white, black = _synthetic(np.uint8, 1, rows=False)
+    with pytest.raises(SlscanError, match="drop_bits must be an integer >= 0"):
+        decode_gray_images(images, descs, white, black, drop_bits=-1)

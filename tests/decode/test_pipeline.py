@@ -108,9 +108,11 @@ def test_gray_threshold_reaches_the_decoder(figurine, monkeypatch):
 
     monkeypatch.setattr(pipeline, "decode_gray", spy)
     res = decode_view(figurine, figurine.views[0], DecodeConfig(method="gray", gray_threshold="opencv"))
-    assert seen == [{"threshold": "opencv", "robust": True}] and len(res.samples) > 1000
-    decode_view(figurine, figurine.views[0], DecodeConfig(method="gray", gray_robust=False))
-    assert seen[-1] == {"threshold": "adaptive", "robust": False}
+    assert seen == [{"threshold": "opencv", "robust": True, "drop_bits": 0}] and len(res.samples) > 1000
+    decode_view(figurine, figurine.views[0], DecodeConfig(method="gray", gray_robust=False, gray_drop_bits=2))
+    assert seen[-1] == {"threshold": "adaptive", "robust": False, "drop_bits": 2}
+    with pytest.raises(SlscanError, match="gray_drop_bits must be an integer >= 0"):
+        DecodeConfig(gray_drop_bits=-1)
     with pytest.raises(SlscanError, match="unknown gray_threshold 'fixed'"):
         DecodeConfig(gray_threshold="fixed")
 
@@ -151,3 +153,15 @@ def test_a_set_missing_low_bits_still_meshes(figurine):
     assert res.range_map.n_faces > 0.12 * full.range_map.n_faces  # bridged 8x as far
     d = _distance_to_truth(res.range_map.vertices, figurine.views[0].rig_from_object)
     assert np.median(d) < 0.2
+
+
+def test_dropped_bits_mesh_their_wider_edge_spacing(figurine):
+    full = decode_view(figurine, figurine.views[0], DecodeConfig(method="gray"))
+    res = decode_view(figurine, figurine.views[0], DecodeConfig(method="gray", gray_drop_bits=3))
+    # at half size the finest stripes are under two camera px: pixels that lose them keep
+    # the coarse code, and their edges (8 columns apart at most) are meshed
+    assert len(res.samples) > len(full.samples)
+    assert res.range_map.n_faces > full.range_map.n_faces
+    np.testing.assert_array_equal(res.samples.projector_column, res.samples.stripe + 0.5)
+    d = _distance_to_truth(res.range_map.vertices, figurine.views[0].rig_from_object)
+    assert np.median(d) < 0.15 and np.mean(d < 1.0) > 0.99

@@ -761,6 +761,7 @@ def decode_gray_images(
     robust: bool = True,
     separation_bits: int = SEPARATION_BITS,
     consistency_radius: int = CONSISTENCY_RADIUS,
+    drop_bits: int = 0,
     where: str = "",
 ) -> GrayResult:
     """Decode one view's Gray-code captures into projector columns (rows) and stripe edges.
@@ -810,6 +811,14 @@ def decode_gray_images(
         decoder as it was before (no separation, no rejection).
     separation_bits, consistency_radius : int
         See ``robust``.
+    drop_bits : int
+        Per-pixel bit dropping (Gray codes; XOR codes ignore it): a pixel whose finest
+        column (row) bits are weak or unreliable but whose leading run of at least
+        ``bits - drop_bits`` bits is readable (and reliable, with ``robust``) keeps the
+        code of that run, the centre of its block of ``2**dropped`` columns (rows), as a
+        set missing those bits would give it (``bits_used``); its edges are found only
+        between such blocks, where both sides have the coarse bits. Subsurface
+        scattering washes out the finest stripes first. 0: every bit or none.
     where : str
         Prefix for error messages (e.g. the view folder).
 
@@ -838,6 +847,8 @@ def decode_gray_images(
         )
     if edge_axes not in ("both", "rows"):
         raise SlscanError(f"{where}edge_axes must be 'both' or 'rows', got {edge_axes!r}")
+    if not isinstance(drop_bits, (int, np.integer)) or isinstance(drop_bits, bool) or drop_bits < 0:
+        raise SlscanError(f"{where}drop_bits must be an integer >= 0, got {drop_bits!r}")
     if separation_bits < 1 or consistency_radius < 0:
         raise SlscanError(
             f"{where}separation_bits must be at least 1 and consistency_radius at least 0, "
@@ -956,27 +967,41 @@ def decode_gray_images(
                 np.ones(contrast.shape, bool) if rule else None)
 
     def add_bit(code: np.ndarray, ok: np.ndarray, reliable: np.ndarray | None,
-                pattern: np.ndarray, inverse: np.ndarray) -> None:
+                pattern: np.ndarray, inverse: np.ndarray, run: tuple | None = None) -> None:
         code <<= 1
         np.bitwise_or(code, pattern > inverse, out=code)  # the same sign as the fractions'
-        ok &= strong(pattern, inverse)
+        good = strong(pattern, inverse)
+        ok &= good
         if reliable is not None:
-            reliable &= bit_reliable(read.fraction(pattern), read.fraction(inverse), direct,
-                                     global_light, min_direct)
+            rel = bit_reliable(read.fraction(pattern), read.fraction(inverse), direct,
+                               global_light, min_direct)
+            reliable &= rel
+            good &= rel
+        if run is not None:  # the leading run of readable (reliable) bits
+            so_far, lead = run
+            so_far &= good
+            lead += so_far
+
+    def new_run(bits: GrayBits) -> tuple | None:
+        if not drop_bits or bits.base is not None:
+            return None
+        return np.ones(contrast.shape, bool), np.zeros(contrast.shape, np.uint8)
 
     col_code, col_strong, col_rel = start(col_bits)
+    col_run = new_run(col_bits)
     for k in range(len(col_pairs)):
-        add_bit(col_code, col_strong, col_rel, col_diffs.pattern[k], col_diffs.inverse[k])
+        add_bit(col_code, col_strong, col_rel, col_diffs.pattern[k], col_diffs.inverse[k], col_run)
     col_value = _gray_to_value(_fold_xor(col_code, len(col_pairs), col_bits.base))
     col_in = col_value < -(-width // 2**col_bits.coarse)
     col_valid = lit & col_strong & col_in
     all_strong, in_range, all_rel = col_strong, col_in, col_rel
-    row_value = row_valid = None
+    row_value = row_valid = row_run = None
     if row_pairs:  # row bits: folded into the code as they are read
         row_code, row_strong, row_rel = start(row_bits)
+        row_run = new_run(row_bits)
         for pid, inv in row_pairs:
             add_bit(row_code, row_strong, row_rel, read.levels(images[pid], pid),
-                    read.levels(images[inv], inv))
+                    read.levels(images[inv], inv), row_run)
         row_value = _gray_to_value(_fold_xor(row_code, len(row_pairs), row_bits.base))
         row_in = row_value < -(-height // 2**row_bits.coarse)
         row_valid = lit & row_strong & row_in
@@ -1001,6 +1026,30 @@ def decode_gray_images(
         n_inconsistent = int((mask & all_rel).sum()) - int(new_mask.sum())
         mask = new_mask
 
+    # per-pixel bit dropping: pixels whose leading run of good bits is long enough
+    col_drop = row_drop = None
+    n_dropped = 0
+    if col_run is not None or row_run is not None:
+        col_value, col_drop, col_extra = _drop_codes(col_value, col_valid, col_run, lit, len(col_pairs),
+                                                     drop_bits, -(-width // 2**col_bits.coarse))
+        extra = col_extra
+        if row_value is not None:
+            row_value, row_drop, row_extra = _drop_codes(row_value, row_valid, row_run, lit, len(row_pairs),
+                                                         drop_bits, -(-height // 2**row_bits.coarse))
+            extra = (col_valid | col_extra) & (row_valid | row_extra) & ~(col_valid & row_valid)
+            row_valid = row_valid | row_extra
+        col_valid = col_valid | col_extra
+        if robust and consistency_radius:  # the coarse codes against their neighbours
+            centre = _block_centres(col_value, col_drop)
+            col_valid &= ~(_inconsistent(centre, col_valid, consistency_radius) & (col_drop > 0))
+            if row_value is not None:
+                centre = _block_centres(row_value, row_drop)
+                row_valid &= ~(_inconsistent(centre, row_valid, consistency_radius) & (row_drop > 0))
+        new_mask = col_valid if row_valid is None else col_valid & row_valid
+        extra &= new_mask
+        n_dropped = int(extra.sum())
+        mask = mask | extra
+
     weak = lit & ~all_strong
     n_lit = int(lit.sum())
     n_weak = int(weak.sum())
@@ -1017,6 +1066,8 @@ def decode_gray_images(
         "out_of_range": int((lit & all_strong & ~in_range).sum()),
         "valid": int(mask.sum()),
     }
+    if drop_bits:
+        diagnostics["bits_dropped"] = n_dropped
     if robust:
         diagnostics["unreliable_global"] = n_unreliable
         diagnostics["inconsistent"] = n_inconsistent
@@ -1027,11 +1078,27 @@ def decode_gray_images(
     del weak, all_strong, in_range, ratio_binds, black_box
 
     saturated = read.saturated[box]
-    edges = _edges_banded(col_value, col_valid, lit, col_diffs, w_img, saturated, max_edge_gap)
-    if edge_axes == "both":
-        across = _edges_banded(col_value.T, col_valid.T, lit.T, col_diffs.T, w_img.T, saturated.T,
-                               max_edge_gap)
-        edges = _both_axes(edges, across)
+    levels = []  # edges between blocks of 2**d columns among pixels with at least bits - d bits
+    for d in range(1 if col_drop is None else int(col_drop[col_valid].max(initial=0)) + 1):
+        valid_d = col_valid if col_drop is None else col_valid & (col_drop <= d)
+        value_d = col_value >> d
+        diffs_d = col_diffs if not d else _BitDiffs(read, col_diffs.pattern[: len(col_pairs) - d],
+                                                    col_diffs.inverse[: len(col_pairs) - d], col_bits.base)
+        found = _edges_banded(value_d, valid_d, lit, diffs_d, w_img, saturated, max_edge_gap)
+        if edge_axes == "both":
+            across = _edges_banded(value_d.T, valid_d.T, lit.T, diffs_d.T, w_img.T, saturated.T,
+                                   max_edge_gap)
+            found = _both_axes(found, across)
+        if d:  # stripe: the boundary's low column; a boundary a finer level has is kept there
+            stripe = (found.stripe.astype(np.int64) + 1) * 2**d - 1
+            found = replace(found, stripe=stripe.astype(np.int32),
+                            projector_column=stripe.astype(np.float64) + 0.5)
+            found = found.subset(~np.isin(_edge_keys(found), np.concatenate([_edge_keys(f) for f in levels])))
+        levels.append(found)
+    edges = levels[0]
+    if len(levels) > 1:
+        edges = StripeSamples.concatenate([e.with_y() for e in levels])
+        edges = edges.subset(np.lexsort((edges.x, edges.row)))
     del col_diffs
     edges = _coarse_edges(edges, col_bits.coarse).shifted(y0, x0)
 
@@ -1040,6 +1107,10 @@ def decode_gray_images(
             value = np.minimum((value << coarse) + (1 << (coarse - 1)), size - 1)
         return uncrop(np.where(valid, value, -1).astype(np.int32), box, full_lit.shape, -1)
 
+    if col_drop is not None:  # dropped bits: the centre of the block, in the set's units
+        col_value = np.where(col_valid, _block_centres(col_value, col_drop), col_value)
+    if row_drop is not None:
+        row_value = np.where(row_valid, _block_centres(row_value, row_drop), row_value)
     column = to_map(col_value, col_valid, col_bits.coarse, width)
     row = None if row_value is None else to_map(row_value, row_valid, row_bits.coarse, height)
     mask = uncrop(mask, box, full_lit.shape, False)
@@ -1070,6 +1141,41 @@ def decode_gray_images(
         direct=direct,
         global_light=global_light,
     )
+
+
+def _drop_codes(value: np.ndarray, valid: np.ndarray, run: tuple | None, lit: np.ndarray, bits: int,
+                drop_bits: int, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-pixel bit dropping: ``(value, dropped, extra)`` with ``dropped`` the finest
+    bits each pixel lacks (0 where ``valid`` already holds), ``extra`` the pixels not in
+    ``valid`` whose leading run of good bits (``run``) is at least ``bits - drop_bits``
+    long and whose block (``value >> dropped``; the leading bits of a Gray code decode to
+    the leading bits of its value) starts inside the ``size`` columns (rows)."""
+    if run is None:
+        return value, np.zeros(value.shape, np.uint8), np.zeros(value.shape, bool)
+    _, lead = run
+    dropped = (bits - lead.astype(np.int32)).astype(np.uint8)
+    dropped[valid] = 0
+    extra = lit & ~valid & (dropped >= 1) & (dropped <= min(drop_bits, bits - 1))
+    extra &= ((value >> dropped) << dropped) < size
+    dropped[~valid & ~extra] = 0
+    return value, dropped, extra
+
+
+def _block_centres(value: np.ndarray, dropped: np.ndarray | None) -> np.ndarray:
+    """``value`` with its ``dropped`` finest bits replaced by the centre of their block."""
+    if dropped is None or not dropped.any():
+        return value
+    d = dropped.astype(np.int32)
+    half = np.where(d > 0, np.left_shift(1, np.maximum(d - 1, 0)), 0)
+    return ((value >> d) << d) + half
+
+
+def _edge_keys(edges: StripeSamples) -> np.ndarray:
+    """One int64 key per sample: its line (camera row, or column for samples found along
+    columns), axis and boundary."""
+    along = np.zeros(len(edges), bool) if edges.along_columns is None else edges.along_columns
+    line = np.where(along, np.round(edges.x), edges.row).astype(np.int64)
+    return (np.asarray(edges.stripe, np.int64) * 2 + along) * (1 << 24) + line
 
 
 def _coarse_edges(edges: StripeSamples, coarse: int) -> StripeSamples:

@@ -108,6 +108,11 @@ class DecodeConfig:
     """Gray-code pixels whose code global light may have corrupted (a bit failing Gupta's
     direct/global rule) or that disagree with their neighbours are left out instead of
     giving wrong 3D points (``decode.graycode``, ``robust``); False: the decoder as before."""
+    gray_drop_bits: int = 0
+    """Gray code: a pixel whose finest bits are weak or unreliable (subsurface scattering
+    washes out the finest stripes) keeps the coarser code of its leading run of good bits
+    when at most this many are dropped (``decode.graycode``, ``drop_bits``); its edges come
+    only between blocks of ``2**dropped`` columns, which the mesh bridges. 0: every bit or none."""
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -127,6 +132,9 @@ class DecodeConfig:
                 f"unknown gray_threshold {self.gray_threshold!r}: expected one of "
                 f"{', '.join(THRESHOLD_MODES)}"
             )
+        if isinstance(self.gray_drop_bits, bool) or not isinstance(self.gray_drop_bits, int) \
+                or self.gray_drop_bits < 0:
+            raise SlscanError(f"gray_drop_bits must be an integer >= 0, got {self.gray_drop_bits!r}")
         for name in ("max_edge_factor", "max_gap_columns"):
             if not getattr(self, name) > 0:
                 raise SlscanError(f"{name} must be positive, got {getattr(self, name)!r}")
@@ -268,7 +276,8 @@ def decode_view(
         samples, mask, codes = res.samples, res.mask, res.codes
         code_max = 2 ** len(descs)
     else:
-        res = decode_gray(session, view, threshold=config.gray_threshold, robust=config.gray_robust)
+        res = decode_gray(session, view, threshold=config.gray_threshold, robust=config.gray_robust,
+                          drop_bits=config.gray_drop_bits)
         samples, mask, codes, saturated = res.edges, res.mask, res.column, res.saturated
         code_max = session.projector_size[0]
         used, bits = res.bits_used.get("columns", (0, 0))
@@ -293,7 +302,10 @@ def decode_view(
         view=view.name,
         max_edge_factor=config.max_edge_factor,
         max_view_angle_deg=config.max_view_angle_deg,
-        max_gap_columns=config.max_gap_columns * edge_spacing,
+        # pixels with dropped bits have edges 2**dropped columns apart: bridge one such
+        # spacing and a half (the default 6 columns already span blocks of 4)
+        max_gap_columns=max(config.max_gap_columns, 1.5 * 2**config.gray_drop_bits) * edge_spacing
+        if method == "gray" else config.max_gap_columns,
     )
     seconds["mesh"] = time.perf_counter() - t
     if len(range_map.faces) == 0:
