@@ -52,7 +52,7 @@ from slscan.patterns import profile as pattern_profile
 from slscan.rig import PinholeModel, Rig, transform_points
 from slscan.virtual import transport
 from slscan.virtual.effects import Effect, register
-from slscan.virtual.scenes import Scene
+from slscan.virtual.scenes import Scene, shading_normals
 
 SHADOW_EPS = 0.05  # mm offset of shadow-ray origins along the normal
 MAX_FOOTPRINT = 64.0  # projector px; grazing surfaces are clamped
@@ -338,16 +338,7 @@ def trace_view(scene: Scene, rig: Rig, rig_from_object: np.ndarray, optics: Opti
     geo_n[~facing_cam] *= -1  # seen from behind (open meshes): shade the side we see
 
     wts = np.stack([1 - bary[:, 0] - bary[:, 1], bary[:, 0], bary[:, 1]], axis=1)
-    if scene.normals is not None:
-        normals_rig = scene.normals @ rig_from_object[:3, :3].T
-        n = np.einsum("kc,kcj->kj", wts, normals_rig[tri])
-        n /= np.linalg.norm(n, axis=1, keepdims=True)
-        n[~facing_cam] *= -1
-        # keep interpolated normals on the visible side of the face
-        back = np.einsum("ij,ij->i", n, geo_n) <= 0.05
-        n[back] = geo_n[back]
-    else:
-        n = geo_n
+    n = shading_normals(scene, rig_from_object[:3, :3], tri, wts, geo_n, facing_cam)
     p_obj = (point - rig_from_object[:3, 3]) @ rig_from_object[:3, :3]
     albedo = scene.albedo.at(p_obj, prim, bary)
     mat = scene.material_of(prim)

@@ -244,6 +244,7 @@ def trace_indirect(scene, rig, rig_from_object: np.ndarray, vertices: np.ndarray
     import open3d as o3d
 
     from slscan.virtual.render import SHADOW_EPS, _blinn_phong, _occluded
+    from slscan.virtual.scenes import shading_normals
 
     h, w = hit.shape
     off = stride // 2
@@ -279,15 +280,7 @@ def trace_indirect(scene, rig, rig_from_object: np.ndarray, vertices: np.ndarray
     facing = np.einsum("ij,ij->i", geo_n, dirs) < 0
     geo_n[~facing] *= -1  # the side the receiver sees
     wts = np.stack([1 - bary[:, 0] - bary[:, 1], bary[:, 0], bary[:, 1]], axis=1)
-    if scene.normals is not None:
-        normals_rig = scene.normals @ rig_from_object[:3, :3].T
-        n = np.einsum("kc,kcj->kj", wts, normals_rig[tri])
-        n /= np.linalg.norm(n, axis=1, keepdims=True)
-        n[~facing] *= -1
-        back = np.einsum("ij,ij->i", n, geo_n) <= 0.05
-        n[back] = geo_n[back]
-    else:
-        n = geo_n
+    n = shading_normals(scene, rig_from_object[:3, :3], tri, wts, geo_n, facing)
 
     proj = rig.projector
     uv = proj.project(q)
