@@ -11,6 +11,7 @@ coordinates (scaled to mm) and is placed by a pose.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import math
 import os
@@ -252,6 +253,14 @@ def _relief(points: np.ndarray) -> np.ndarray:
     )
 
 
+def _add_part(parts: list, verts: np.ndarray, tris: np.ndarray, part: int, relief: float = 0.0) -> None:
+    """Append ``(verts, tris, part)`` to ``parts``, the vertices pushed along their normals by
+    ``relief`` times the carved relief pattern (:func:`_relief`)."""
+    if relief:
+        verts = verts + relief * _relief(verts)[:, None] * vertex_normals(verts, tris)
+    parts.append((verts, tris, part))
+
+
 def _paint(points: np.ndarray, part: np.ndarray) -> np.ndarray:
     """The figurine's painted albedo (k, 3): stone, saturated red and blue paint, dark ink."""
     x, y, z = points.T
@@ -295,12 +304,7 @@ def builtin_object(*, detail: float = 1.0) -> Scene:
     ``detail`` scales the tessellation (1.0: ~2 mm triangles on the body).
     """
     parts = []
-
-    def add(verts, tris, part, relief=0.0):
-        normals = vertex_normals(verts, tris)
-        if relief:
-            verts = verts + relief * _relief(verts)[:, None] * normals
-        parts.append((verts, tris, part))
+    add = functools.partial(_add_part, parts)
 
     n = max(16, round(300 * detail))
     v, t = _uv_sphere(n // 2, n)
@@ -498,12 +502,7 @@ def marble_bust(*, detail: float = 1.0) -> Scene:
     """A bust-like marble object, about 440 mm tall: a head with a nose and carved ~1 mm
     relief, a neck, shoulders, on a matte dark-stone plinth (a material border)."""
     parts = []
-
-    def add(verts, tris, part, relief=0.0):
-        normals = vertex_normals(verts, tris)
-        if relief:
-            verts = verts + relief * _relief(verts)[:, None] * normals
-        parts.append((verts, tris, part))
+    add = functools.partial(_add_part, parts)
 
     n = max(16, round(200 * detail))
     v, t = _uv_sphere(n // 2, n)
@@ -575,6 +574,23 @@ def scene_by_name(name: str, *, units: str | float | None = None, pose: np.ndarr
         scene = _BUILDERS[name](**kwargs)
         return scene if pose is None else dataclasses.replace(scene, placement=np.asarray(pose, dtype=float))
     return load_mesh_scene(name, units="auto" if units is None else units, pose=pose, **kwargs)
+
+
+def shading_normals(scene: Scene, rotation: np.ndarray, tri: np.ndarray, wts: np.ndarray, geo_n: np.ndarray,
+                    facing: np.ndarray) -> np.ndarray:
+    """Unit shading normals (k, 3) at k surface hits: ``scene``'s vertex normals turned by
+    ``rotation`` (3, 3), interpolated over the hit triangles' corners ``tri`` (k, 3) with
+    barycentric weights ``wts`` (k, 3), turned to the side seen (``facing`` False: seen from
+    behind) and replaced by the face normal ``geo_n`` (k, 3, already turned to that side)
+    where they point away from it; ``geo_n`` itself for a scene without normals."""
+    if scene.normals is None:
+        return geo_n
+    n = np.einsum("kc,kcj->kj", wts, (scene.normals @ rotation.T)[tri])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    n[~facing] *= -1
+    back = np.einsum("ij,ij->i", n, geo_n) <= 0.05  # keep them on the visible side of the face
+    n[back] = geo_n[back]
+    return n
 
 
 def surface_albedo(scene: Scene, points: np.ndarray) -> np.ndarray:
