@@ -16,6 +16,7 @@ import resource
 import subprocess
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -78,11 +79,14 @@ class Measured:
     stderr: str
 
 
-def run_measured(command: list[str], *, interval: float = 0.1, **kwargs) -> Measured:
+def run_measured(command: list[str], *, interval: float = 0.1, extra_pids: Sequence[int] = (),
+                 **kwargs) -> Measured:
     """Run ``command``; its wall time and the peak resident memory of its process tree.
 
     The tree is sampled every ``interval`` seconds, so a peak shorter than that can be
-    missed; each sample walks /proc (about 1 ms here).
+    missed; each sample walks /proc (about 1 ms here). ``extra_pids``: processes that work
+    for the command without being its children (a Dask cluster's workers), each sample
+    adds their trees.
     """
     t0 = time.perf_counter()
     proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kwargs)
@@ -92,7 +96,7 @@ def run_measured(command: list[str], *, interval: float = 0.1, **kwargs) -> Meas
     def sample() -> None:
         nonlocal peak
         while not done.is_set():
-            peak = max(peak, tree_rss_bytes(proc.pid))
+            peak = max(peak, tree_rss_bytes(proc.pid) + sum(tree_rss_bytes(pid) for pid in extra_pids))
             done.wait(interval)
 
     sampler = threading.Thread(target=sample, daemon=True)

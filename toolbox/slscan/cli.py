@@ -132,7 +132,8 @@ def _cmd_capture(args: argparse.Namespace) -> int:
         return 0
     with (recording_from_args(args, recording_name=f"capture {args.out.name}", blueprint=capture_blueprint()) as rec,
           _ProgressBar(total, "capturing", args.quiet) as bar):
-        session = capture_session(config, args.out, overwrite=args.overwrite, rec=rec, progress=bar.step)
+        session = capture_session(config, args.out, overwrite=args.overwrite, rec=rec, progress=bar.step,
+                                  executor=executor_from_args(args))
     from slscan.fsio import human_size
 
     n_images = sum(len(v.images) for v in session.views)
@@ -662,6 +663,7 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     _add_capture_options(p)
+    add_executor_arguments(p)
     p.set_defaults(func=_cmd_capture)
 
     from slscan.capture.command import add_command as add_scan_command

@@ -54,6 +54,10 @@ class Executor:
     def _local_workers(self) -> int:
         return self.workers or os.cpu_count() or 1
 
+    def parallel(self, items: int) -> bool:
+        """Whether :meth:`map` over ``items`` items works on more than one at a time."""
+        return self.scheduler is not None or min(items, self._local_workers()) > 1
+
     def start(self, items: int, modules: Sequence[str] = ()) -> None:
         """Start the helper processes that :meth:`map` over ``items`` items will use now,
         each importing ``modules`` (e.g. the stage's module), so that their start-up

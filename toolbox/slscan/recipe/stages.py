@@ -76,7 +76,8 @@ def expand_path(text: str) -> Path:
 def _run_capture(ctx: StageContext, config) -> dict[str, Any]:
     from slscan.virtual.device import capture_session
 
-    session = capture_session(config, ctx.out, overwrite=True, rec=ctx.rec, progress=ctx.progress)
+    session = capture_session(config, ctx.out, overwrite=True, rec=ctx.rec, progress=ctx.progress,
+                              executor=ctx.executor)
     return {"views": len(session.views), "images": sum(len(v.images) for v in session.views)}
 
 

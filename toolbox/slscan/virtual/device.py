@@ -7,17 +7,29 @@ per-view ground truth, so the rest of the pipeline never knows the difference.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
-from slscan.capture.driver import ScanDevices, ScanPlan, capture_records, scan
-from slscan.capture.session import LIT, SHADOW, GroundTruth, ImageRecord, Session
+from slscan.capture.driver import FrameCaptured, ScanDevices, ScanPlan, capture_records, scan
+from slscan.capture.session import (
+    LIT,
+    SHADOW,
+    GroundTruth,
+    ImageRecord,
+    Session,
+    ViewRecord,
+    read_capture,
+)
+from slscan.devices.base import DeviceError
 from slscan.errors import SlscanError
-from slscan.patterns import PatternImage, standard_set
+from slscan.fsio import write_jpeg, write_png
+from slscan.patterns import PatternImage, render, standard_set
 from slscan.rig import Rig, default_rig, transform_points
 from slscan.virtual.devices import VirtualRig, turntable_pose
 from slscan.virtual.effects import apply_effects, parse_effects
@@ -172,13 +184,26 @@ def capture_view(
 
     Returns ``[(record, image), ...]`` and the traced geometry (reuse it for ground truth).
     """
-    sensor, optics = config.sensor, config.optics
-    if geometry is not None and not needs_trace(geometry, optics):
+    sensor = config.sensor
+    if geometry is not None and not needs_trace(geometry, config.optics):
         geom = geometry
     else:  # traced here, or again when the given geometry lacks the transport the optics need
-        geom = trace_view(scene, rig, rig_from_object, optics)
-    records = capture_records(patterns, len(rig.lights) if config.lit_images else 0, jpeg=bool(sensor.jpeg_quality))
+        geom = trace_view(scene, rig, rig_from_object, config.optics)
     out = []
+    for rec, image in _exposed_images(geom, rig, patterns, config, view_index):
+        if sensor.jpeg_quality:  # what reading the session's .jpg gives back
+            image = jpeg_round_trip(image, sensor.jpeg_quality)
+        out.append((rec, image))
+    return out, geom
+
+
+def _exposed_images(geom: ViewGeometry, rig: Rig, patterns: list[PatternImage], config: VirtualCaptureConfig,
+                    view_index: int):
+    """``(record, image)`` of every image of a traced view, as the sensor exposes it (before
+    any JPEG encoding); image ``i`` of view ``v`` draws its noise from ``[seed, v, i]``,
+    as the driver's camera does."""
+    sensor, optics = config.sensor, config.optics
+    records = capture_records(patterns, len(rig.lights) if config.lit_images else 0, jpeg=bool(sensor.jpeg_quality))
     for i, rec in enumerate(records):
         rng = np.random.default_rng([config.seed, view_index, i])
         if rec.kind == "pattern":
@@ -186,10 +211,7 @@ def capture_view(
         else:
             image = sensor.expose(shade_light(geom, rec.light, rig, optics), rng,
                                   exposure_scale=config.lit_exposure, camera=rig.camera)
-        if sensor.jpeg_quality:  # what reading the session's .jpg gives back
-            image = jpeg_round_trip(image, sensor.jpeg_quality)
-        out.append((rec, image))
-    return out, geom
+        yield rec, image
 
 
 def virtual_devices(
@@ -225,15 +247,17 @@ def scan_plan(config: VirtualCaptureConfig, rig: Rig, *, settle_s: float = 0.0,
 def log_virtual_view(rec, world: VirtualRig, view_index: int) -> None:
     """Log what only the virtual rig knows about the view just captured: the scene mesh
     where it stands and the per-pixel truth."""
-    from slscan.viewer import log as rlog
-
     if rec is None or world.geometry is None:
         return
-    scene = world.scene
-    verts = transform_points(world.pose, scene.vertices)
+    _log_view_truth(rec, world.scene, world.rig, world.pose, ground_truth(world.geometry), view_index)
+
+
+def _log_view_truth(rec, scene: Scene, rig: Rig, pose: np.ndarray, truth: GroundTruth, view_index: int) -> None:
+    from slscan.viewer import log as rlog
+
+    verts = transform_points(pose, scene.vertices)
     rlog.log_scene_mesh(rec, verts, scene.triangles, scene.albedo.vertex_colors(scene.vertices), view_index=view_index)
-    rlog.log_ground_truth(rec, ground_truth(world.geometry), view_index=view_index,
-                          projector_width=world.rig.projector.lens.width)
+    rlog.log_ground_truth(rec, truth, view_index=view_index, projector_width=rig.projector.lens.width)
 
 
 def capture_session(
@@ -247,10 +271,17 @@ def capture_session(
     poses: list[np.ndarray] | None = None,
     rig: Rig | None = None,
     noise_stream: tuple[int, ...] = (),
+    executor=None,
 ) -> Session:
     """Capture ``config.views`` views of ``config.scene`` on the virtual rig into folder ``out``,
     through the acquisition driver (:func:`slscan.capture.driver.scan`), written at once
     when complete.
+
+    With an ``executor`` (:class:`slscan.executor.Executor`) of more than one worker, the
+    views are rendered (traced, shaded, exposed, PNG-encoded) in its processes instead,
+    each writing its own view's images; the session is the same image for image, and
+    Rerun gets each view's frames when the view is done. Only for ``config``'s own scene
+    and the single-camera noise stream (``scene`` and ``noise_stream`` left out).
 
     rec : an ``rr.RecordingStream`` to stream images, truth and rig to, or None
     progress : called with a short label after each image is written
@@ -269,14 +300,19 @@ def capture_session(
         raise SlscanError("no poses to capture")
     world = virtual_devices(config, scene=scene, poses=poses, rig=rig, noise_stream=noise_stream)
     views = len(poses) if poses is not None else config.views
+    view_poses = []
     for v in range(views):
         pose = poses[v] if poses is not None else turntable_pose(world.rig, 360.0 * v / views, world.scene.placement)
         check_visible(world.scene, world.rig, pose)
+        view_poses.append(pose)
     rlog.log_rig(rec, world.rig)
     device = {"kind": "virtual-rig", "scene": world.scene.name, "config": config.to_dict()}
     if poses is None:
         device["scene_placement"] = placement_record(world.scene.placement, world.scene.mm_per_unit,
                                                      config.scene_pose not in (None, "default"))
+    if executor is not None and scene is None and not noise_stream and executor.parallel(views):
+        return _capture_pooled(config, world, view_poses, out, device, executor, overwrite=overwrite, rec=rec,
+                               progress=progress)
     result = scan(
         # no reference frame: the virtual rig has no latency, and its images stay those of
         # earlier slscan versions (each image's noise is drawn from its index in the view)
@@ -287,6 +323,87 @@ def capture_session(
         after_view=None if rec is None else lambda v, _record, _session: log_virtual_view(rec, world, v),
     )
     return result.session
+
+
+@dataclass(frozen=True)
+class _ViewJob:
+    """One view for a worker to render: where the object stands and where its images go."""
+
+    config: VirtualCaptureConfig
+    rig: Rig
+    rig_from_object: np.ndarray
+    view_index: int
+    folder: str
+
+
+@functools.lru_cache(maxsize=2)
+def _scene(name: str, units: str | float | None, pose: str | None) -> Scene:
+    """A worker's scene, built once per process (a mesh file is read once, not per view)."""
+    return scene_by_name(name, units=units, pose=parse_pose(pose))
+
+
+def _render_view(job: _ViewJob) -> ViewRecord:
+    """Render one view in a worker: its images and ground truth written into ``job.folder``."""
+    config, rig = job.config, job.rig
+    name = f"view_{job.view_index:03d}"
+    scene = _scene(config.scene, config.scene_units, config.scene_pose)
+    geom = trace_view(scene, rig, job.rig_from_object, config.optics)
+    if not geom.hit.any():  # as the virtual turntable refuses the view
+        raise DeviceError(f"{name}: the camera sees nothing of scene {scene.name!r}")
+    if not geom.proj_lit.any():
+        raise DeviceError(f"{name}: the projector lights nothing the camera sees")
+    folder = Path(job.folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    sensor, records = config.sensor, []
+    for rec, image in _exposed_images(geom, rig, config.pattern_set(rig), config, job.view_index):
+        if sensor.jpeg_quality:
+            write_jpeg(folder / rec.file, image, sensor.jpeg_quality)
+        else:
+            write_png(folder / rec.file, image)
+        records.append(rec)
+    gt_file = "ground_truth.npz"
+    ground_truth(geom).save(folder / gt_file)
+    # what the driver records for the virtual camera (VirtualCamera.exposure_record)
+    exposure = {"sensor": sensor.to_dict(), "camera": {"exposure": sensor.exposure, "gain": sensor.gain},
+                "lit_exposure": config.lit_exposure, "settle_s": 0.0}
+    return ViewRecord(name, tuple(records), job.rig_from_object, "ground-truth", exposure, gt_file)
+
+
+def _capture_pooled(config: VirtualCaptureConfig, world: VirtualRig, poses: list[np.ndarray], out, device: dict,
+                    executor, *, overwrite: bool, rec, progress: Progress | None) -> Session:
+    """:func:`capture_session`'s views rendered by ``executor``'s workers, in view order."""
+    from slscan.capture.session import SessionWriter
+
+    rig, sensor = world.rig, config.sensor
+    patterns = config.pattern_set(rig)
+    lens = rig.projector.lens
+    writer = SessionWriter(
+        out, camera_size=(rig.camera.width, rig.camera.height), projector_size=(lens.width, lens.height),
+        channels=world.camera.channels, bit_depth=sensor.bit_depth, patterns=patterns, calibration=rig,
+        calibration_source="virtual-rig ground truth", device=device, overwrite=overwrite,
+        jpeg_quality=sensor.jpeg_quality or None, response=sensor.response,
+    )
+    on_frame = None
+    if rec is not None:
+        from slscan.viewer import log_scan
+
+        on_frame = log_scan.frame_logger(rec)
+    with writer:
+        jobs = [_ViewJob(config, rig, pose, v, str(writer.view_folder(f"view_{v:03d}"))) for v, pose in enumerate(poses)]
+        executor.start(len(jobs), ("slscan.virtual.device",))
+        for v, record in enumerate(executor.map(_render_view, jobs)):
+            writer.add_view(record)
+            for i, image_record in enumerate(record.images):
+                if on_frame is not None:
+                    image = read_capture(Path(jobs[v].folder) / image_record.file)
+                    shown = render(patterns[i]) if image_record.kind == "pattern" else None
+                    on_frame(FrameCaptured(v, i, image_record, image, shown))
+                if progress:
+                    progress(f"{record.name} {image_record.file}")
+            if rec is not None:
+                scene, truth = world.scene, GroundTruth.load(Path(jobs[v].folder) / record.ground_truth)
+                _log_view_truth(rec, scene, rig, record.rig_from_object, truth, v)
+    return writer.session()
 
 
 def images_per_view(config: VirtualCaptureConfig) -> int:
