@@ -92,9 +92,8 @@ def _rotation(axis: int, degrees: float) -> np.ndarray:
 
 
 def campaign(n_views: int, vertices: np.ndarray, faces: np.ndarray, working_distance: float) -> list[np.ndarray]:
-    """``rig_from_object`` (4, 4) of ``n_views`` views: rings of equal views around the
-    statue at :data:`RINGS` and :data:`ABOVE` (the ring above gets what is left of an
-    even split, at least one view), each moved along the camera axis so that the surface
+    """``rig_from_object`` (4, 4) of ``n_views`` views: a tenth of them on the ring above
+    (:data:`ABOVE`), the rest split evenly over the rings around (:data:`RINGS`), each moved along the camera axis so that the surface
     the axis meets is at ``working_distance``."""
     import open3d as o3d
     import open3d.core as o3c
@@ -102,11 +101,9 @@ def campaign(n_views: int, vertices: np.ndarray, faces: np.ndarray, working_dist
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3c.Tensor(vertices.astype(np.float32)), o3c.Tensor(faces.astype(np.uint32)))
     rings = [(h, 0.0) for h in RINGS] + [ABOVE]
-    per_ring = max(1, n_views // len(rings))
-    counts = [per_ring] * (len(rings) - 1)
-    counts.append(max(1, n_views - sum(counts)))
-    while sum(counts) > n_views:  # fewer views than rings
-        counts[counts.index(max(counts))] -= 1
+    above = max(1, round(0.1 * n_views)) if n_views > len(RINGS) else 0
+    around = n_views - above  # split evenly over the rings, the lower rings taking what is left over
+    counts = [around // len(RINGS) + (1 if k < around % len(RINGS) else 0) for k in range(len(RINGS))] + [above]
     # the statue's z up to the rig's y down, its -y (front) towards the camera
     upright = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])
     poses = []
@@ -227,7 +224,7 @@ class DaskCluster:
 def run_stages(work: Path, out: Path, args: argparse.Namespace, mode: str, only: tuple[str, ...] = (),
                dask: DaskCluster | None = None) -> list[dict]:
     """Run the stages one process each; a row per stage."""
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(TOOLBOX), *filter(None, [os.environ.get("PYTHONPATH")])]))
+    env = dict(os.environ)
     rows = []
     for stage, commands in stage_commands(work, out, args, dask.address if dask else None):
         if only and stage not in only:
@@ -311,6 +308,9 @@ def main() -> None:
     p.add_argument("--quick", action="store_true", help="a smoke run: 20k faces, 512 atlas")
     p.add_argument("--child-capture", action="store_true", help=argparse.SUPPRESS)
     args = ARGS = p.parse_args()
+    # this tree's slscan for every process started from here: the stages, and the Dask
+    # workers (started by this process, they inherit its environment)
+    os.environ["PYTHONPATH"] = os.pathsep.join([str(TOOLBOX), *filter(None, [os.environ.get("PYTHONPATH")])])
     if args.quick:
         args.faces, args.texture_size = 20_000, 512
     args.work.mkdir(parents=True, exist_ok=True)
@@ -324,7 +324,7 @@ def main() -> None:
     if not session.is_file() or table.get("capture_key") != key:
         print(f"capturing {args.views} views into {args.work / 'capture'} ...", file=sys.stderr, flush=True)
         cpu0 = _children_cpu()
-        env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(TOOLBOX), str(HERE)]))
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join([os.environ["PYTHONPATH"], str(HERE)]))
         measured = run_measured([sys.executable, str(Path(__file__).resolve()), "--child-capture", "--views",
                                  str(args.views), "--scale", str(args.scale), "--work", str(args.work),
                                  "--workers", str(args.workers)], env=env)
