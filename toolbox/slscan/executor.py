@@ -16,6 +16,7 @@ importing the stage's modules, while this process reads its inputs.
 from __future__ import annotations
 
 import atexit
+import functools
 import importlib
 import logging
 import multiprocessing
@@ -203,6 +204,39 @@ def _map_shared(pool: ProcessPoolExecutor, helpers: int, fn: Callable[..., T], i
                 future.cancel()
 
 
+_MALLOC_TUNED = False
+MMAP_THRESHOLD = 32 << 20
+"""Allocations below this come from the heap on a Dask worker (glibc's own ceiling for its
+dynamic threshold on 64-bit); freed heap above twice that goes back to the system."""
+
+
+def _tune_malloc() -> None:
+    """Undo, once per Dask worker process, what Dask's ``MALLOC_TRIM_THRESHOLD_=65536``
+    does to per-view work: setting any malloc threshold switches glibc's dynamic mmap
+    threshold off, so every array above 128 KiB is mapped and unmapped afresh and its
+    pages faulted in again. Measured on an albedo view: 10-20x the system time (1.3-2.3 s
+    instead of 0.1 s), 2-3x the CPU. Setting the thresholds glibc itself would reach keeps
+    big temporaries on the heap. Nothing happens off glibc."""
+    global _MALLOC_TUNED
+    if _MALLOC_TUNED:
+        return
+    _MALLOC_TUNED = True
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallopt(-3, MMAP_THRESHOLD)  # M_MMAP_THRESHOLD
+        libc.mallopt(-1, 2 * MMAP_THRESHOLD)  # M_TRIM_THRESHOLD
+    except (OSError, AttributeError):
+        pass
+
+
+def _on_dask_worker(fn: Callable[..., T], item: Any) -> T:
+    """``fn(item)`` on a Dask worker, with the worker's malloc tuned for per-view work."""
+    _tune_malloc()
+    return fn(item)
+
+
 def _map_dask(address: str, fn: Callable[..., T], items: list[Any]) -> Iterator[T]:
     try:
         from distributed import Client
@@ -214,7 +248,7 @@ def _map_dask(address: str, fn: Callable[..., T], items: list[Any]) -> Iterator[
         raise SlscanError(f"--scheduler {address}: cannot reach the Dask scheduler ({exc})") from None
     try:
         log.info("running %d item(s) on the Dask cluster at %s", len(items), address)
-        futures = client.map(fn, items, pure=False)
+        futures = client.map(functools.partial(_on_dask_worker, fn), items, pure=False)
         for future in futures:
             yield future.result()
     finally:
