@@ -530,14 +530,39 @@ def primaries(
 # --- per-pixel mixing and global light ------------------------------------------------------
 
 
+NETWORK_MEDIAN_MAX = 8  # up to this many values, nan_median sorts by min/max exchanges
+
+
 def nan_median(stack: np.ndarray) -> np.ndarray:
     """Median over axis 0 of ``stack`` ignoring NaN; NaN where every value is NaN."""
     stack = np.asarray(stack)
-    n = np.isfinite(stack).sum(axis=0)
+    finite = np.isfinite(stack)
+    n = finite.sum(axis=0)
+    if len(stack) <= NETWORK_MEDIAN_MAX and np.issubdtype(stack.dtype, np.floating):
+        ordered = np.where(finite, stack, np.inf).astype(stack.dtype)
+        return _short_median(ordered.reshape(len(stack), -1), n.reshape(-1)).reshape(n.shape)
     ordered = np.sort(stack, axis=0)  # NaN sorts last
     lo = np.maximum((n - 1) // 2, 0)[None]
     hi = np.minimum(n // 2, len(stack) - 1)[None]
     mid = 0.5 * (np.take_along_axis(ordered, lo, 0)[0] + np.take_along_axis(ordered, hi, 0)[0])
+    return np.where(n > 0, mid, np.nan)
+
+
+def _short_median(values: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """:func:`nan_median` of ``values`` (k, m), missing values +inf, ``n`` (m,) the count of
+    the others; sorted in place row by row with element-wise min/max exchanges (for a
+    short ``k``, several times faster than ``np.sort`` along it; the same result)."""
+    k, m = values.shape
+    for top in range(k - 1, 0, -1):  # bubble the largest left up to row ``top``
+        for i in range(top):
+            a = values[i].copy()
+            np.minimum(a, values[i + 1], out=values[i])
+            np.maximum(a, values[i + 1], out=values[i + 1])
+    flat = values.reshape(-1)
+    at = np.arange(m)
+    lo = np.maximum((n - 1) // 2, 0) * m + at
+    hi = np.minimum(n // 2, k - 1) * m + at
+    mid = 0.5 * (flat.take(lo) + flat.take(hi))
     return np.where(n > 0, mid, np.nan)
 
 
@@ -587,54 +612,77 @@ def estimate_mixing(
     pixel never sits in a confident band, taken from the view's median. The green column
     is the rest of the white: ``W − B − red − blue``.
     """
-    black_f = np.asarray(black, np.float32)
-    lit = np.asarray(white, np.float32) - black_f
+    white, black = np.asarray(white), np.asarray(black)
+    lit = [np.asarray(white[..., c], np.float32) - np.asarray(black[..., c], np.float32) for c in range(3)]
     h, w = mask.shape
-    floor = 1e-3 * max(float(lit.max()), _EPS)
-    good = mask & np.all(lit > floor, axis=-1)
-    inv = np.where(good[..., None], 1.0 / np.maximum(lit, floor), 0.0).astype(np.float32)
+    floor = 1e-3 * max(max(float(p.max()) for p in lit), _EPS)
+    good = mask & (lit[0] > floor) & (lit[1] > floor) & (lit[2] > floor)
+    # the band pixels are lit pixels: work on those alone (row-major), one channel at a time
+    at = np.flatnonzero(good)
+    inv = [(1.0 / np.maximum(p.reshape(-1).take(at), floor)).astype(np.float32) for p in lit]
+    black_g = [np.asarray(black[..., c], np.float32).reshape(-1).take(at) for c in range(3)]
     n = len(coarse)
-    shares = np.full((2, n, h, w, 3), np.nan, np.float32)
+    m = len(at)
+    shares = np.full((2, n, 3 * m), np.inf, np.float32)  # band, image, (channel, pixel); inf: none
+    in_band = np.zeros((2, m), np.int64)  # images where a pixel is in a band
     for i, (image, e) in enumerate(zip(coarse, redness)):
+        image = np.asarray(image)
         usable = good if saturated is None else good & ~saturated[i]
-        d = (np.asarray(image, np.float32) - black_f) * inv
+        d = [(np.asarray(image[..., c], np.float32).reshape(-1).take(at) - black_g[c]) * inv[c]
+             for c in range(3)]
         for j, band in enumerate((e > 0.5 + confidence, e < 0.5 - confidence)):
-            here = _plateau(band & usable)
-            shares[j, i][here] = d[here]
+            here = _plateau(band & usable).reshape(-1).take(at)
+            in_band[j] += here
+            for c in range(3):
+                np.copyto(shares[j, i, c * m:(c + 1) * m], d[c], where=here)
     fractions = []
     for j in range(2):
-        share = nan_median(shares[j])
-        known = np.isfinite(share[..., 0])
+        share = _short_median(shares[j], np.tile(in_band[j], 3)).reshape(3, m)
+        known = np.isfinite(share[0])
         if known.sum() >= MIN_CROSSTALK_PIXELS:
-            fallback = np.median(share[known], axis=0)
+            fallback = np.array([np.median(v[known]) for v in share], np.float32)
         else:
             log.warning("mixing: only %d pixels sit in a confident %s band; assuming no "
                         "crosstalk there", int(known.sum()), ("red", "blue")[j])
             fallback = np.eye(3, dtype=np.float32)[2 * j]
-        mean, count = _masked_box(share, known, smooth)
+        values = np.zeros((h * w, 3), np.float32)
+        valid = np.zeros(h * w, bool)
+        values[at[known]] = share[:, known].T
+        valid[at[known]] = True
+        mean, count = _masked_box(values.reshape(h, w, 3), valid.reshape(h, w), smooth)
         fractions.append(np.where((count > 0)[..., None], mean, fallback).astype(np.float32))
     red, blue = fractions
     green = 1.0 - red - blue
-    mixing = np.stack([red, green, blue], axis=-1) * lit[..., None]  # (h, w, c, k)
+    mixing = np.stack([red, green, blue], axis=-1) * np.stack(lit, axis=-1)[..., None]  # (h, w, c, k)
     return mixing.astype(np.float32)
 
 
 def _inverse3(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Inverses (..., 3, 3) of ``a`` by cofactors, and where they exist (|det| > 0)."""
     a = np.asarray(a, np.float64)
-    cof = np.empty_like(a)
+    inverse, ok = _inverse3_planes([[a[..., i, j] for j in range(3)] for i in range(3)])
+    return np.stack([np.stack(row, axis=-1) for row in inverse], axis=-2), ok
+
+
+def _inverse3_planes(a: list[list[np.ndarray]]) -> tuple[list[list[np.ndarray]], np.ndarray]:
+    """:func:`_inverse3` on the entries ``a[i][j]`` (...) float64 of 3 × 3 matrices; the
+    inverses' entries likewise (0 where there is none), and where they exist."""
+    a = [[np.ascontiguousarray(v, np.float64) for v in row] for row in a]
+    cof = [[None] * 3 for _ in range(3)]
     for i in range(3):
         for j in range(3):
             r = [k for k in range(3) if k != i]
             c = [k for k in range(3) if k != j]
-            cof[..., i, j] = (-1) ** (i + j) * (
-                a[..., r[0], c[0]] * a[..., r[1], c[1]] - a[..., r[0], c[1]] * a[..., r[1], c[0]]
-            )
-    det = (a[..., 0, :] * cof[..., 0, :]).sum(axis=-1)
-    ok = np.abs(det) > _EPS * np.abs(a).max(axis=(-2, -1)) ** 3
+            cof[i][j] = (-1) ** (i + j) * (a[r[0]][c[0]] * a[r[1]][c[1]] - a[r[0]][c[1]] * a[r[1]][c[0]])
+    det = 0.0 + a[0][0] * cof[0][0] + a[0][1] * cof[0][1] + a[0][2] * cof[0][2]
+    largest = np.abs(a[0][0])
+    for v in (v for row in a for v in row):
+        np.maximum(largest, np.abs(v), out=largest)
+    ok = np.abs(det) > _EPS * largest**3
     with np.errstate(divide="ignore", invalid="ignore"):
-        inverse = np.swapaxes(cof, -1, -2) / np.where(ok, det, 1.0)[..., None, None]
-    return np.where(ok[..., None, None], inverse, 0.0), ok
+        det = np.where(ok, det, 1.0)
+        inverse = [[np.where(ok, cof[j][i] / det, 0.0) for j in range(3)] for i in range(3)]
+    return inverse, ok
 
 
 def pattern_shares(desc: PatternImage) -> np.ndarray:
@@ -689,20 +737,31 @@ class _PixelUnmixer:
 
     @classmethod
     def build(cls, black: np.ndarray, mixing: np.ndarray, mask: np.ndarray) -> _PixelUnmixer:
-        inverse, ok = _inverse3(mixing)
-        inside = np.asarray(mask, bool) & ok
-        cov = inverse @ np.swapaxes(inverse, -1, -2)
-        s = cov.sum(axis=-1)
+        # on the mask's pixels alone (row-major); the rest keep the "nothing there" values
+        mask = np.asarray(mask, bool)
+        h, w = mask.shape
+        at = np.flatnonzero(mask)
+        picked = np.ascontiguousarray(mixing, np.float32).reshape(h * w, 9).take(at, axis=0)
+        a, ok = _inverse3_planes([[picked[:, 3 * k + j] for j in range(3)] for k in range(3)])
+        # the rows of A⁻¹ A⁻ᵀ summed, each entry summed in matmul's order
+        s = [sum((a[k][m] * a[i][m] for m in range(1, 3)), a[k][0] * a[i][0])
+             for k in range(3) for i in range(3)]
+        s = [s[3 * k] + s[3 * k + 1] + s[3 * k + 2] for k in range(3)]
+        total = s[0] + s[1] + s[2]
+        b = [np.asarray(black[..., j], np.float64).reshape(-1).take(at) for j in range(3)]
+        inverse = np.zeros((3, 3, h * w), np.float32)
+        offset = np.zeros((3, h * w), np.float32)
+        weights = np.full((3, h * w), 1.0 / 3.0, np.float32)
+        inside = np.zeros(h * w, bool)
+        inside[at] = ok
         with np.errstate(divide="ignore", invalid="ignore"):
-            c = np.where(inside[..., None], s / s.sum(axis=-1, keepdims=True), 1.0 / 3.0)
-        inverse = np.where(inside[..., None, None], inverse, 0.0)
-        offset = -np.einsum("...kj,...j->...k", inverse, np.asarray(black, np.float64))
-        return cls(
-            np.ascontiguousarray(np.moveaxis(inverse, (-2, -1), (0, 1)), np.float32),
-            np.ascontiguousarray(np.moveaxis(offset, -1, 0), np.float32),
-            np.ascontiguousarray(np.moveaxis(c, -1, 0), np.float32),
-            inside,
-        )
+            for k in range(3):
+                for j in range(3):
+                    inverse[k, j, at] = a[k][j]
+                offset[k, at] = -(a[k][0] * b[0] + a[k][1] * b[1] + a[k][2] * b[2])
+                weights[k, at] = np.where(ok, s[k] / total, 1.0 / 3.0)
+        return cls(inverse.reshape(3, 3, h, w), offset.reshape(3, h, w), weights.reshape(3, h, w),
+                   inside.reshape(h, w))
 
     def primaries(self, image: np.ndarray) -> np.ndarray:
         """Unconstrained primaries (3, h, w) float32 ``A⁻¹ (I − B)``; 0 outside."""
