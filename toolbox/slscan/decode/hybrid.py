@@ -1244,8 +1244,21 @@ def decode_hybrid_images(
             direct = 1.0 - estimate[..., 1]
     lit = white.astype(np.float32) - black.astype(np.float32)
     white_level = np.where(mask, channel_max(lit), 0.0).astype(np.float32)
-    # per channel, for the paint-edge test (mixing="pixel")
-    lit_channels = [np.where(mask, lit[..., c], 0.0).astype(np.float32) for c in range(3)]
+    # the edge tests below per pixel, once for every level: the white frame's lowest
+    # value within EDGE_RADIUS px along the row and in the rows above and below; and where
+    # no paint edge crosses a line's profile (mixing="pixel", paint_edges)
+    along = np.ones((1, 2 * EDGE_RADIUS + 1), np.uint8)
+    lowest_white = np.minimum(
+        cv2.erode(white_level, along, borderType=cv2.BORDER_REPLICATE),
+        np.minimum(white_level[np.r_[0, : h - 1]], white_level[np.r_[1:h, h - 1]]),
+    )
+    no_paint_edge = np.ones((h, w), bool)
+    if mixing == "pixel" and paint_edges:
+        for c in range(3):
+            plane = np.where(mask, lit[..., c], 0.0).astype(np.float32)
+            top = cv2.dilate(plane, along, borderType=cv2.BORDER_REPLICATE)
+            bottom = cv2.erode(plane, along, borderType=cv2.BORDER_REPLICATE)
+            no_paint_edge &= (top < PAINT_EDGE_FLOOR * white_level) | (bottom >= min_edge_ratio * top)
     del lit
     all_columns = np.concatenate([_region_lines(d)[1] for d in descs])
     spacing = (
@@ -1296,25 +1309,11 @@ def decode_hybrid_images(
             region |= (v < 0.5).astype(np.int64) << (k - 2 - j)
         # the white frame must not fall off around the line: a silhouette or shadow edge
         # truncates the line's profile and drags its centre
-        lowest = np.minimum(
-            _window(white_level, rows, cols, EDGE_RADIUS).min(axis=1),
-            np.minimum(
-                white_level[np.maximum(rows - 1, 0), cols],
-                white_level[np.minimum(rows + 1, h - 1), cols],
-            ),
-        )
-        ok = _keep(ok, lowest >= min_edge_ratio * white_level[rows, cols], rejected, "edge")
+        ok = _keep(ok, lowest_white[rows, cols] >= min_edge_ratio * white_level[rows, cols], rejected, "edge")
         if mixing == "pixel" and paint_edges:
             # a paint edge across the line's profile: normalising by the white frame does
             # not undo it (the blur acts on paint × light), so the centre moves
-            flat = np.ones(len(rows), bool)
-            for plane in lit_channels:
-                win = _window(plane, rows, cols, EDGE_RADIUS)
-                top = win.max(axis=1)
-                flat &= (top < PAINT_EDGE_FLOOR * white_level[rows, cols]) | (
-                    win.min(axis=1) >= min_edge_ratio * top
-                )
-            ok = _keep(ok, flat, rejected, "paint edge")
+            ok = _keep(ok, no_paint_edge[rows, cols], rejected, "paint edge")
         # red on the left, blue on the right
         polarity = _interp_row(e, rows, x - 1.0) - _interp_row(e, rows, x + 1.0)
         ok = _keep(ok, polarity >= min_polarity, rejected, "polarity")
