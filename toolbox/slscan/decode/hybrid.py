@@ -552,18 +552,18 @@ def _short_median(values: np.ndarray, n: np.ndarray) -> np.ndarray:
     """:func:`nan_median` of ``values`` (k, m), missing values +inf, ``n`` (m,) the count of
     the others; sorted in place row by row with element-wise min/max exchanges (for a
     short ``k``, several times faster than ``np.sort`` along it; the same result)."""
-    k, m = values.shape
+    k = len(values)
     for top in range(k - 1, 0, -1):  # bubble the largest left up to row ``top``
         for i in range(top):
             a = values[i].copy()
             np.minimum(a, values[i + 1], out=values[i])
             np.maximum(a, values[i + 1], out=values[i + 1])
-    flat = values.reshape(-1)
-    at = np.arange(m)
-    lo = np.maximum((n - 1) // 2, 0) * m + at
-    hi = np.minimum(n // 2, k - 1) * m + at
-    mid = 0.5 * (flat.take(lo) + flat.take(hi))
-    return np.where(n > 0, mid, np.nan)
+    lo, hi = values[0], values[0]  # the sorted rows (n - 1) // 2 and n // 2
+    for t in range(1, k):
+        if 2 * t + 1 <= k:
+            lo = np.where(n >= 2 * t + 1, values[t], lo)
+        hi = np.where(n >= 2 * t, values[t], hi)
+    return np.where(n > 0, 0.5 * (lo + hi), np.nan)
 
 
 def _masked_box(values: np.ndarray, valid: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
@@ -612,6 +612,31 @@ def estimate_mixing(
     pixel never sits in a confident band, taken from the view's median. The green column
     is the rest of the white: ``W − B − red − blue``.
     """
+    lit, bands = _mixing_fractions(white, black, coarse, redness, mask=mask, saturated=saturated,
+                                   confidence=confidence, smooth=smooth)
+    red, blue = (np.where(has[..., None], mean, fallback).astype(np.float32) for mean, has, fallback in bands)
+    green = 1.0 - red - blue
+    mixing = np.stack([red, green, blue], axis=-1) * np.stack(lit, axis=-1)[..., None]  # (h, w, c, k)
+    return mixing.astype(np.float32)
+
+
+def _mixing_fractions(
+    white: np.ndarray,
+    black: np.ndarray,
+    coarse: Sequence[np.ndarray],
+    redness: Sequence[np.ndarray],
+    *,
+    mask: np.ndarray,
+    saturated: Sequence[np.ndarray] | None = None,
+    confidence: float = MIXING_CONFIDENCE,
+    smooth: int = MIXING_SMOOTH,
+    wanted: np.ndarray | None = None,
+) -> tuple[list[np.ndarray], list[tuple[np.ndarray, np.ndarray, np.ndarray]]]:
+    """:func:`estimate_mixing`'s white frame ``W − B`` (3 planes (h, w) float32) and, for
+    the red and the blue primary, the per-pixel share of the white averaged over the band
+    pixels within ``smooth`` (h, w, 3) float32, where there are any (h, w) bool, and the
+    view's median share (3,) float32 for the pixels that have none: taken only when a
+    pixel of ``wanted`` (h, w) bool (default: every pixel) needs it, else zeros."""
     white, black = np.asarray(white), np.asarray(black)
     lit = [np.asarray(white[..., c], np.float32) - np.asarray(black[..., c], np.float32) for c in range(3)]
     h, w = mask.shape
@@ -620,41 +645,40 @@ def estimate_mixing(
     # the band pixels are lit pixels: work on those alone (row-major), one channel at a time
     at = np.flatnonzero(good)
     inv = [(1.0 / np.maximum(p.reshape(-1).take(at), floor)).astype(np.float32) for p in lit]
-    black_g = [np.asarray(black[..., c], np.float32).reshape(-1).take(at) for c in range(3)]
+    black_g = [np.asarray(black[..., c]).reshape(-1).take(at).astype(np.float32) for c in range(3)]
     n = len(coarse)
     m = len(at)
+    in_band = np.zeros((2, m), np.uint8)  # images where a pixel is in a band
     shares = np.full((2, n, 3 * m), np.inf, np.float32)  # band, image, (channel, pixel); inf: none
-    in_band = np.zeros((2, m), np.int64)  # images where a pixel is in a band
     for i, (image, e) in enumerate(zip(coarse, redness)):
         image = np.asarray(image)
         usable = good if saturated is None else good & ~saturated[i]
-        d = [(np.asarray(image[..., c], np.float32).reshape(-1).take(at) - black_g[c]) * inv[c]
-             for c in range(3)]
+        d = [(image[..., c].reshape(-1).take(at).astype(np.float32) - black_g[c]) * inv[c] for c in range(3)]
         for j, band in enumerate((e > 0.5 + confidence, e < 0.5 - confidence)):
             here = _plateau(band & usable).reshape(-1).take(at)
             in_band[j] += here
             for c in range(3):
                 np.copyto(shares[j, i, c * m:(c + 1) * m], d[c], where=here)
-    fractions = []
+    bands = []
     for j in range(2):
         share = _short_median(shares[j], np.tile(in_band[j], 3)).reshape(3, m)
         known = np.isfinite(share[0])
-        if known.sum() >= MIN_CROSSTALK_PIXELS:
-            fallback = np.array([np.median(v[known]) for v in share], np.float32)
-        else:
+        values = np.zeros((3, h * w), np.float32)
+        valid = np.zeros(h * w, bool)
+        values[:, at] = share  # NaN where unknown: _masked_box leaves the invalid out
+        valid[at] = known
+        mean, count = _masked_box(np.moveaxis(values.reshape(3, h, w), 0, -1), valid.reshape(h, w), smooth)
+        has = count > 0
+        if known.sum() < MIN_CROSSTALK_PIXELS:
             log.warning("mixing: only %d pixels sit in a confident %s band; assuming no "
                         "crosstalk there", int(known.sum()), ("red", "blue")[j])
             fallback = np.eye(3, dtype=np.float32)[2 * j]
-        values = np.zeros((h * w, 3), np.float32)
-        valid = np.zeros(h * w, bool)
-        values[at[known]] = share[:, known].T
-        valid[at[known]] = True
-        mean, count = _masked_box(values.reshape(h, w, 3), valid.reshape(h, w), smooth)
-        fractions.append(np.where((count > 0)[..., None], mean, fallback).astype(np.float32))
-    red, blue = fractions
-    green = 1.0 - red - blue
-    mixing = np.stack([red, green, blue], axis=-1) * np.stack(lit, axis=-1)[..., None]  # (h, w, c, k)
-    return mixing.astype(np.float32)
+        elif wanted is not None and not np.any(wanted & ~has):
+            fallback = np.zeros(3, np.float32)  # no wanted pixel needs the view's median
+        else:
+            fallback = np.array([np.median(v[known]) for v in share], np.float32)
+        bands.append((mean, has, fallback))
+    return lit, bands
 
 
 def _inverse3(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -737,12 +761,36 @@ class _PixelUnmixer:
 
     @classmethod
     def build(cls, black: np.ndarray, mixing: np.ndarray, mask: np.ndarray) -> _PixelUnmixer:
-        # on the mask's pixels alone (row-major); the rest keep the "nothing there" values
+        """From the mixing (h, w, 3, 3) of :func:`estimate_mixing`."""
         mask = np.asarray(mask, bool)
-        h, w = mask.shape
         at = np.flatnonzero(mask)
-        picked = np.ascontiguousarray(mixing, np.float32).reshape(h * w, 9).take(at, axis=0)
-        a, ok = _inverse3_planes([[picked[:, 3 * k + j] for j in range(3)] for k in range(3)])
+        picked = np.ascontiguousarray(mixing, np.float32).reshape(mask.size, 9).take(at, axis=0)
+        return cls._from_entries(black, [[picked[:, 3 * c + k] for k in range(3)] for c in range(3)], mask, at)
+
+    @classmethod
+    def from_fractions(cls, black: np.ndarray, lit: list[np.ndarray],
+                       bands: list[tuple[np.ndarray, np.ndarray, np.ndarray]], mask: np.ndarray) -> _PixelUnmixer:
+        """From :func:`_mixing_fractions` (its ``wanted``: ``mask``), as :meth:`build` from
+        :func:`estimate_mixing`, working on the mask's pixels alone."""
+        mask = np.asarray(mask, bool)
+        at = np.flatnonzero(mask)
+        red, blue = (
+            np.where(has.reshape(-1).take(at)[:, None], mean.reshape(-1, 3).take(at, axis=0), fallback)
+            .astype(np.float32)
+            for mean, has, fallback in bands
+        )
+        green = 1.0 - red - blue
+        lit = [p.reshape(-1).take(at) for p in lit]
+        entries = [[share[:, c] * lit[c] for share in (red, green, blue)] for c in range(3)]
+        return cls._from_entries(black, entries, mask, at)
+
+    @classmethod
+    def _from_entries(cls, black: np.ndarray, mixing: list[list[np.ndarray]], mask: np.ndarray,
+                      at: np.ndarray) -> _PixelUnmixer:
+        """``mixing[c][k]`` (n,) at the mask's pixels ``at`` (flat indices, row-major); the
+        rest keep the "nothing there" values."""
+        h, w = mask.shape
+        a, ok = _inverse3_planes(mixing)
         # the rows of A⁻¹ A⁻ᵀ summed, each entry summed in matmul's order
         s = [sum((a[k][m] * a[i][m] for m in range(1, 3)), a[k][0] * a[i][0])
              for k in range(3) for i in range(3)]
@@ -1224,13 +1272,13 @@ def decode_hybrid_images(
     if mixing == "pixel":
         n_mix = min(MIXING_LEVELS, len(descs))
         coarse = [image(k) for k in range(n_mix)]
-        mixing_matrix = estimate_mixing(
+        lit, bands = _mixing_fractions(
             white, black, coarse, [unmixer.signals(c)[1] for c in coarse], mask=mask,
-            saturated=[clipped[n] | sat_white for n in names[:n_mix]],
+            saturated=[clipped[n] | sat_white for n in names[:n_mix]], wanted=mask,
         )
         del coarse
-        unmixer = _PixelUnmixer.build(black, mixing_matrix, mask)
-        del mixing_matrix
+        unmixer = _PixelUnmixer.from_fractions(black, lit, bands, mask)
+        del lit, bands
         if global_light and len(descs) > GLOBAL_LEVELS:
             fine = range(len(descs) - GLOBAL_LEVELS, len(descs))
             estimate = separate_global(
