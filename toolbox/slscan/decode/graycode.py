@@ -621,10 +621,12 @@ def _edges(
     c0, c1 = column[rows[:-1], xs[:-1]], column[rows[1:], xs[1:]]
     step = np.abs(c1 - c0)
     pair = same_row & (gap <= max_gap) & (step >= 1) & (step <= np.minimum(gap, 2))
-    for between in range(1, max_gap):  # the pixels between the two must be lit
-        inside = pair & (between < gap)
-        xi = np.minimum(xs[:-1] + between, w - 1)
-        pair &= ~inside | lit[rows[:-1], xi]
+    wide = np.flatnonzero(pair & (gap > 1))  # the pixels between the two must be lit
+    for between in range(1, max_gap):
+        wide = wide[gap[wide] > between]
+        dark = ~lit[rows[wide], np.minimum(xs[wide] + between, w - 1)]
+        pair[wide[dark]] = False
+        wide = wide[~dark]
     # one entry per boundary: (pair, low + j) for j < step
     n = step[pair].astype(np.int64)
     idx = np.repeat(np.flatnonzero(pair), n)
@@ -638,11 +640,15 @@ def _edges(
     sign0 = diffs[k, r, x0] > 0
     seg = np.zeros(len(r), np.int64)  # the crossing lies in [x0 + seg, x0 + seg + 1]
     found = np.zeros(len(r), bool)
+    pending = np.arange(len(r))  # not found yet, offset within the gap
     for offset in range(1, max_gap + 1):
-        xi = np.minimum(x0 + offset, w - 1)
-        change = ~found & (offset <= g) & ((diffs[k, r, xi] > 0) != sign0)
-        seg[change] = offset - 1
-        found |= change
+        pending = pending[offset <= g[pending]]
+        p_r, p_k = r[pending], k[pending]
+        xi = np.minimum(x0[pending] + offset, w - 1)
+        change = (diffs[p_k, p_r, xi] > 0) != sign0[pending]
+        seg[pending[change]] = offset - 1
+        found[pending[change]] = True
+        pending = pending[~change]
     xa = np.minimum(x0 + seg, w - 2)
     da, db = diffs[k, r, xa], diffs[k, r, xa + 1]
     denom = da - db
@@ -971,7 +977,7 @@ def decode_gray_images(
     if threshold == "opencv":
         level_threshold = read.level_threshold(white_threshold)
 
-        def strong(pattern: np.ndarray, inverse: np.ndarray) -> np.ndarray:
+        def strong(pattern: np.ndarray, inverse: np.ndarray, fractions=None) -> np.ndarray:
             if read.lut is None:
                 return np.abs(pattern - inverse) >= level_threshold
             return np.abs(pattern.astype(np.int64) - inverse) >= level_threshold
@@ -983,8 +989,9 @@ def decode_gray_images(
         del ratio_term
         lit &= contrast > bit_threshold  # a pixel must at least carry a readable signal
 
-        def strong(pattern: np.ndarray, inverse: np.ndarray) -> np.ndarray:
-            return np.abs(read.fraction(pattern) - read.fraction(inverse)) > bit_threshold
+        def strong(pattern: np.ndarray, inverse: np.ndarray, fractions=None) -> np.ndarray:
+            p, q = fractions or (read.fraction(pattern), read.fraction(inverse))
+            return np.abs(p - q) > bit_threshold
 
     direct = global_light = None
     if robust:  # direct/global split from the finest column bits (Nayar et al. 2006)
@@ -1006,11 +1013,12 @@ def decode_gray_images(
                 pattern: np.ndarray, inverse: np.ndarray, run: tuple | None = None) -> None:
         code <<= 1
         np.bitwise_or(code, pattern > inverse, out=code)  # the same sign as the fractions'
-        good = strong(pattern, inverse)
+        # the captures' fractions, once for both tests
+        fractions = (read.fraction(pattern), read.fraction(inverse)) if reliable is not None else None
+        good = strong(pattern, inverse, fractions)
         ok &= good
         if reliable is not None:
-            rel = bit_reliable(read.fraction(pattern), read.fraction(inverse), direct,
-                               global_light, min_direct)
+            rel = bit_reliable(*fractions, direct, global_light, min_direct)
             reliable &= rel
             good &= rel
         if run is not None:  # the leading run of readable (reliable) bits
