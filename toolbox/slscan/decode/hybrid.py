@@ -395,8 +395,7 @@ def estimate_crosstalk(
         red_here = _plateau((diff > 0.4) & usable)
         blue_here = _plateau((diff < -0.4) & usable)
         for here, resp, has in ((red_here, red_resp, has_red), (blue_here, blue_resp, has_blue)):
-            new = here & ~has
-            resp[new] = d[new]
+            np.copyto(resp, d, where=(here & ~has)[..., None])  # the first band a pixel is in
             has |= here
         red_sum += d[red_here].sum(axis=0, dtype=np.float64)
         blue_sum += d[blue_here].sum(axis=0, dtype=np.float64)
