@@ -9,7 +9,13 @@ import pytest
 
 from slscan.capture.kamino410 import import_kamino410
 from slscan.capture.session import LIT
-from slscan.decode.graycode import decode_gray, decode_gray_images, gray_pairs
+from slscan.decode.graycode import (
+    _nearest_on,
+    _nearest_shifted,
+    decode_gray,
+    decode_gray_images,
+    gray_pairs,
+)
 from slscan.errors import SlscanError
 from slscan.patterns import graycode
 
@@ -514,3 +520,30 @@ def test_drop_bits_must_be_a_count():
     images, descs, white, black = _synthetic(np.uint8, 1, rows=False)
     with pytest.raises(SlscanError, match="drop_bits must be an integer >= 0"):
         decode_gray_images(images, descs, white, black, drop_bits=-1)
+
+
+def _nearest_brute(line, pos, stripe, q_line, q_pos, q_stripe):
+    out = np.full(len(q_line), np.inf)
+    for i in range(len(q_line)):
+        same = (line == q_line[i]) & (stripe == q_stripe[i])
+        if same.any():
+            out[i] = np.abs(pos[same] - q_pos[i]).min()
+    return out
+
+
+def test_nearest_sample_on_other_lines_is_the_brute_force_one():
+    # the edge samples' neighbours on the lines next to theirs (_both_axes), sorted once
+    # for several lines, against a search of every sample; ties in position included
+    rng = np.random.default_rng(3)
+    n = 400
+    line = rng.integers(5, 25, n)
+    stripe = rng.integers(0, 6, n)
+    pos = np.round(rng.uniform(0, 50, n), 1)
+    for got, d in zip(_nearest_shifted(line, pos, stripe, (-1, 1, 2)), (-1, 1, 2)):
+        np.testing.assert_array_equal(got, _nearest_brute(line, pos, stripe, line + d, pos, stripe))
+    q_line = rng.integers(3, 27, 150)
+    q_pos, q_stripe = np.round(rng.uniform(0, 50, 150), 1), rng.integers(0, 7, 150)
+    found = _nearest_on(line, pos, stripe, [q_line, q_line + 1], q_pos, q_stripe)
+    for got, q in zip(found, (q_line, q_line + 1)):
+        np.testing.assert_array_equal(got, _nearest_brute(line, pos, stripe, q, q_pos, q_stripe))
+    assert np.isfinite(found[0]).any() and np.isinf(found[0]).any()

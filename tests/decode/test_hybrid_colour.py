@@ -7,6 +7,8 @@ import pytest
 from scipy.special import erf
 
 from slscan.decode.hybrid import (
+    _mixing_fractions,
+    _PixelUnmixer,
     decode_hybrid,
     estimate_mixing,
     nan_median,
@@ -29,9 +31,23 @@ def test_nan_median():
     assert out[0] == 2.0 and np.isnan(out[1]) and out[2] == 3.5
 
 
-def test_mixing_recovers_paint_times_crosstalk():
-    # three paints side by side; coarse images of red | green line | blue regions as the
-    # hybrid pattern has them; the physical model: I − B = paint ∘ (M p)
+@pytest.mark.parametrize("n", [1, 2, 5, 6, 8, 11])  # up to 8: min/max exchanges; beyond: np.sort
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_nan_median_matches_numpy(n, dtype):
+    rng = np.random.default_rng(n)
+    stack = rng.normal(size=(n, 40, 30)).astype(dtype)
+    stack[rng.random(stack.shape) < 0.4] = np.nan
+    stack[:, 0, :] = np.nan  # a row with nothing
+    with np.errstate(all="ignore"), pytest.warns(RuntimeWarning):
+        expected = np.nanmedian(stack, axis=0)
+    out = nan_median(stack)
+    assert out.dtype == dtype and np.isnan(out[0]).all()
+    np.testing.assert_allclose(out, expected, rtol=1e-6 if dtype == np.float32 else 1e-12)
+
+
+def _mixing_scene():
+    """Three paints side by side, coarse images of red | green line | blue regions as the
+    hybrid pattern has them; the physical model: I − B = paint ∘ (M p)."""
     h, w = 24, 192
     paint = np.repeat(PAINTS, w // 3, axis=0)[None].repeat(h, axis=0)  # (h, w, 3)
     black = np.full((h, w, 3), 0.02)
@@ -46,6 +62,32 @@ def test_mixing_recovers_paint_times_crosstalk():
         coarse.append(black + paint * (p @ M.T)[None])
         redness.append(np.broadcast_to(0.5 + 0.5 * (p[:, 0] - p[:, 2]), (h, w)))
     white = black + paint * M.sum(axis=1)
+    return paint, white, black, coarse, redness
+
+
+def test_pixel_unmixer_from_the_shares_is_the_one_from_the_mixing():
+    # the decoder's path (band shares straight to the unmixer, on the lit pixels) against
+    # estimate_mixing's (h, w, 3, 3) answer: the same numbers on every lit pixel
+    _, white, black, coarse, redness = _mixing_scene()
+    mask = np.ones(white.shape[:2], bool)
+    mask[:3] = False
+    mask[:, 150:160] = False
+    mixing = estimate_mixing(white, black, coarse, redness, mask=mask)
+    lit, bands = _mixing_fractions(white, black, coarse, redness, mask=mask, wanted=mask)
+    a = _PixelUnmixer.build(black, mixing, mask)
+    b = _PixelUnmixer.from_fractions(black, lit, bands, mask)
+    assert a.inside.any() and not a.inside[~mask].any()
+    np.testing.assert_array_equal(a.inside, b.inside)
+    for field in ("inverse", "offset", "weights"):
+        np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+    image = coarse[2]
+    for got, want in zip(b.signals(image), a.signals(image)):
+        np.testing.assert_array_equal(got, want)
+
+
+def test_mixing_recovers_paint_times_crosstalk():
+    paint, white, black, coarse, redness = _mixing_scene()
+    h, w = white.shape[:2]
     mixing = estimate_mixing(white, black, coarse, redness, mask=np.ones((h, w), bool))
     expected = paint[..., :, None] * M[None, None]  # (h, w, channel, primary)
     # away from the paint boundaries (the shares are averaged over a few px)

@@ -621,10 +621,12 @@ def _edges(
     c0, c1 = column[rows[:-1], xs[:-1]], column[rows[1:], xs[1:]]
     step = np.abs(c1 - c0)
     pair = same_row & (gap <= max_gap) & (step >= 1) & (step <= np.minimum(gap, 2))
-    for between in range(1, max_gap):  # the pixels between the two must be lit
-        inside = pair & (between < gap)
-        xi = np.minimum(xs[:-1] + between, w - 1)
-        pair &= ~inside | lit[rows[:-1], xi]
+    wide = np.flatnonzero(pair & (gap > 1))  # the pixels between the two must be lit
+    for between in range(1, max_gap):
+        wide = wide[gap[wide] > between]
+        dark = ~lit[rows[wide], np.minimum(xs[wide] + between, w - 1)]
+        pair[wide[dark]] = False
+        wide = wide[~dark]
     # one entry per boundary: (pair, low + j) for j < step
     n = step[pair].astype(np.int64)
     idx = np.repeat(np.flatnonzero(pair), n)
@@ -638,11 +640,15 @@ def _edges(
     sign0 = diffs[k, r, x0] > 0
     seg = np.zeros(len(r), np.int64)  # the crossing lies in [x0 + seg, x0 + seg + 1]
     found = np.zeros(len(r), bool)
+    pending = np.arange(len(r))  # not found yet, offset within the gap
     for offset in range(1, max_gap + 1):
-        xi = np.minimum(x0 + offset, w - 1)
-        change = ~found & (offset <= g) & ((diffs[k, r, xi] > 0) != sign0)
-        seg[change] = offset - 1
-        found |= change
+        pending = pending[offset <= g[pending]]
+        p_r, p_k = r[pending], k[pending]
+        xi = np.minimum(x0[pending] + offset, w - 1)
+        change = (diffs[p_k, p_r, xi] > 0) != sign0[pending]
+        seg[pending[change]] = offset - 1
+        found[pending[change]] = True
+        pending = pending[~change]
     xa = np.minimum(x0 + seg, w - 2)
     da, db = diffs[k, r, xa], diffs[k, r, xa + 1]
     denom = da - db
@@ -679,29 +685,67 @@ def _edges_banded(column, valid, lit, diffs: _BitDiffs, white, saturated, max_ga
 
 
 def _nearest_on(line: np.ndarray, pos: np.ndarray, stripe: np.ndarray,
-                q_line: np.ndarray, q_pos: np.ndarray, q_stripe: np.ndarray) -> np.ndarray:
-    """(q,) distance along the line from each query ``(q_line, q_pos, q_stripe)`` to the
-    nearest sample ``(line, pos, stripe)`` of the same stripe on line ``q_line`` (inf: none)."""
-    best = np.full(len(q_line), np.inf)
-    if len(line) == 0 or len(q_line) == 0:
-        return best
-    lo = min(int(np.min(line)), int(np.min(q_line))) - 1
+                q_lines: Sequence[np.ndarray], q_pos: np.ndarray, q_stripe: np.ndarray) -> list[np.ndarray]:
+    """(q,) distances along the line from each query ``(q_line, q_pos, q_stripe)`` to the
+    nearest sample ``(line, pos, stripe)`` of the same stripe on line ``q_line`` (inf:
+    none), one array for each of ``q_lines`` (the samples and positions ranked and sorted
+    once for all of them)."""
+    if len(line) == 0 or len(q_pos) == 0:
+        return [np.full(len(q_pos), np.inf) for _ in q_lines]
+    q_lines = [np.asarray(q, np.int64) for q in q_lines]
+    lo = min(int(np.min(line)), *(int(np.min(q)) for q in q_lines)) - 1
     s_lo = min(int(np.min(stripe)), int(np.min(q_stripe)))
-    span = max(int(np.max(line)), int(np.max(q_line))) - lo + 2
+    span = max(int(np.max(line)), *(int(np.max(q)) for q in q_lines)) - lo + 2
     key = (np.asarray(stripe, np.int64) - s_lo) * span + (np.asarray(line, np.int64) - lo)
-    q_key = (np.asarray(q_stripe, np.int64) - s_lo) * span + (np.asarray(q_line, np.int64) - lo)
-    n = len(line) + len(q_line)
+    n = len(line) + len(q_pos)
     rank = np.empty(n, np.int64)  # positions by rank, shared by samples and queries
     rank[np.argsort(np.concatenate([pos, q_pos]), kind="stable")] = np.arange(n)
     comp = key * n + rank[: len(line)]
     order = np.argsort(comp)
     sorted_comp, sorted_key = comp[order], key[order]
-    at = np.searchsorted(sorted_comp, q_key * n + rank[len(line):])
-    for cand in (at - 1, at):
-        c = np.clip(cand, 0, len(line) - 1)
-        same = (cand >= 0) & (cand < len(line)) & (sorted_key[c] == q_key)
-        np.minimum(best, np.where(same, np.abs(pos[order[c]] - q_pos), np.inf), out=best)
-    return best
+    found = []
+    for q_line in q_lines:
+        q_key = (np.asarray(q_stripe, np.int64) - s_lo) * span + (q_line - lo)
+        at = np.searchsorted(sorted_comp, q_key * n + rank[len(line):])
+        best = np.full(len(q_pos), np.inf)
+        for cand in (at - 1, at):
+            c = np.clip(cand, 0, len(line) - 1)
+            same = (cand >= 0) & (cand < len(line)) & (sorted_key[c] == q_key)
+            np.minimum(best, np.where(same, np.abs(pos[order[c]] - q_pos), np.inf), out=best)
+        found.append(best)
+    return found
+
+
+def _nearest_shifted(line: np.ndarray, pos: np.ndarray, stripe: np.ndarray,
+                     offsets: Sequence[int]) -> list[np.ndarray]:
+    """:func:`_nearest_on` for each sample's own position and stripe on the lines
+    ``line + d``, for each ``d`` in ``offsets`` (non-zero): (n,) distances (inf: none) per
+    offset, the samples ranked and sorted once for all of them."""
+    n = len(line)
+    if n == 0:
+        return [np.full(0, np.inf) for _ in offsets]
+    line, stripe = np.asarray(line, np.int64), np.asarray(stripe, np.int64)
+    lo = int(line.min()) + min(offsets) - 1
+    span = int(line.max()) + max(offsets) - lo + 2  # every line + d in (lo, lo + span)
+    key = (stripe - int(stripe.min())) * span + (line - lo)
+    rank = np.empty(n, np.int64)  # positions by rank; a query's is its own sample's
+    rank[np.argsort(pos, kind="stable")] = np.arange(n)
+    comp = key * n + rank
+    order = np.argsort(comp)
+    sorted_comp, sorted_key = comp[order], key[order]
+    found = []
+    for d in offsets:
+        # the query (key + d, rank) is no sample's (that sample's key is key): the samples
+        # before it in order are at or left of it, those after at or right of it
+        q_key = key + d
+        at = np.searchsorted(sorted_comp, q_key * n + rank)
+        best = np.full(n, np.inf)
+        for cand in (at - 1, at):
+            c = np.clip(cand, 0, n - 1)
+            same = (cand >= 0) & (cand < n) & (sorted_key[c] == q_key)
+            np.minimum(best, np.where(same, np.abs(pos[order[c]] - pos), np.inf), out=best)
+        found.append(best)
+    return found
 
 
 def _both_axes(rows_found: StripeSamples, cols_found: StripeSamples) -> StripeSamples:
@@ -713,16 +757,14 @@ def _both_axes(rows_found: StripeSamples, cols_found: StripeSamples) -> StripeSa
     neighbour on either side stays unless the other axis has a sample of the same
     boundary within 1 px of it."""
     def steep(s: StripeSamples) -> np.ndarray:
-        near = np.minimum(*(_nearest_on(s.row, s.x, s.stripe, s.row + d, s.x, s.stripe)
-                            for d in (-1, 1)))
-        return near
+        return np.minimum(*_nearest_shifted(s.row, s.x, s.stripe, (-1, 1)))
 
     def keep_lone(s: StripeSamples, near: np.ndarray, keep: np.ndarray, other: StripeSamples) -> None:
         """Lone samples of ``s`` stay unless ``other`` has the same boundary right there."""
         lone = np.flatnonzero(np.isinf(near))
-        there = np.minimum(*(_nearest_on(other.row, other.x, other.stripe,
-                                         np.floor(s.x[lone]).astype(np.int64) + d, s.row[lone].astype(float),
-                                         s.stripe[lone]) for d in (0, 1)))
+        line = np.floor(s.x[lone]).astype(np.int64)
+        there = np.minimum(*_nearest_on(other.row, other.x, other.stripe, [line, line + 1],
+                                        s.row[lone].astype(float), s.stripe[lone]))
         keep[lone] = there > 1.0
 
     h_near, v_near = steep(rows_found), steep(cols_found)
@@ -935,7 +977,7 @@ def decode_gray_images(
     if threshold == "opencv":
         level_threshold = read.level_threshold(white_threshold)
 
-        def strong(pattern: np.ndarray, inverse: np.ndarray) -> np.ndarray:
+        def strong(pattern: np.ndarray, inverse: np.ndarray, fractions=None) -> np.ndarray:
             if read.lut is None:
                 return np.abs(pattern - inverse) >= level_threshold
             return np.abs(pattern.astype(np.int64) - inverse) >= level_threshold
@@ -947,8 +989,9 @@ def decode_gray_images(
         del ratio_term
         lit &= contrast > bit_threshold  # a pixel must at least carry a readable signal
 
-        def strong(pattern: np.ndarray, inverse: np.ndarray) -> np.ndarray:
-            return np.abs(read.fraction(pattern) - read.fraction(inverse)) > bit_threshold
+        def strong(pattern: np.ndarray, inverse: np.ndarray, fractions=None) -> np.ndarray:
+            p, q = fractions or (read.fraction(pattern), read.fraction(inverse))
+            return np.abs(p - q) > bit_threshold
 
     direct = global_light = None
     if robust:  # direct/global split from the finest column bits (Nayar et al. 2006)
@@ -970,11 +1013,12 @@ def decode_gray_images(
                 pattern: np.ndarray, inverse: np.ndarray, run: tuple | None = None) -> None:
         code <<= 1
         np.bitwise_or(code, pattern > inverse, out=code)  # the same sign as the fractions'
-        good = strong(pattern, inverse)
+        # the captures' fractions, once for both tests
+        fractions = (read.fraction(pattern), read.fraction(inverse)) if reliable is not None else None
+        good = strong(pattern, inverse, fractions)
         ok &= good
         if reliable is not None:
-            rel = bit_reliable(read.fraction(pattern), read.fraction(inverse), direct,
-                               global_light, min_direct)
+            rel = bit_reliable(*fractions, direct, global_light, min_direct)
             reliable &= rel
             good &= rel
         if run is not None:  # the leading run of readable (reliable) bits

@@ -395,8 +395,7 @@ def estimate_crosstalk(
         red_here = _plateau((diff > 0.4) & usable)
         blue_here = _plateau((diff < -0.4) & usable)
         for here, resp, has in ((red_here, red_resp, has_red), (blue_here, blue_resp, has_blue)):
-            new = here & ~has
-            resp[new] = d[new]
+            np.copyto(resp, d, where=(here & ~has)[..., None])  # the first band a pixel is in
             has |= here
         red_sum += d[red_here].sum(axis=0, dtype=np.float64)
         blue_sum += d[blue_here].sum(axis=0, dtype=np.float64)
@@ -530,15 +529,40 @@ def primaries(
 # --- per-pixel mixing and global light ------------------------------------------------------
 
 
+NETWORK_MEDIAN_MAX = 8  # up to this many values, nan_median sorts by min/max exchanges
+
+
 def nan_median(stack: np.ndarray) -> np.ndarray:
     """Median over axis 0 of ``stack`` ignoring NaN; NaN where every value is NaN."""
     stack = np.asarray(stack)
-    n = np.isfinite(stack).sum(axis=0)
+    finite = np.isfinite(stack)
+    n = finite.sum(axis=0)
+    if len(stack) <= NETWORK_MEDIAN_MAX and np.issubdtype(stack.dtype, np.floating):
+        ordered = np.where(finite, stack, np.inf).astype(stack.dtype)
+        return _short_median(ordered.reshape(len(stack), -1), n.reshape(-1)).reshape(n.shape)
     ordered = np.sort(stack, axis=0)  # NaN sorts last
     lo = np.maximum((n - 1) // 2, 0)[None]
     hi = np.minimum(n // 2, len(stack) - 1)[None]
     mid = 0.5 * (np.take_along_axis(ordered, lo, 0)[0] + np.take_along_axis(ordered, hi, 0)[0])
     return np.where(n > 0, mid, np.nan)
+
+
+def _short_median(values: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """:func:`nan_median` of ``values`` (k, m), missing values +inf, ``n`` (m,) the count of
+    the others; sorted in place row by row with element-wise min/max exchanges (for a
+    short ``k``, several times faster than ``np.sort`` along it; the same result)."""
+    k = len(values)
+    for top in range(k - 1, 0, -1):  # bubble the largest left up to row ``top``
+        for i in range(top):
+            a = values[i].copy()
+            np.minimum(a, values[i + 1], out=values[i])
+            np.maximum(a, values[i + 1], out=values[i + 1])
+    lo, hi = values[0], values[0]  # the sorted rows (n - 1) // 2 and n // 2
+    for t in range(1, k):
+        if 2 * t + 1 <= k:
+            lo = np.where(n >= 2 * t + 1, values[t], lo)
+        hi = np.where(n >= 2 * t, values[t], hi)
+    return np.where(n > 0, 0.5 * (lo + hi), np.nan)
 
 
 def _masked_box(values: np.ndarray, valid: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
@@ -587,54 +611,101 @@ def estimate_mixing(
     pixel never sits in a confident band, taken from the view's median. The green column
     is the rest of the white: ``W − B − red − blue``.
     """
-    black_f = np.asarray(black, np.float32)
-    lit = np.asarray(white, np.float32) - black_f
+    lit, bands = _mixing_fractions(white, black, coarse, redness, mask=mask, saturated=saturated,
+                                   confidence=confidence, smooth=smooth)
+    red, blue = (np.where(has[..., None], mean, fallback).astype(np.float32) for mean, has, fallback in bands)
+    green = 1.0 - red - blue
+    mixing = np.stack([red, green, blue], axis=-1) * np.stack(lit, axis=-1)[..., None]  # (h, w, c, k)
+    return mixing.astype(np.float32)
+
+
+def _mixing_fractions(
+    white: np.ndarray,
+    black: np.ndarray,
+    coarse: Sequence[np.ndarray],
+    redness: Sequence[np.ndarray],
+    *,
+    mask: np.ndarray,
+    saturated: Sequence[np.ndarray] | None = None,
+    confidence: float = MIXING_CONFIDENCE,
+    smooth: int = MIXING_SMOOTH,
+    wanted: np.ndarray | None = None,
+) -> tuple[list[np.ndarray], list[tuple[np.ndarray, np.ndarray, np.ndarray]]]:
+    """:func:`estimate_mixing`'s white frame ``W − B`` (3 planes (h, w) float32) and, for
+    the red and the blue primary, the per-pixel share of the white averaged over the band
+    pixels within ``smooth`` (h, w, 3) float32, where there are any (h, w) bool, and the
+    view's median share (3,) float32 for the pixels that have none: taken only when a
+    pixel of ``wanted`` (h, w) bool (default: every pixel) needs it, else zeros."""
+    white, black = np.asarray(white), np.asarray(black)
+    lit = [np.asarray(white[..., c], np.float32) - np.asarray(black[..., c], np.float32) for c in range(3)]
     h, w = mask.shape
-    floor = 1e-3 * max(float(lit.max()), _EPS)
-    good = mask & np.all(lit > floor, axis=-1)
-    inv = np.where(good[..., None], 1.0 / np.maximum(lit, floor), 0.0).astype(np.float32)
+    floor = 1e-3 * max(max(float(p.max()) for p in lit), _EPS)
+    good = mask & (lit[0] > floor) & (lit[1] > floor) & (lit[2] > floor)
+    # the band pixels are lit pixels: work on those alone (row-major), one channel at a time
+    at = np.flatnonzero(good)
+    inv = [(1.0 / np.maximum(p.reshape(-1).take(at), floor)).astype(np.float32) for p in lit]
+    black_g = [np.asarray(black[..., c]).reshape(-1).take(at).astype(np.float32) for c in range(3)]
     n = len(coarse)
-    shares = np.full((2, n, h, w, 3), np.nan, np.float32)
+    m = len(at)
+    in_band = np.zeros((2, m), np.uint8)  # images where a pixel is in a band
+    shares = np.full((2, n, 3 * m), np.inf, np.float32)  # band, image, (channel, pixel); inf: none
     for i, (image, e) in enumerate(zip(coarse, redness)):
+        image = np.asarray(image)
         usable = good if saturated is None else good & ~saturated[i]
-        d = (np.asarray(image, np.float32) - black_f) * inv
+        d = [(image[..., c].reshape(-1).take(at).astype(np.float32) - black_g[c]) * inv[c] for c in range(3)]
         for j, band in enumerate((e > 0.5 + confidence, e < 0.5 - confidence)):
-            here = _plateau(band & usable)
-            shares[j, i][here] = d[here]
-    fractions = []
+            here = _plateau(band & usable).reshape(-1).take(at)
+            in_band[j] += here
+            for c in range(3):
+                np.copyto(shares[j, i, c * m:(c + 1) * m], d[c], where=here)
+    bands = []
     for j in range(2):
-        share = nan_median(shares[j])
-        known = np.isfinite(share[..., 0])
-        if known.sum() >= MIN_CROSSTALK_PIXELS:
-            fallback = np.median(share[known], axis=0)
-        else:
+        share = _short_median(shares[j], np.tile(in_band[j], 3)).reshape(3, m)
+        known = np.isfinite(share[0])
+        values = np.zeros((3, h * w), np.float32)
+        valid = np.zeros(h * w, bool)
+        values[:, at] = share  # NaN where unknown: _masked_box leaves the invalid out
+        valid[at] = known
+        mean, count = _masked_box(np.moveaxis(values.reshape(3, h, w), 0, -1), valid.reshape(h, w), smooth)
+        has = count > 0
+        if known.sum() < MIN_CROSSTALK_PIXELS:
             log.warning("mixing: only %d pixels sit in a confident %s band; assuming no "
                         "crosstalk there", int(known.sum()), ("red", "blue")[j])
             fallback = np.eye(3, dtype=np.float32)[2 * j]
-        mean, count = _masked_box(share, known, smooth)
-        fractions.append(np.where((count > 0)[..., None], mean, fallback).astype(np.float32))
-    red, blue = fractions
-    green = 1.0 - red - blue
-    mixing = np.stack([red, green, blue], axis=-1) * lit[..., None]  # (h, w, c, k)
-    return mixing.astype(np.float32)
+        elif wanted is not None and not np.any(wanted & ~has):
+            fallback = np.zeros(3, np.float32)  # no wanted pixel needs the view's median
+        else:
+            fallback = np.array([np.median(v[known]) for v in share], np.float32)
+        bands.append((mean, has, fallback))
+    return lit, bands
 
 
 def _inverse3(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Inverses (..., 3, 3) of ``a`` by cofactors, and where they exist (|det| > 0)."""
     a = np.asarray(a, np.float64)
-    cof = np.empty_like(a)
+    inverse, ok = _inverse3_planes([[a[..., i, j] for j in range(3)] for i in range(3)])
+    return np.stack([np.stack(row, axis=-1) for row in inverse], axis=-2), ok
+
+
+def _inverse3_planes(a: list[list[np.ndarray]]) -> tuple[list[list[np.ndarray]], np.ndarray]:
+    """:func:`_inverse3` on the entries ``a[i][j]`` (...) float64 of 3 × 3 matrices; the
+    inverses' entries likewise (0 where there is none), and where they exist."""
+    a = [[np.ascontiguousarray(v, np.float64) for v in row] for row in a]
+    cof = [[None] * 3 for _ in range(3)]
     for i in range(3):
         for j in range(3):
             r = [k for k in range(3) if k != i]
             c = [k for k in range(3) if k != j]
-            cof[..., i, j] = (-1) ** (i + j) * (
-                a[..., r[0], c[0]] * a[..., r[1], c[1]] - a[..., r[0], c[1]] * a[..., r[1], c[0]]
-            )
-    det = (a[..., 0, :] * cof[..., 0, :]).sum(axis=-1)
-    ok = np.abs(det) > _EPS * np.abs(a).max(axis=(-2, -1)) ** 3
+            cof[i][j] = (-1) ** (i + j) * (a[r[0]][c[0]] * a[r[1]][c[1]] - a[r[0]][c[1]] * a[r[1]][c[0]])
+    det = 0.0 + a[0][0] * cof[0][0] + a[0][1] * cof[0][1] + a[0][2] * cof[0][2]
+    largest = np.abs(a[0][0])
+    for v in (v for row in a for v in row):
+        np.maximum(largest, np.abs(v), out=largest)
+    ok = np.abs(det) > _EPS * largest**3
     with np.errstate(divide="ignore", invalid="ignore"):
-        inverse = np.swapaxes(cof, -1, -2) / np.where(ok, det, 1.0)[..., None, None]
-    return np.where(ok[..., None, None], inverse, 0.0), ok
+        det = np.where(ok, det, 1.0)
+        inverse = [[np.where(ok, cof[j][i] / det, 0.0) for j in range(3)] for i in range(3)]
+    return inverse, ok
 
 
 def pattern_shares(desc: PatternImage) -> np.ndarray:
@@ -689,20 +760,55 @@ class _PixelUnmixer:
 
     @classmethod
     def build(cls, black: np.ndarray, mixing: np.ndarray, mask: np.ndarray) -> _PixelUnmixer:
-        inverse, ok = _inverse3(mixing)
-        inside = np.asarray(mask, bool) & ok
-        cov = inverse @ np.swapaxes(inverse, -1, -2)
-        s = cov.sum(axis=-1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            c = np.where(inside[..., None], s / s.sum(axis=-1, keepdims=True), 1.0 / 3.0)
-        inverse = np.where(inside[..., None, None], inverse, 0.0)
-        offset = -np.einsum("...kj,...j->...k", inverse, np.asarray(black, np.float64))
-        return cls(
-            np.ascontiguousarray(np.moveaxis(inverse, (-2, -1), (0, 1)), np.float32),
-            np.ascontiguousarray(np.moveaxis(offset, -1, 0), np.float32),
-            np.ascontiguousarray(np.moveaxis(c, -1, 0), np.float32),
-            inside,
+        """From the mixing (h, w, 3, 3) of :func:`estimate_mixing`."""
+        mask = np.asarray(mask, bool)
+        at = np.flatnonzero(mask)
+        picked = np.ascontiguousarray(mixing, np.float32).reshape(mask.size, 9).take(at, axis=0)
+        return cls._from_entries(black, [[picked[:, 3 * c + k] for k in range(3)] for c in range(3)], mask, at)
+
+    @classmethod
+    def from_fractions(cls, black: np.ndarray, lit: list[np.ndarray],
+                       bands: list[tuple[np.ndarray, np.ndarray, np.ndarray]], mask: np.ndarray) -> _PixelUnmixer:
+        """From :func:`_mixing_fractions` (its ``wanted``: ``mask``), as :meth:`build` from
+        :func:`estimate_mixing`, working on the mask's pixels alone."""
+        mask = np.asarray(mask, bool)
+        at = np.flatnonzero(mask)
+        red, blue = (
+            np.where(has.reshape(-1).take(at)[:, None], mean.reshape(-1, 3).take(at, axis=0), fallback)
+            .astype(np.float32)
+            for mean, has, fallback in bands
         )
+        green = 1.0 - red - blue
+        lit = [p.reshape(-1).take(at) for p in lit]
+        entries = [[share[:, c] * lit[c] for share in (red, green, blue)] for c in range(3)]
+        return cls._from_entries(black, entries, mask, at)
+
+    @classmethod
+    def _from_entries(cls, black: np.ndarray, mixing: list[list[np.ndarray]], mask: np.ndarray,
+                      at: np.ndarray) -> _PixelUnmixer:
+        """``mixing[c][k]`` (n,) at the mask's pixels ``at`` (flat indices, row-major); the
+        rest keep the "nothing there" values."""
+        h, w = mask.shape
+        a, ok = _inverse3_planes(mixing)
+        # the rows of A⁻¹ A⁻ᵀ summed, each entry summed in matmul's order
+        s = [sum((a[k][m] * a[i][m] for m in range(1, 3)), a[k][0] * a[i][0])
+             for k in range(3) for i in range(3)]
+        s = [s[3 * k] + s[3 * k + 1] + s[3 * k + 2] for k in range(3)]
+        total = s[0] + s[1] + s[2]
+        b = [np.asarray(black[..., j], np.float64).reshape(-1).take(at) for j in range(3)]
+        inverse = np.zeros((3, 3, h * w), np.float32)
+        offset = np.zeros((3, h * w), np.float32)
+        weights = np.full((3, h * w), 1.0 / 3.0, np.float32)
+        inside = np.zeros(h * w, bool)
+        inside[at] = ok
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for k in range(3):
+                for j in range(3):
+                    inverse[k, j, at] = a[k][j]
+                offset[k, at] = -(a[k][0] * b[0] + a[k][1] * b[1] + a[k][2] * b[2])
+                weights[k, at] = np.where(ok, s[k] / total, 1.0 / 3.0)
+        return cls(inverse.reshape(3, 3, h, w), offset.reshape(3, h, w), weights.reshape(3, h, w),
+                   inside.reshape(h, w))
 
     def primaries(self, image: np.ndarray) -> np.ndarray:
         """Unconstrained primaries (3, h, w) float32 ``A⁻¹ (I − B)``; 0 outside."""
@@ -1165,13 +1271,13 @@ def decode_hybrid_images(
     if mixing == "pixel":
         n_mix = min(MIXING_LEVELS, len(descs))
         coarse = [image(k) for k in range(n_mix)]
-        mixing_matrix = estimate_mixing(
+        lit, bands = _mixing_fractions(
             white, black, coarse, [unmixer.signals(c)[1] for c in coarse], mask=mask,
-            saturated=[clipped[n] | sat_white for n in names[:n_mix]],
+            saturated=[clipped[n] | sat_white for n in names[:n_mix]], wanted=mask,
         )
         del coarse
-        unmixer = _PixelUnmixer.build(black, mixing_matrix, mask)
-        del mixing_matrix
+        unmixer = _PixelUnmixer.from_fractions(black, lit, bands, mask)
+        del lit, bands
         if global_light and len(descs) > GLOBAL_LEVELS:
             fine = range(len(descs) - GLOBAL_LEVELS, len(descs))
             estimate = separate_global(
@@ -1185,8 +1291,21 @@ def decode_hybrid_images(
             direct = 1.0 - estimate[..., 1]
     lit = white.astype(np.float32) - black.astype(np.float32)
     white_level = np.where(mask, channel_max(lit), 0.0).astype(np.float32)
-    # per channel, for the paint-edge test (mixing="pixel")
-    lit_channels = [np.where(mask, lit[..., c], 0.0).astype(np.float32) for c in range(3)]
+    # the edge tests below per pixel, once for every level: the white frame's lowest
+    # value within EDGE_RADIUS px along the row and in the rows above and below; and where
+    # no paint edge crosses a line's profile (mixing="pixel", paint_edges)
+    along = np.ones((1, 2 * EDGE_RADIUS + 1), np.uint8)
+    lowest_white = np.minimum(
+        cv2.erode(white_level, along, borderType=cv2.BORDER_REPLICATE),
+        np.minimum(white_level[np.r_[0, : h - 1]], white_level[np.r_[1:h, h - 1]]),
+    )
+    no_paint_edge = np.ones((h, w), bool)
+    if mixing == "pixel" and paint_edges:
+        for c in range(3):
+            plane = np.where(mask, lit[..., c], 0.0).astype(np.float32)
+            top = cv2.dilate(plane, along, borderType=cv2.BORDER_REPLICATE)
+            bottom = cv2.erode(plane, along, borderType=cv2.BORDER_REPLICATE)
+            no_paint_edge &= (top < PAINT_EDGE_FLOOR * white_level) | (bottom >= min_edge_ratio * top)
     del lit
     all_columns = np.concatenate([_region_lines(d)[1] for d in descs])
     spacing = (
@@ -1237,25 +1356,11 @@ def decode_hybrid_images(
             region |= (v < 0.5).astype(np.int64) << (k - 2 - j)
         # the white frame must not fall off around the line: a silhouette or shadow edge
         # truncates the line's profile and drags its centre
-        lowest = np.minimum(
-            _window(white_level, rows, cols, EDGE_RADIUS).min(axis=1),
-            np.minimum(
-                white_level[np.maximum(rows - 1, 0), cols],
-                white_level[np.minimum(rows + 1, h - 1), cols],
-            ),
-        )
-        ok = _keep(ok, lowest >= min_edge_ratio * white_level[rows, cols], rejected, "edge")
+        ok = _keep(ok, lowest_white[rows, cols] >= min_edge_ratio * white_level[rows, cols], rejected, "edge")
         if mixing == "pixel" and paint_edges:
             # a paint edge across the line's profile: normalising by the white frame does
             # not undo it (the blur acts on paint × light), so the centre moves
-            flat = np.ones(len(rows), bool)
-            for plane in lit_channels:
-                win = _window(plane, rows, cols, EDGE_RADIUS)
-                top = win.max(axis=1)
-                flat &= (top < PAINT_EDGE_FLOOR * white_level[rows, cols]) | (
-                    win.min(axis=1) >= min_edge_ratio * top
-                )
-            ok = _keep(ok, flat, rejected, "paint edge")
+            ok = _keep(ok, no_paint_edge[rows, cols], rejected, "paint edge")
         # red on the left, blue on the right
         polarity = _interp_row(e, rows, x - 1.0) - _interp_row(e, rows, x + 1.0)
         ok = _keep(ok, polarity >= min_polarity, rejected, "polarity")
