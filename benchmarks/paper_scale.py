@@ -306,6 +306,9 @@ def main() -> None:
     p.add_argument("--faces", type=int, default=1_000_000)
     p.add_argument("--texture-size", type=int, default=4096)
     p.add_argument("--quick", action="store_true", help="a smoke run: 20k faces, 512 atlas")
+    p.add_argument("--only", default="", help="re-run only these stages (comma-separated) as column --label, "
+                   "from the local run's results (e.g. --only decode,fuse --label new after a change)")
+    p.add_argument("--label", default="rerun", help="the column of an --only run")
     p.add_argument("--child-capture", action="store_true", help=argparse.SUPPRESS)
     args = ARGS = p.parse_args()
     # this tree's slscan for every process started from here: the stages, and the Dask
@@ -335,9 +338,26 @@ def main() -> None:
                                                  "cpu_s": _children_cpu() - cpu0,
                                                  "peak_gib": measured.peak_bytes / 2**30}}
         table_path.write_text(json.dumps(table, indent=1))
-    rows = [r for r in table.get("rows", []) if not (r["mode"] == "local" and not args.dask_only)
-            and not (r["mode"] == "dask" and args.scheduler == "local")]
-    if not args.dask_only:
+    rows = [r for r in table.get("rows", []) if not (r["mode"] == "local" and not (args.dask_only or args.only))
+            and not (r["mode"] == "dask" and args.scheduler == "local") and r["mode"] != args.label]
+    if args.only:
+        only = tuple(x.strip() for x in args.only.split(",") if x.strip())
+        known = [stage for stage, _ in stage_commands(args.work, args.work, args, None)]
+        if not set(only) <= set(known):
+            raise SystemExit(f"--only: unknown stage(s) {sorted(set(only) - set(known))}; known: {', '.join(known)}")
+        local, out = args.work / "runs" / "local", args.work / "runs" / args.label
+        out.mkdir(parents=True, exist_ok=True)
+        made = {"decode": ["maps"], "lights": ["panel", "lights.json"], "albedo": ["albedo"], "register": ["aligned"],
+                "fuse": ["fused.ply"], "simplify": ["simplified.ply"], "texture": ["textured"]}
+        for stage, names in made.items():  # what the stages left out would have made: the local run's
+            for name in names:
+                link = out / name
+                if stage not in only and not link.exists() and (local / name).exists():
+                    link.symlink_to(local / name)
+        rows += run_stages(args.work, out, args, args.label, only=only)
+        table["rows"] = rows
+        table_path.write_text(json.dumps(table, indent=1))
+    elif not args.dask_only:
         out = args.work / "runs" / "local"
         rows += run_stages(args.work, out, args, "local")
         table["accuracy"] = model_accuracy(out, args.work)
