@@ -397,3 +397,22 @@ def test_config_is_checked():
     with pytest.raises(SlscanError, match="min_lights"):
         AlbedoConfig(min_lights=2)
     assert math.isclose(SpecularLobe().strength, 0.0)
+
+
+def test_srgb_camera_is_linearised(tmp_path, figurine, calibrated):
+    """A camera that saves sRGB-coded images (``camera.response`` "srgb": JPEG cameras,
+    imported captures) gives the albedo of the same camera saving linear values: the lit
+    images are read as light, not as codes (undecoded, the codes of a 0.2 albedo would
+    read as about 0.48)."""
+    session, range_maps = figurine  # its capture, rendered again by an sRGB camera
+    config = VirtualCaptureConfig(views=2, levels=7, camera_scale=0.25, projector_scale=0.25,
+                                  sensor=Sensor(response="srgb"))
+    srgb = capture_session(config, tmp_path / "srgb")
+    assert srgb.response == "srgb"
+    linear = albedo_session(session, range_maps, tmp_path / "linear", lights=calibrated)
+    coded = albedo_session(srgb, range_maps, tmp_path / "coded", lights=calibrated)
+    for a, b in zip(linear, coded):
+        both = a.valid & b.valid
+        assert both.sum() > 0.8 * a.valid.sum()
+        ratio = np.median(b.albedo[both] / np.maximum(a.albedo[both], 1e-3), axis=0)
+        np.testing.assert_allclose(ratio, 1.0, atol=0.03)

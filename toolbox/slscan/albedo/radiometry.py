@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slscan.capture.session import ImageRecord, Session, ViewRecord
+from slscan.capture.session import ImageRecord, Session, ViewRecord, linearise
 from slscan.errors import SlscanError
 
 EXPOSURE_KEYS = ("white_level", "exposure", "gain")
@@ -67,12 +67,14 @@ def _positive(value, where: str) -> float:
 class LitImages:
     """The lit images of one view in normalised units.
 
-    values : (k, h, w, 3) float32, ``DN / max / exposure`` (grey sessions repeated to RGB)
+    values : (k, h, w, 3) float32, ``DN / max / exposure`` (grey sessions repeated to RGB);
+        for a camera with an sRGB response (``camera.response``) the curve is undone first
+    dn_unit : one digital number of a linear camera in normalised units (an sRGB camera's
+        step is smaller in the dark and larger in the highlights)
     saturated : (k, h, w) bool, a channel reached the sensor's maximum
     lights : (k,) int, the ring light of each image
     records : the image records, in the same order
     exposure : the view's exposure factor (see :func:`exposure_factor`)
-    dn_unit : one digital number in normalised units (for noise floors)
     """
 
     values: np.ndarray
@@ -113,7 +115,10 @@ def read_lit_images(session: Session, view: ViewRecord, *, min_images: int = 1) 
         if image.ndim == 2:
             image = np.repeat(image[..., None], 3, axis=2)
         saturated[i] = np.any(image >= max_value, axis=-1)
-        values[i] = image.astype(np.float32) * np.float32(1.0 / (max_value * factor))
+        if session.response == "linear":
+            values[i] = image.astype(np.float32) * np.float32(1.0 / (max_value * factor))
+        else:  # light, not the camera's tone curve: sRGB codes back to fractions of full scale
+            values[i] = linearise(image, session.response) * np.float32(1.0 / factor)
     return LitImages(values, saturated, lights, records, factor, 1.0 / (max_value * factor))
 
 
