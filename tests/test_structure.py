@@ -41,6 +41,7 @@ SHARED = frozenset(
         "slscan.decode.samples",  # stripe samples and light planes (result types)
         "slscan.decode.rangemap",  # the range-map type and its PLY format
         "slscan.calibrate.target",  # boards, corner detections, board poses
+        "slscan.calibrate.options",  # the calibrate stage's option vocabularies (board kinds, ...)
     }
 )
 """Modules below both the stages and the viewer. Everything else outside

@@ -670,7 +670,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_scan_command(sub)
 
-    from slscan.decode.hybrid import DEFAULT_ESTIMATOR, ESTIMATORS
+    from slscan.decode.options import DEFAULT_ESTIMATOR, ESTIMATORS
     from slscan.viewer.recording import add_recording_arguments
 
     p = sub.add_parser(

@@ -20,15 +20,13 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from slscan.calibrate.options import DISTORTION_MODELS
 from slscan.calibrate.target import MIN_CORNERS, Board, CornerDetection, pose_matrix
 from slscan.decode.masks import channel_mean
 from slscan.errors import SlscanError
 from slscan.rig import PinholeModel
 
 log = logging.getLogger(__name__)
-
-DISTORTION_MODELS = ("none", "radial", "radial-tangential", "full")
-"""Lens models: no distortion; ``k1, k2``; ``k1, k2, p1, p2``; ``k1, k2, p1, p2, k3``."""
 
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
 

@@ -36,10 +36,14 @@ examples:
 
 def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add ``calibrate`` to the ``slscan`` subcommands; return its parser."""
-    from slscan.calibrate.camera import DISTORTION_MODELS
-    from slscan.calibrate.pipeline import METHODS, PLANE_PATTERNS
-    from slscan.calibrate.procam import CORRESPONDENCES
-    from slscan.calibrate.target import BOARD_KINDS, DEFAULT_DICTIONARY
+    from slscan.calibrate.options import (
+        BOARD_KINDS,
+        CORRESPONDENCES,
+        DEFAULT_DICTIONARY,
+        DISTORTION_MODELS,
+        METHODS,
+        PLANE_PATTERNS,
+    )
     from slscan.viewer.recording import add_recording_arguments
 
     p = subparsers.add_parser(

@@ -23,15 +23,19 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from slscan.calibrate.camera import (
-    DISTORTION_MODELS,
     CameraCalibration,
     calibrate_camera,
     detect_corners,
 )
 from slscan.calibrate.io import Calibration
+from slscan.calibrate.options import (
+    CORRESPONDENCES,
+    DISTORTION_MODELS,
+    METHODS,
+    PLANE_PATTERNS,
+)
 from slscan.calibrate.planes import LightPlaneCalibration, PanelView, calibrate_light_planes
 from slscan.calibrate.procam import (
-    CORRESPONDENCES,
     InverseCameraCalibration,
     ProjectorCorners,
     calibrate_inverse_camera,
@@ -47,9 +51,6 @@ from slscan.decode.hybrid import decode_hybrid
 from slscan.errors import SlscanError
 
 log = logging.getLogger(__name__)
-
-METHODS = ("planes", "inverse-camera", "both")
-PLANE_PATTERNS = ("auto", "hybrid", "gray")
 
 Progress = Callable[[int, int, str], None]
 

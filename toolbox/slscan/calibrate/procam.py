@@ -55,7 +55,6 @@ log = logging.getLogger(__name__)
 
 RANSAC_THRESHOLD_PX = 1.5
 """Decoded pixels farther than this (projector px) from the local homography are outliers."""
-CORRESPONDENCES = ("edges", "pixels")
 EDGE_OUTLIER_SIGMAS = 3.0
 """Edge constraints beyond this many robust sigmas of the first fit are dropped."""
 

@@ -18,14 +18,13 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
+from slscan.calibrate.options import BOARD_KINDS, DEFAULT_DICTIONARY
 from slscan.errors import SlscanError
 
 if TYPE_CHECKING:
     from slscan.capture.session import Session
     from slscan.rig import PinholeModel
 
-BOARD_KINDS = ("chessboard", "charuco")
-DEFAULT_DICTIONARY = "DICT_4X4_100"
 MARKER_FRACTION = 0.75
 """Default ChArUco marker side, as a fraction of the square."""
 MIN_CORNERS = 6

@@ -107,16 +107,13 @@ from slscan.decode.masks import (
     uncrop,
     warn_saturation,
 )
+from slscan.decode.options import DEFAULT_ESTIMATOR, ESTIMATORS
 from slscan.decode.samples import StripeSamples
 from slscan.errors import SlscanError
 from slscan.patterns import PatternImage
 from slscan.patterns import hybrid as hybrid_pattern
 
 log = logging.getLogger(__name__)
-
-ESTIMATORS = ("centroid", "gaussian", "parabola", "blais-rioux")
-DEFAULT_ESTIMATOR = "gaussian"
-"""The most accurate on the virtual rig (``benchmarks/stripe_axes.py``, module docstring)."""
 
 DEFAULT_MIN_PEAK = 0.2
 """Smallest line signal kept: green relative to the white frame at the line's maximum."""

@@ -39,7 +39,7 @@ from slscan import __version__
 from slscan.errors import SlscanError
 from slscan.fsio import atomic_output_file, read_json, remove_stale_leftovers, write_json
 from slscan.recipe.config import dumps_toml, from_mapping, parse_override, set_in, to_mapping
-from slscan.recipe.stages import Stage, StageContext, stages
+from slscan.recipe.stages import SUMMARIES, Stage, StageContext, stages
 
 RECIPE_KEYS = ("name", "description", "stages", "out", "reduced")
 MANIFEST_HASH = "sha256"
@@ -422,5 +422,5 @@ def run_recipe(recipe: Recipe, out: str | os.PathLike, *, force: bool = False, r
 
 def describe_stages() -> str:
     """One line per stage for ``--help``."""
-    return "\n".join(f"  {s.name:<10} {s.summary}" for s in stages().values())
+    return "\n".join(f"  {name:<10} {summary}" for name, summary in SUMMARIES.items())
 

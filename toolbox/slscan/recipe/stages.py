@@ -272,6 +272,22 @@ def _run_texture(ctx: StageContext, config) -> dict[str, Any]:
             "seam_error_mean": result.metrics["seam_error_mean"]}
 
 
+SUMMARIES: dict[str, str] = {
+    "capture": "render a capture session on the virtual rig",
+    "import": "import another tool's captures",
+    "calibrate": "calibrate camera and projector from views of a printed board",
+    "decode": "decode patterns into range maps (with a measured calibration when one was made)",
+    "lights": "calibrate the ring lights on a matte panel (virtual rig)",
+    "albedo": "un-shade the ring-light images into albedo",
+    "register": "align range maps (ICP + pose graph) into a MeshLab project",
+    "fuse": "fuse the aligned range maps (weighted TSDF)",
+    "simplify": "simplify the mesh to a face count",
+    "texture": "bake the views' un-shaded colour into a texture atlas; glb, OBJ, PLY, .mlp",
+}
+"""Every stage's name and one-line summary, in pipeline order: what ``slscan run --help``
+lists without importing the stages' modules (:func:`stages` loads them)."""
+
+
 def _registry() -> dict[str, Stage]:
     from slscan.albedo.photometric import AlbedoConfig
     from slscan.calibrate.pipeline import CalibrationConfig
@@ -283,26 +299,24 @@ def _registry() -> dict[str, Stage]:
 
     stages = [
         Stage("capture", VirtualCaptureConfig, "session", (), _run_capture, _capture_size,
-              "render a capture session on the virtual rig"),
-        Stage("import", ImportConfig, "session", (), _run_import, summary="import another tool's captures"),
+              SUMMARIES["capture"]),
+        Stage("import", ImportConfig, "session", (), _run_import, summary=SUMMARIES["import"]),
         Stage("calibrate", CalibrationConfig, "calibration", ("session",), _run_calibrate, _calibrate_size,
-              "calibrate camera and projector from views of a printed board"),
+              SUMMARIES["calibrate"]),
         Stage("decode", DecodeConfig, "range_maps", ("session",), _run_decode, lambda config: 1,
-              "decode patterns into range maps (with a measured calibration when one was made)",
-              optional=("calibration",)),
+              SUMMARIES["decode"], optional=("calibration",)),
         Stage("lights", LightPanelConfig, "lights", (), _run_lights, lambda c: c.poses * 13,
-              "calibrate the ring lights on a matte panel (virtual rig)"),
+              SUMMARIES["lights"]),
         Stage("albedo", AlbedoConfig, "albedo", ("session", "range_maps"), _run_albedo, lambda c: 1,
-              "un-shade the ring-light images into albedo", optional=("lights",)),
+              SUMMARIES["albedo"], optional=("lights",)),
         Stage("register", RegisterConfig, "aligned", (), _run_register, lambda c: 1,
-              "align range maps (ICP + pose graph) into a MeshLab project", optional=("range_maps",)),
+              SUMMARIES["register"], optional=("range_maps",)),
         Stage("fuse", FuseConfig, "mesh", ("aligned",), _run_fuse, lambda c: 1,
-              "fuse the aligned range maps (weighted TSDF)"),
+              SUMMARIES["fuse"]),
         Stage("simplify", SimplifyConfig, "mesh", ("mesh",), _run_simplify, lambda c: 1,
-              "simplify the mesh to a face count"),
+              SUMMARIES["simplify"]),
         Stage("texture", TextureConfig, "model", ("mesh", "albedo"), _run_texture, lambda c: 12,
-              "bake the views' un-shaded colour into a texture atlas; glb, OBJ, PLY, .mlp",
-              optional=("aligned", "session")),
+              SUMMARIES["texture"], optional=("aligned", "session")),
     ]
     return {s.name: s for s in stages}
 

@@ -23,11 +23,13 @@ import shutil
 import sys
 from collections.abc import Iterator
 from pathlib import Path
-
-import rerun as rr
+from typing import TYPE_CHECKING
 
 from slscan.errors import SlscanError
 from slscan.fsio import atomic_output_file
+
+if TYPE_CHECKING:
+    import rerun as rr  # imported where a stream is opened: building a command's options needs no Rerun
 
 VIEW_TIMELINE = "view"
 FRAME_TIMELINE = "frame"
@@ -42,6 +44,8 @@ logger = logging.getLogger(__name__)
 
 
 def _grpc_sink(url: str) -> rr.GrpcSink:
+    import rerun as rr
+
     try:
         return rr.GrpcSink(url)
     except RuntimeError as exc:
@@ -66,6 +70,8 @@ def _rerun_executable() -> str | None:
 
 def _spawn_viewer(rec: rr.RecordingStream, port: int) -> str:
     """Start a viewer on ``port`` (or reuse one already there); return its gRPC URL."""
+    import rerun as rr
+
     try:
         rr.spawn(port=port, connect=False, executable_path=_rerun_executable(), recording=rec)
     except RuntimeError as exc:
@@ -119,6 +125,7 @@ def open_recording(
     if save is None and not spawn and connect is None:
         yield None
         return
+    import rerun as rr
 
     urls: list[str] = []
     if connect is not None:

@@ -1,0 +1,19 @@
+"""The calibrate stage's option vocabularies: plain constants, importing nothing.
+
+``slscan calibrate``'s parser takes its choices and defaults from here, so that building
+it loads neither OpenCV nor SciPy; the modules that use them import them from here.
+"""
+
+from __future__ import annotations
+
+DISTORTION_MODELS = ("none", "radial", "radial-tangential", "full")
+"""Lens models: no distortion; ``k1, k2``; ``k1, k2, p1, p2``; ``k1, k2, p1, p2, k3``."""
+METHODS = ("planes", "inverse-camera", "both")
+"""Projector models: the paper's light planes, an inverse camera, or both."""
+PLANE_PATTERNS = ("auto", "hybrid", "gray")
+"""Features whose light planes are measured (auto: hybrid lines when captured)."""
+CORRESPONDENCES = ("edges", "pixels")
+"""Local homographies from Gray-code stripe edges or from decoded pixels."""
+BOARD_KINDS = ("chessboard", "charuco")
+DEFAULT_DICTIONARY = "DICT_4X4_100"
+"""ChArUco marker dictionary, an OpenCV ``cv2.aruco`` name."""
