@@ -10,7 +10,8 @@ decode --help``: CPU seconds (user + system of the child) and wall seconds, the 
 ``--repeats`` runs, the versions alternating run by run. The ``same output`` column
 compares each command's output between the versions (it must not change). Then every
 subcommand's ``--help`` once per version: how many print the same text in both, and the
-most CPU any of them takes.
+most CPU any of them takes; and whether the two parsers are the same, option by option
+(defaults and types too, which ``--help`` does not always show).
 
 ``--against REV`` writes REV's ``toolbox/`` to a temporary folder (git archive) and runs it
 with ``PYTHONPATH`` pointing there; this tree runs from ``toolbox/`` beside this script.
@@ -35,6 +36,25 @@ TOOLBOX = Path(__file__).resolve().parent.parent / "toolbox"
 LIST_COMMANDS = ("from slscan.cli import build_parser\n"
                  "sub = next(a for a in build_parser()._actions if a.dest == 'command')\n"
                  "print(' '.join(sub.choices))")
+DUMP_PARSER = """\
+import json
+from slscan.cli import build_parser
+
+def dump(parser):
+    actions = []
+    for a in parser._actions:
+        sub = a.choices if isinstance(a.choices, dict) else None
+        actions.append([type(a).__name__, a.option_strings, a.dest, repr(a.default),
+                        None if sub else repr(a.choices), repr(a.nargs), repr(a.const), a.required,
+                        getattr(a.type, "__name__", repr(a.type)), repr(a.metavar), a.help,
+                        {k: dump(v) for k, v in sub.items()} if sub else None])
+    defaults = {k: getattr(v, "__name__", repr(v)) for k, v in parser._defaults.items()}
+    return [actions, defaults, parser.description, parser.epilog]
+
+print(json.dumps(dump(build_parser()), sort_keys=True))
+"""
+"""Every option of every command (strings, default, choices, type, help) and the function
+each command runs, as JSON."""
 
 
 def _children_cpu() -> float:
@@ -135,6 +155,9 @@ def main() -> None:
             differ = sorted(set(every) - set(same))
             print(f"  same --help text in {names[0]} and this tree: {len(same)} of {len(every)}"
                   + (f"; differ: {', '.join(differ)}" if differ else ""))
+            dumps = [python_out(versions[v], DUMP_PARSER) for v in names]
+            print("  the parsers (every option's strings, default, choices, type and help, every command's "
+                  f"function): {'identical' if dumps[0] == dumps[1] else 'DIFFER'}")
 
 
 if __name__ == "__main__":
