@@ -11,7 +11,11 @@ codes_kamino410.png of docs/reconstruction.md decodes the kamino410 capture_0 in
 The effect_*.png of docs/virtual-rig.md render the virtual rig at half size, each effect
 off and on: .venv/bin/python docs/figures.py optics
 The effect_*.png and scene_*.png of docs/virtual-rig.md render the light-transport scenes
-at half size with each effect off and on: .venv/bin/python docs/figures.py transport"""
+at half size with each effect off and on: .venv/bin/python docs/figures.py transport
+
+paper_scale_views.png and paper_scale_model.png of docs/paper-scale.md show a
+``benchmarks/paper_scale.py`` run's campaign and its textured model:
+.venv/bin/python docs/figures.py paper-scale WORK"""
 
 from __future__ import annotations
 
@@ -450,8 +454,79 @@ def transport_figures() -> None:
             _titled(_to_height(images["hybrid-04"][box], 300), "hybrid level 4")))
 
 
+# --- the paper-scale run (docs/paper-scale.md) ---------------------------------------------
+
+
+def _render_mesh(vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray, eye: np.ndarray, target: np.ndarray,
+                 size: tuple[int, int], fov_deg: float = 40.0) -> np.ndarray:
+    """A pinhole picture of a vertex-coloured mesh (ray cast, head light, Lambert), RGB uint8."""
+    import open3d as o3d
+    import open3d.core as o3c
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3c.Tensor(vertices.astype(np.float32)), o3c.Tensor(faces.astype(np.uint32)))
+    w, h = size
+    z = (target - eye) / np.linalg.norm(target - eye)
+    x = np.cross(z, [0.0, 1.0, 0.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    f = 0.5 * w / np.tan(np.radians(fov_deg) / 2)
+    u, v = np.meshgrid(np.arange(w) - w / 2 + 0.5, np.arange(h) - h / 2 + 0.5)
+    dirs = (u[..., None] * x + v[..., None] * y + f * z).reshape(-1, 3)
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    rays = np.hstack([np.broadcast_to(eye, dirs.shape), dirs]).astype(np.float32)
+    hit = scene.cast_rays(o3c.Tensor(rays))
+    tri = hit["primitive_ids"].numpy().astype(np.int64)
+    ok = np.isfinite(hit["t_hit"].numpy())
+    normal = hit["primitive_normals"].numpy()
+    shade = np.abs(np.sum(normal * dirs, axis=1))
+    bary = hit["primitive_uvs"].numpy()
+    out = np.full((h * w, 3), 255.0)
+    t = faces[tri[ok]]
+    b = bary[ok]
+    colour = (colours[t[:, 0]] * (1 - b[:, :1] - b[:, 1:]) + colours[t[:, 1]] * b[:, :1] + colours[t[:, 2]] * b[:, 1:])
+    out[ok] = 255 * np.clip(colour * (0.25 + 0.75 * shade[ok, None]), 0, 1)
+    return out.reshape(h, w, 3).astype(np.uint8)
+
+
+def paper_scale_figures(work: str) -> None:
+    """paper_scale_views.png: the white frame of one view per ring of the campaign;
+    paper_scale_model.png: the textured model (its vertex colours) from the front and
+    from above."""
+    import open3d as o3d
+
+    work = Path(work)
+    s = load_session(work / "capture")
+    heights, picks = [], []
+    for i, view in enumerate(s.views):  # the first view of each ring: where the look-at height changes
+        key = round(float(view.rig_from_object[1, 3]))
+        if key not in heights:
+            heights.append(key)
+            picks.append(i)
+    panels = [_titled(_to_height(s.read_image(s.views[i], s.views[i].image_for("white")), 200), s.views[i].name)
+              for i in picks]
+    _write("paper_scale_views.png", _side_by_side(*panels[:4]) if len(panels) <= 4 else np.vstack([
+        _side_by_side(*panels[:4]), np.full((10, _side_by_side(*panels[:4]).shape[1], 3), 255, np.uint8),
+        _pad_to(_side_by_side(*panels[4:8]), _side_by_side(*panels[:4]).shape[1])]))
+    mesh = o3d.io.read_triangle_mesh(str(work / "runs" / "local" / "textured" / "model_vertex_colors.ply"))
+    v, f, c = np.asarray(mesh.vertices), np.asarray(mesh.triangles), np.asarray(mesh.vertex_colors)
+    centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
+    height = float(v[:, 1].max() - v[:, 1].min())
+    front = _render_mesh(v, f, c, centre + [0.0, 0.0, 2.6 * height], centre, (420, 640), fov_deg=24)
+    above = _render_mesh(v, f, c, centre + [0.0, 1.6 * height, 1.6 * height], centre, (420, 640), fov_deg=30)
+    _write("paper_scale_model.png", _side_by_side(_titled(front, "front"), _titled(above, "from above")))
+
+
+def _pad_to(rgb: np.ndarray, width: int) -> np.ndarray:
+    if rgb.shape[1] >= width:
+        return rgb
+    return np.hstack([rgb, np.full((rgb.shape[0], width - rgb.shape[1], 3), 255, np.uint8)])
+
+
 if __name__ == "__main__":
-    if sys.argv[1:] == ["transport"]:
+    if sys.argv[1:2] == ["paper-scale"] and len(sys.argv) == 3:
+        paper_scale_figures(sys.argv[2])
+    elif sys.argv[1:] == ["transport"]:
         transport_figures()
     elif sys.argv[1:] == ["scan"]:
         scan_figures()
