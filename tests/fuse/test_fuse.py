@@ -7,12 +7,14 @@ import open3d as o3d
 import pytest
 from synthetic_poses import looking_from
 
+import slscan.fuse as fuse_module
 from slscan.errors import SlscanError
 from slscan.fuse import (
     BLOCK_RESOLUTION,
     FuseConfig,
     Mesh,
     TsdfVolume,
+    _compiled_update,
     canonical_order,
     estimate_blocks,
     fuse_scans,
@@ -138,7 +140,13 @@ def _voxels(volume):
     return centres, tsdf, weight
 
 
-def test_every_voxel_gets_the_weighted_average_of_its_observations(sphere_views):
+HAVE_NUMBA = _compiled_update() is not None
+UPDATES = [False, pytest.param(True, marks=pytest.mark.skipif(
+    not HAVE_NUMBA, reason="numba (the fast extra) not installed"))]
+
+
+@pytest.mark.parametrize("compiled", UPDATES, ids=["numpy", "numba"])
+def test_every_voxel_gets_the_weighted_average_of_its_observations(sphere_views, compiled):
     # each voxel of the blocks near a scan: the height map sampled at its centre (bilinear
     # height and quality weight), truncated, averaged with the earlier scans' by weight
     scans, poses = sphere_views
@@ -146,7 +154,7 @@ def test_every_voxel_gets_the_weighted_average_of_its_observations(sphere_views)
     trunc = 3.0
     maps = [height_map(s, poses[s.name], pixel=1.0) for s in scans[:3]]
     for depth in maps:
-        volume.integrate(depth, chunk_blocks=7)  # chunks end inside the block list
+        volume.integrate(depth, chunk_blocks=7, compiled=compiled)  # chunks end inside the list
     centres, tsdf, weight = _voxels(volume)
     points = centres.reshape(-1, 3)
     num = np.zeros(len(points))
@@ -166,6 +174,61 @@ def test_every_voxel_gets_the_weighted_average_of_its_observations(sphere_views)
     np.testing.assert_allclose(weight.reshape(-1)[seen], den[seen], rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(tsdf.reshape(-1)[seen], num[seen] / den[seen], atol=2e-5)
     assert (count >= 2).sum() > 10_000  # overlapping scans were averaged
+
+
+@pytest.mark.skipif(not HAVE_NUMBA, reason="numba (the fast extra) not installed")
+def test_compiled_and_numpy_updates_agree_bit_for_bit(sphere_views):
+    # every scan, with noise and quality weights: the same float32 operations in the same
+    # order, so the same tsdf and weight in every voxel, run after run
+    scans, poses = sphere_views
+    maps = [height_map(s, poses[s.name], pixel=0.9) for s in scans]
+    grids = []
+    for compiled in (False, True, True):
+        volume = TsdfVolume(0.9, truncation=4.0)
+        for depth in maps:
+            volume.integrate(depth, compiled=compiled)
+        grids.append(_voxels(volume))
+    (c0, t0, w0), *others = grids
+    assert (w0 > 0).sum() > 100_000 and (w0 > 1).sum() > 10_000  # observed, and overlapping
+    for c, t, w in others:
+        np.testing.assert_array_equal(c, c0)
+        assert np.array_equal(t.view(np.uint32), t0.view(np.uint32))
+        assert np.array_equal(w.view(np.uint32), w0.view(np.uint32))
+
+
+def test_the_numpy_update_is_chosen_without_numba(sphere_views, monkeypatch):
+    # the automatic choice follows what is installed; asking for the kernel without it fails
+    scans, poses = sphere_views
+    depth = height_map(scans[0], poses["view0"], pixel=1.0)
+    calls = []
+    monkeypatch.setattr(fuse_module, "_KERNEL", [lambda *args: calls.append(args)])
+    TsdfVolume(1.0).integrate(depth)
+    assert len(calls) == 1
+    monkeypatch.setattr(fuse_module, "_KERNEL", [None])
+    volume = TsdfVolume(1.0)
+    volume.integrate(depth)
+    assert (_voxels(volume)[2] > 0).sum() > 1000  # updated, in numpy
+    with pytest.raises(SlscanError, match="numba is not installed"):
+        TsdfVolume(1.0).integrate(depth, compiled=True)
+
+
+@pytest.mark.skipif(not HAVE_NUMBA, reason="numba (the fast extra) not installed")
+def test_the_kernel_compiles_in_memory_where_it_cannot_be_cached():
+    # numba refuses cache=True for a function whose source file it cannot cache beside
+    # (here: none at all, as for a read-only install without a user cache folder)
+    import types
+
+    import numba
+
+    from slscan._tsdf_numba import jit
+
+    def twice(a):
+        return 2 * a
+
+    homeless = types.FunctionType(twice.__code__.replace(co_filename="<nowhere>"), {})
+    with pytest.raises(RuntimeError, match="cannot cache"):
+        numba.njit(cache=True)(homeless)
+    assert jit(homeless)(np.arange(3)).tolist() == [0, 2, 4]
 
 
 def test_the_estimated_grid_is_never_regrown(sphere_views):

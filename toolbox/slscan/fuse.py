@@ -376,6 +376,23 @@ _VOXEL_LATTICE = np.stack(
 """(512, 3) voxel offsets (x, y, z) within a block, x fastest (open3d's storage order)."""
 
 
+_KERNEL: list = []
+"""The numba voxel update once looked for: [] not yet, [None] numba missing, [kernel]."""
+
+
+def _compiled_update():
+    """:func:`slscan._tsdf_numba.update`, or None without numba (imported on first use, so
+    that only fusion pays for numba's import and the kernel's compile or cache load)."""
+    if not _KERNEL:
+        try:
+            from slscan._tsdf_numba import update
+        except ImportError as exc:  # numba missing, or not importable with this numpy
+            log.debug("TSDF update in numpy: %s", exc)
+            update = None
+        _KERNEL.append(update)
+    return _KERNEL[0]
+
+
 class TsdfVolume:
     """A sparse weighted-TSDF volume (open3d VoxelBlockGrid) that integrates range scans one by one.
 
@@ -399,8 +416,15 @@ class TsdfVolume:
     def n_blocks(self) -> int:
         return int(self.grid.hashmap().size())
 
-    def integrate(self, depth: HeightMap, *, chunk_blocks: int = 256) -> None:
-        """Add one scan's height map to the volume (see the module docstring)."""
+    def integrate(
+        self, depth: HeightMap, *, chunk_blocks: int = 256, compiled: bool | None = None
+    ) -> None:
+        """Add one scan's height map to the volume (see the module docstring).
+
+        compiled : update the voxels with the numba kernel (:mod:`slscan._tsdf_numba`,
+            the ``fast`` extra) or in numpy, whose results are the same bit for bit;
+            None: the kernel when numba is installed.
+        """
         points = depth.surface_points()
         if len(points) == 0:
             return
@@ -427,6 +451,15 @@ class TsdfVolume:
         tsdf = self.grid.attribute("tsdf").numpy().reshape(-1, res3)
         weight = self.grid.attribute("weight").numpy().reshape(-1, res3)
         inv_trunc = np.float32(1.0 / trunc)
+        kernel = _compiled_update() if compiled is None or compiled else None
+        if compiled and kernel is None:
+            raise SlscanError("compiled TSDF update asked for, but numba is not installed "
+                              "(pip install 'slscan[fast]')")
+        if kernel is not None:
+            kernel(tsdf, weight, buf, base.astype(np.float32), np.ascontiguousarray(lattice),
+                   height, weight_px, cols_px, x_max, y_max, np.float32(-trunc), inv_trunc)
+            self.n_scans += 1
+            return
         for start in range(0, len(buf), chunk_blocks):
             rows = buf[start : start + chunk_blocks]
             b = base[start : start + chunk_blocks].astype(np.float32)
@@ -600,19 +633,39 @@ def canonical_order(mesh: Mesh) -> Mesh:
     """
     if mesh.n_vertices == 0:
         return mesh
-    order = np.lexsort(mesh.vertices.T[::-1])
+    order = _position_order(mesh.vertices)
     rank = np.empty_like(order)
     rank[order] = np.arange(len(order))
     faces = rank[mesh.faces]
     start = np.argmin(faces, axis=1)[:, None]
     faces = np.take_along_axis(faces, (start + np.arange(3)) % 3, axis=1)
-    faces = faces[np.lexsort(faces.T[::-1])]
+    if mesh.n_vertices <= 2**21:
+        # one int64 key per face (21 bits a vertex) sorts like the three columns; faces
+        # with equal keys are equal rows, so the sort need not be stable
+        faces = faces[np.argsort((faces[:, 0] << 42) | (faces[:, 1] << 21) | faces[:, 2])]
+    else:
+        faces = faces[np.lexsort(faces.T[::-1])]
     return Mesh(
         mesh.vertices[order],
         faces,
         None if mesh.normals is None else mesh.normals[order],
         None if mesh.colors is None else mesh.colors[order],
     )
+
+
+def _position_order(vertices: np.ndarray) -> np.ndarray:
+    """``np.lexsort(vertices.T[::-1])``: the stable order by x, then y, then z; with two
+    sort keys instead of three when every coordinate is a float32 (open3d's marching
+    cubes): x and y in one uint64 of order-preserving bit patterns, then z."""
+    single = vertices.astype(np.float32)
+    if not np.array_equal(single, vertices):  # also NaN
+        return np.lexsort(vertices.T[::-1])
+    single += np.float32(0.0)  # -0 to +0, equal to it as a float
+    bits = single.view(np.uint32)
+    # negative floats: all bits flipped (larger magnitude, smaller key); others: sign set
+    keys = np.where(bits >> 31 == 1, ~bits, bits | np.uint32(2**31))
+    xy = (keys[:, 0].astype(np.uint64) << np.uint64(32)) | keys[:, 1]
+    return np.lexsort((keys[:, 2], xy))
 
 
 def _weld(pieces: list[tuple[Mesh, np.ndarray, float]], voxel_size: float) -> Mesh:
