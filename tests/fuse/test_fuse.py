@@ -14,6 +14,7 @@ from slscan.fuse import (
     FuseConfig,
     Mesh,
     TsdfVolume,
+    _block_keys,
     _compiled_update,
     canonical_order,
     estimate_blocks,
@@ -105,6 +106,61 @@ def test_fusion_is_the_same_from_run_to_run(sphere_views):
     shuffled = Mesh(first.vertices[perm], faces[rng.permutation(first.n_faces)])
     same = canonical_order(shuffled)
     assert np.array_equal(same.vertices, first.vertices) and np.array_equal(same.faces, first.faces)
+
+
+def _canonical_reference(vertices, faces):
+    """canonical_order's definition, straight: lexsort of the positions, faces rotated to
+    their lowest index, lexsort of the faces."""
+    order = np.lexsort(vertices.T[::-1])
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    f = rank[faces]
+    f = np.take_along_axis(f, (np.argmin(f, axis=1)[:, None] + np.arange(3)) % 3, axis=1)
+    return vertices[order], f[np.lexsort(f.T[::-1])]
+
+
+@pytest.mark.parametrize("n_vertices", [5_000, 2**21 + 5])  # one face key, two
+def test_canonical_order_is_the_lexicographic_order(n_vertices):
+    rng = np.random.default_rng(n_vertices)
+    # float32 positions (as open3d extracts them) with ties, signed zeros, tiny and huge values
+    values = np.array([-2.5, -0.0, 0.0, 1e-40, -1e-40, 3e30, -3e30, 7.0], np.float32)
+    vertices = rng.choice(values, size=(n_vertices, 3)).astype(np.float64)
+    vertices[: n_vertices // 2] = rng.normal(size=(n_vertices // 2, 3)).astype(np.float32)
+    faces = rng.integers(0, n_vertices, size=(20_000, 3))
+    faces[:50] = faces[50:100]  # repeated faces
+    got = canonical_order(Mesh(vertices, faces))
+    want_vertices, want_faces = _canonical_reference(vertices, faces)
+    assert np.array_equal(got.vertices, want_vertices)
+    assert np.array_equal(got.faces, want_faces)
+    doubles = rng.normal(size=(3000, 3))  # not float32: sorted as three float64 keys
+    faces = rng.integers(0, 3000, size=(4000, 3))
+    got = canonical_order(Mesh(doubles, faces))
+    assert all(map(np.array_equal, (got.vertices, got.faces), _canonical_reference(doubles, faces)))
+
+
+@pytest.mark.parametrize("reach", [0.5, 2.0, 3.3, 9.0])
+def test_block_keys_are_the_blocks_within_reach_of_every_point(reach):
+    # the blocks hit by every point moved by every combination of per-axis offsets
+    # (np.linspace(-reach, reach, steps) each), computed point by point
+    rng = np.random.default_rng(7)
+    surface = rng.normal(size=(3000, 3))
+    points = np.concatenate([
+        30 * surface / np.linalg.norm(surface, axis=1, keepdims=True),  # dense on a sphere
+        rng.uniform(-500, 500, size=(200, 3)),  # scattered
+        np.round(rng.uniform(-40, 40, size=(500, 3)) / 4.0) * 4.0,  # on block boundaries
+    ])
+    block = 4.0
+    steps = int(np.ceil(2 * reach / block)) + 1
+    offsets = np.linspace(-reach, reach, steps)
+    want = set()
+    for p in points:
+        per_axis = [np.floor((p[a] + offsets) / block).astype(np.int64) + 2**20 for a in range(3)]
+        want.update(
+            (int(x) << 42) | (int(y) << 21) | int(z)
+            for x in per_axis[0] for y in per_axis[1] for z in per_axis[2]
+        )
+    got = _block_keys(points, block, reach)
+    assert got.tolist() == sorted(want)
 
 
 def test_block_estimate_bounds_memory(sphere_views):

@@ -327,14 +327,47 @@ def _block_keys(points: np.ndarray, block_size: float, reach: float) -> np.ndarr
     offsets = np.linspace(-reach, reach, steps)
     # per axis, the (shifted) block coordinate of every point moved by every offset
     axes = [
-        [
-            (np.floor((points[:, a] + off) / block_size).astype(np.int64) + 2**20) << shift
-            for off in offsets
-        ]
-        for a, shift in ((0, 42), (1, 21), (2, 0))
+        [np.floor((points[:, a] + off) / block_size).astype(np.int64) + 2**20 for off in offsets]
+        for a in range(3)
     ]
+    axes = _distinct_coordinates(axes) or axes
+    axes = [[c << shift for c in axis] for axis, shift in zip(axes, (42, 21, 0))]
     keys = [np.unique(x | y | z) for x in axes[0] for y in axes[1] for z in axes[2]]
     return np.unique(np.concatenate(keys))
+
+
+def _distinct_coordinates(axes: list[list[np.ndarray]]) -> list[list[np.ndarray]] | None:
+    """:func:`_block_keys`' block coordinates per axis and offset, of one point of each
+    distinct combination of all of them (points alike in every one touch the same
+    blocks): each point's coordinates at the first offset and their increases at the
+    others, packed into one int64 (one ``np.unique`` over the points instead of one per
+    combination of offsets), unpacked for the distinct ones. None when they do not fit."""
+    first = [axis[0] for axis in axes]
+    low = [int(c.min()) for c in first]
+    spans = [int(c.max()) - m + 1 for c, m in zip(first, low)]
+    steps = [axis[j] - axis[0] for axis in axes for j in range(1, len(axis))]
+    if any(int(d.min()) < 0 for d in steps):
+        return None
+    base = max((int(d.max()) for d in steps), default=0) + 1
+    if math.prod(spans) * base ** len(steps) >= 2**62:
+        return None
+    code = ((first[0] - low[0]) * spans[1] + (first[1] - low[1])) * spans[2] + (first[2] - low[2])
+    for d in steps:
+        code = code * base + d
+    code = np.unique(code)
+    unpacked = []
+    for _ in steps:
+        unpacked.append(code % base)
+        code //= base
+    unpacked.reverse()
+    z = code % spans[2] + low[2]
+    code //= spans[2]
+    coordinates = [code // spans[1] + low[0], code % spans[1] + low[1], z]
+    per_axis = len(axes[0]) - 1
+    return [
+        [c] + [c + d for d in unpacked[a * per_axis : (a + 1) * per_axis]]
+        for a, c in enumerate(coordinates)
+    ]
 
 
 def _key_coords(keys: np.ndarray) -> np.ndarray:
@@ -643,6 +676,8 @@ def canonical_order(mesh: Mesh) -> Mesh:
         # one int64 key per face (21 bits a vertex) sorts like the three columns; faces
         # with equal keys are equal rows, so the sort need not be stable
         faces = faces[np.argsort((faces[:, 0] << 42) | (faces[:, 1] << 21) | faces[:, 2])]
+    elif mesh.n_vertices <= 2**31:
+        faces = faces[np.lexsort(((faces[:, 1] << 32) | faces[:, 2], faces[:, 0]))]
     else:
         faces = faces[np.lexsort(faces.T[::-1])]
     return Mesh(
