@@ -15,11 +15,14 @@ its own), from the same range maps:
   ``extract_triangle_mesh``;
 - **slscan REV** (``--against``, default 6cbba4b, the code before the update was vectorised per block): ``fuse_scans`` of
   git revision REV's toolbox (exported with ``git archive``);
-- **slscan, this tree**: ``fuse_scans`` of the working tree, its voxel update compiled
-  by numba (the ``fast`` extra) when numba is installed, the kernel loaded from numba's
-  on-disk cache (a fresh cache folder for the run, filled by the compile measured below);
-- **slscan, this tree, numpy**: the same with the numpy update (what runs without numba;
-  same tsdf and weights bit for bit).
+- **slscan, this tree**: ``fuse_scans`` of the working tree as it chooses its voxel
+  update: numpy until the volume has updated ``COMPILED_FROM_BLOCKS`` blocks, then the
+  numba kernel (the ``fast`` extra) when numba is installed;
+- **slscan, this tree, numba**: the numba kernel from the first scan on, loaded from
+  numba's on-disk cache (a fresh cache folder for the run, filled by the compile
+  measured below);
+- **slscan, this tree, numpy**: the numpy update throughout (what runs without numba).
+  The three give the same tsdf and weights bit for bit.
 
 Open3D is imported before the clock starts in every way (the plain way always did; a
 fusion stage pays ``import open3d`` once whichever way it fuses); numba's import and the
@@ -135,16 +138,18 @@ def run_plain(path: Path, voxel: float) -> dict:
     return _finish(mesh, cpu0, wall0, integrate, int(grid.hashmap().size()))
 
 
-def run_slscan(path: Path, voxel: float, numpy_update: bool = False) -> dict:
-    """slscan's quality-weighted fusion (whichever toolbox is on the path); with
-    ``numpy_update`` its numpy voxel update even where numba is installed."""
+def run_slscan(path: Path, voxel: float, update: str = "auto") -> dict:
+    """slscan's quality-weighted fusion (whichever toolbox is on the path); ``update``
+    "numpy" or "numba": that voxel update throughout, "auto": as fuse_scans chooses."""
     import open3d  # noqa: F401  (outside the clock, as in run_plain)
 
     from slscan import fuse
     from slscan.register.rangescan import scan_from_mesh
 
-    if numpy_update:
+    if update == "numpy":
         fuse._KERNEL[:] = [None]  # as if numba were not installed
+    elif update == "numba":
+        fuse.COMPILED_FROM_BLOCKS = 0
     _, views = _views(path)
     scans, poses = [], {}
     for k, v in enumerate(views):
@@ -219,7 +224,7 @@ def main() -> None:
     parser.add_argument("--against", metavar="REV", default="6cbba4b",
                         help="git revision whose fuse_scans is run beside this tree's")
     parser.add_argument("--work", type=Path, help="folder for the range maps (kept, reused)")
-    parser.add_argument("--way", choices=("plain", "slscan", "slscan-numpy", "kernel"),
+    parser.add_argument("--way", choices=("plain", "slscan", "slscan-numba", "slscan-numpy", "kernel"),
                         help=argparse.SUPPRESS)
     parser.add_argument("--maps", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -229,7 +234,7 @@ def main() -> None:
         elif args.way == "plain":
             result = run_plain(args.maps, args.voxel)
         else:
-            result = run_slscan(args.maps, args.voxel, numpy_update=args.way == "slscan-numpy")
+            result = run_slscan(args.maps, args.voxel, update=args.way.partition("-")[2] or "auto")
         print(json.dumps(result))
         return
     with tempfile.TemporaryDirectory(prefix="slscan-fusion-") as tmp:
@@ -247,6 +252,7 @@ def main() -> None:
                 "slscan", maps, args.voxel, export_toolbox(args.against, Path(tmp) / "against"),
                 cache),
             "slscan, this tree": _run("slscan", maps, args.voxel, here, cache),
+            "slscan, this tree, numba": _run("slscan-numba", maps, args.voxel, here, cache),
             "slscan, this tree, numpy": _run("slscan-numpy", maps, args.voxel, here, cache),
         }
     plain = rows["Open3D plain (weight 1)"]

@@ -254,14 +254,40 @@ def test_compiled_and_numpy_updates_agree_bit_for_bit(sphere_views):
         assert np.array_equal(w.view(np.uint32), w0.view(np.uint32))
 
 
+def test_the_kernel_is_loaded_once_it_pays(sphere_views, monkeypatch):
+    # numpy until the volume has updated COMPILED_FROM_BLOCKS blocks (loading numba costs
+    # more than it saves on a small fusion), then the kernel; at once where it is loaded
+    scans, poses = sphere_views
+    maps = [height_map(s, poses[s.name], pixel=1.0) for s in scans[:3]]
+    calls = []
+
+    def load():
+        calls.append("load")
+        fuse_module._KERNEL.append(lambda *args: calls.append(len(args[2])))
+        return fuse_module._KERNEL[0]
+
+    monkeypatch.setattr(fuse_module, "_KERNEL", [])
+    monkeypatch.setattr(fuse_module, "_compiled_update", load)
+    volume = TsdfVolume(1.0)
+    volume.integrate(maps[0])
+    first = volume.blocks_updated
+    assert calls == [] and first > 100 and (_voxels(volume)[2] > 0).sum() > 1000
+    monkeypatch.setattr(fuse_module, "COMPILED_FROM_BLOCKS", first + 1)
+    volume.integrate(maps[1])  # first < first + 1: numpy again
+    assert calls == []
+    before = volume.blocks_updated
+    volume.integrate(maps[2])
+    assert calls == ["load", volume.blocks_updated - before]  # the kernel, on every block
+    monkeypatch.setattr(fuse_module, "_compiled_update", lambda: fuse_module._KERNEL[0])
+    TsdfVolume(1.0).integrate(maps[0])  # loaded in this process: used from the start
+    assert len(calls) == 3
+
+
 def test_the_numpy_update_is_chosen_without_numba(sphere_views, monkeypatch):
     # the automatic choice follows what is installed; asking for the kernel without it fails
     scans, poses = sphere_views
     depth = height_map(scans[0], poses["view0"], pixel=1.0)
-    calls = []
-    monkeypatch.setattr(fuse_module, "_KERNEL", [lambda *args: calls.append(args)])
-    TsdfVolume(1.0).integrate(depth)
-    assert len(calls) == 1
+    monkeypatch.setattr(fuse_module, "COMPILED_FROM_BLOCKS", 0)
     monkeypatch.setattr(fuse_module, "_KERNEL", [None])
     volume = TsdfVolume(1.0)
     volume.integrate(depth)

@@ -412,6 +412,10 @@ _VOXEL_LATTICE = np.stack(
 """(512, 3) voxel offsets (x, y, z) within a block, x fastest (open3d's storage order)."""
 
 
+COMPILED_FROM_BLOCKS = 100_000
+"""Blocks a volume updates in numpy before it loads the numba kernel: loading it (import
+numba and the cached kernel) costs about 0.4 s CPU, the kernel saves about 5 µs a block
+(measured on 2 cores), so a small fusion is done sooner without it."""
 _KERNEL: list = []
 """The numba voxel update once looked for: [] not yet, [None] numba missing, [kernel]."""
 
@@ -447,6 +451,8 @@ class TsdfVolume:
         self.truncation = float(truncation)
         self.grid = self._empty_grid(block_count)
         self.n_scans = 0
+        self.blocks_updated = 0
+        """Blocks updated so far, summed over the scans (decides the voxel update)."""
 
     @property
     def n_blocks(self) -> int:
@@ -459,7 +465,8 @@ class TsdfVolume:
 
         compiled : update the voxels with the numba kernel (:mod:`slscan._tsdf_numba`,
             the ``fast`` extra) or in numpy, whose results are the same bit for bit;
-            None: the kernel when numba is installed.
+            None: the kernel when numba is installed and either this process has loaded
+            it already or the volume has updated :data:`COMPILED_FROM_BLOCKS` blocks.
         """
         points = depth.surface_points()
         if len(points) == 0:
@@ -487,7 +494,11 @@ class TsdfVolume:
         tsdf = self.grid.attribute("tsdf").numpy().reshape(-1, res3)
         weight = self.grid.attribute("weight").numpy().reshape(-1, res3)
         inv_trunc = np.float32(1.0 / trunc)
-        kernel = _compiled_update() if compiled is None or compiled else None
+        use_kernel = compiled
+        if use_kernel is None:  # once the kernel pays for its loading, or when loaded already
+            use_kernel = bool(_KERNEL) or self.blocks_updated >= COMPILED_FROM_BLOCKS
+        kernel = _compiled_update() if use_kernel else None
+        self.blocks_updated += len(buf)
         if compiled and kernel is None:
             raise SlscanError("compiled TSDF update asked for, but numba is not installed "
                               "(pip install 'slscan[fast]')")
