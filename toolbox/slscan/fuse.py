@@ -19,7 +19,8 @@ own ``integrate`` takes pinhole depth images and counts observations with weight
 kernel adds exactly 1 per call; no weight per pixel or per call), so the update is done
 here, in place on the grid's own attribute buffers (no copies of the grid): compiled by
 numba (:mod:`slscan._tsdf_numba`, the ``fast`` extra; one loop over the blocks' voxels)
-when numba is installed, otherwise in numpy, ``chunk_blocks`` blocks at a time: every
+when numba is installed and the volume has updated :data:`COMPILED_FROM_BLOCKS` blocks
+(below that, loading numba costs more than it saves), otherwise in numpy, ``chunk_blocks`` blocks at a time: every
 step a whole-array operation on the chunk's voxels, small enough to stay in the CPU's
 cache, the four pixels around each voxel fetched with one gather each from shifted
 views of the map, the blocks' tsdf and weight rows gathered and written back whole. Both
