@@ -15,7 +15,20 @@ its own), from the same range maps:
   ``extract_triangle_mesh``;
 - **slscan REV** (``--against``, default 6cbba4b, the code before the update was vectorised per block): ``fuse_scans`` of
   git revision REV's toolbox (exported with ``git archive``);
-- **slscan, this tree**: ``fuse_scans`` of the working tree.
+- **slscan, this tree**: ``fuse_scans`` of the working tree as it chooses its voxel
+  update: numpy until the volume has updated ``COMPILED_FROM_BLOCKS`` blocks, then the
+  numba kernel (the ``fast`` extra) when numba is installed;
+- **slscan, this tree, numba**: the numba kernel from the first scan on, loaded from
+  numba's on-disk cache (a fresh cache folder for the run, filled by the compile
+  measured below);
+- **slscan, this tree, numpy**: the numpy update throughout (what runs without numba).
+  The three give the same tsdf and weights bit for bit.
+
+Open3D is imported before the clock starts in every way (the plain way always did; a
+fusion stage pays ``import open3d`` once whichever way it fuses); numba's import and the
+kernel's cache load are inside slscan's clock. Below the table: the numba kernel's first
+call in a fresh process with an empty cache (import numba + compile) and with the cache
+filled (import numba + load), CPU seconds.
 
 Printed per way: CPU seconds (user + system of the process, every thread) and wall
 seconds from the range maps in memory to the mesh (depth images / height maps,
@@ -125,11 +138,18 @@ def run_plain(path: Path, voxel: float) -> dict:
     return _finish(mesh, cpu0, wall0, integrate, int(grid.hashmap().size()))
 
 
-def run_slscan(path: Path, voxel: float) -> dict:
-    """slscan's quality-weighted fusion (whichever toolbox is on the path)."""
+def run_slscan(path: Path, voxel: float, update: str = "auto") -> dict:
+    """slscan's quality-weighted fusion (whichever toolbox is on the path); ``update``
+    "numpy" or "numba": that voxel update throughout, "auto": as fuse_scans chooses."""
+    import open3d  # noqa: F401  (outside the clock, as in run_plain)
+
     from slscan import fuse
     from slscan.register.rangescan import scan_from_mesh
 
+    if update == "numpy":
+        fuse._KERNEL[:] = [None]  # as if numba were not installed
+    elif update == "numba":
+        fuse.COMPILED_FROM_BLOCKS = 0
     _, views = _views(path)
     scans, poses = [], {}
     for k, v in enumerate(views):
@@ -153,6 +173,26 @@ def run_slscan(path: Path, voxel: float) -> dict:
     return _finish(result.mesh, cpu0, wall0, integrate[0], result.n_blocks)
 
 
+def run_kernel() -> dict:
+    """CPU seconds of the numba kernel's first call (import numba, then compile or load
+    from the cache in ``NUMBA_CACHE_DIR``) on a one-block volume."""
+    import numpy as np
+
+    from slscan import fuse
+
+    c = cpu_seconds()
+    update = fuse._compiled_update()
+    if update is None:
+        return {"cpu": None}
+    tsdf = np.ones((1, fuse.BLOCK_RESOLUTION**3), np.float32)
+    weight = np.zeros_like(tsdf)
+    lattice = np.ascontiguousarray(fuse._VOXEL_LATTICE.T.astype(np.float32))
+    height = np.zeros(100, np.float32)
+    update(tsdf, weight, np.zeros(1, np.int64), np.zeros((1, 3), np.float32), lattice, height,
+           height.copy(), 10, np.float32(8), np.float32(8), np.float32(-1), np.float32(1))
+    return {"cpu": cpu_seconds() - c}
+
+
 def _finish(mesh, cpu0: float, wall0: float, integrate: float, blocks: int) -> dict:
     from slscan.virtual.scenes import builtin_object
 
@@ -166,8 +206,8 @@ def _finish(mesh, cpu0: float, wall0: float, integrate: float, blocks: int) -> d
 
 
 
-def _run(way: str, path: Path, voxel: float, toolbox: Path) -> dict:
-    env = dict(os.environ, PYTHONPATH=str(toolbox))
+def _run(way: str, path: Path, voxel: float, toolbox: Path, numba_cache: Path) -> dict:
+    env = dict(os.environ, PYTHONPATH=str(toolbox), NUMBA_CACHE_DIR=str(numba_cache))
     proc = subprocess.run([sys.executable, __file__, "--way", way, "--maps", str(path),
                            "--voxel", str(voxel)], capture_output=True, text=True, env=env,
                           check=False)
@@ -184,11 +224,17 @@ def main() -> None:
     parser.add_argument("--against", metavar="REV", default="6cbba4b",
                         help="git revision whose fuse_scans is run beside this tree's")
     parser.add_argument("--work", type=Path, help="folder for the range maps (kept, reused)")
-    parser.add_argument("--way", choices=("plain", "slscan"), help=argparse.SUPPRESS)
+    parser.add_argument("--way", choices=("plain", "slscan", "slscan-numba", "slscan-numpy", "kernel"),
+                        help=argparse.SUPPRESS)
     parser.add_argument("--maps", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.way:
-        result = (run_plain if args.way == "plain" else run_slscan)(args.maps, args.voxel)
+        if args.way == "kernel":
+            result = run_kernel()
+        elif args.way == "plain":
+            result = run_plain(args.maps, args.voxel)
+        else:
+            result = run_slscan(args.maps, args.voxel, update=args.way.partition("-")[2] or "auto")
         print(json.dumps(result))
         return
     with tempfile.TemporaryDirectory(prefix="slscan-fusion-") as tmp:
@@ -196,11 +242,18 @@ def main() -> None:
         work.mkdir(parents=True, exist_ok=True)
         maps = prepare(work, args.views)
         load = os.getloadavg()[0]
+        cache = Path(tmp) / "numba"  # empty: the first call compiles, the next loads
+        here = ROOT / "toolbox"
+        kernel = {"compile": _run("kernel", maps, args.voxel, here, cache)["cpu"],
+                  "load": _run("kernel", maps, args.voxel, here, cache)["cpu"]}
         rows = {
-            "Open3D plain (weight 1)": _run("plain", maps, args.voxel, ROOT / "toolbox"),
+            "Open3D plain (weight 1)": _run("plain", maps, args.voxel, here, cache),
             f"slscan {args.against}": _run(
-                "slscan", maps, args.voxel, export_toolbox(args.against, Path(tmp) / "against")),
-            "slscan, this tree": _run("slscan", maps, args.voxel, ROOT / "toolbox"),
+                "slscan", maps, args.voxel, export_toolbox(args.against, Path(tmp) / "against"),
+                cache),
+            "slscan, this tree": _run("slscan", maps, args.voxel, here, cache),
+            "slscan, this tree, numba": _run("slscan-numba", maps, args.voxel, here, cache),
+            "slscan, this tree, numpy": _run("slscan-numpy", maps, args.voxel, here, cache),
         }
     plain = rows["Open3D plain (weight 1)"]
     print(f"fusion of {args.views} full-size figurine views (paper recipe) at {args.voxel:g} mm voxels, "
@@ -213,6 +266,11 @@ def main() -> None:
               f"{r['integrate']:>14.2f}{r['integrate'] / plain['integrate']:>8.2f}"
               f"{r['peak'] / 2**20:>10.0f}{r['blocks']:>8d}{r['faces']:>10d}{r['mean']:>9.4f}"
               f"{r['p95']:>8.4f}{r['complete']:>12.4f}")
+    if kernel["compile"] is None:
+        print("numba kernel: numba not installed (this tree's rows ran the numpy update)")
+    else:
+        print(f"numba kernel, first call in a fresh process (CPU s): import numba + compile "
+              f"{kernel['compile']:.2f}, import numba + load from the cache {kernel['load']:.2f}")
 
 
 if __name__ == "__main__":

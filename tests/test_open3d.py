@@ -15,7 +15,7 @@ import pytest
 import slscan
 
 TOOLBOX = str(Path(slscan.__file__).parent.parent)
-HEAVY = ("open3d", "dash", "plotly")
+HEAVY = ("open3d", "dash", "plotly", "numba")  # numba: only fusion imports it, when it fuses
 
 
 def _modules_after(code: str) -> set[str]:

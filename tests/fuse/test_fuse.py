@@ -7,12 +7,15 @@ import open3d as o3d
 import pytest
 from synthetic_poses import looking_from
 
+import slscan.fuse as fuse_module
 from slscan.errors import SlscanError
 from slscan.fuse import (
     BLOCK_RESOLUTION,
     FuseConfig,
     Mesh,
     TsdfVolume,
+    _block_keys,
+    _compiled_update,
     canonical_order,
     estimate_blocks,
     fuse_scans,
@@ -105,6 +108,61 @@ def test_fusion_is_the_same_from_run_to_run(sphere_views):
     assert np.array_equal(same.vertices, first.vertices) and np.array_equal(same.faces, first.faces)
 
 
+def _canonical_reference(vertices, faces):
+    """canonical_order's definition, straight: lexsort of the positions, faces rotated to
+    their lowest index, lexsort of the faces."""
+    order = np.lexsort(vertices.T[::-1])
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    f = rank[faces]
+    f = np.take_along_axis(f, (np.argmin(f, axis=1)[:, None] + np.arange(3)) % 3, axis=1)
+    return vertices[order], f[np.lexsort(f.T[::-1])]
+
+
+@pytest.mark.parametrize("n_vertices", [5_000, 2**21 + 5])  # one face key, two
+def test_canonical_order_is_the_lexicographic_order(n_vertices):
+    rng = np.random.default_rng(n_vertices)
+    # float32 positions (as open3d extracts them) with ties, signed zeros, tiny and huge values
+    values = np.array([-2.5, -0.0, 0.0, 1e-40, -1e-40, 3e30, -3e30, 7.0], np.float32)
+    vertices = rng.choice(values, size=(n_vertices, 3)).astype(np.float64)
+    vertices[: n_vertices // 2] = rng.normal(size=(n_vertices // 2, 3)).astype(np.float32)
+    faces = rng.integers(0, n_vertices, size=(20_000, 3))
+    faces[:50] = faces[50:100]  # repeated faces
+    got = canonical_order(Mesh(vertices, faces))
+    want_vertices, want_faces = _canonical_reference(vertices, faces)
+    assert np.array_equal(got.vertices, want_vertices)
+    assert np.array_equal(got.faces, want_faces)
+    doubles = rng.normal(size=(3000, 3))  # not float32: sorted as three float64 keys
+    faces = rng.integers(0, 3000, size=(4000, 3))
+    got = canonical_order(Mesh(doubles, faces))
+    assert all(map(np.array_equal, (got.vertices, got.faces), _canonical_reference(doubles, faces)))
+
+
+@pytest.mark.parametrize("reach", [0.5, 2.0, 3.3, 9.0])
+def test_block_keys_are_the_blocks_within_reach_of_every_point(reach):
+    # the blocks hit by every point moved by every combination of per-axis offsets
+    # (np.linspace(-reach, reach, steps) each), computed point by point
+    rng = np.random.default_rng(7)
+    surface = rng.normal(size=(3000, 3))
+    points = np.concatenate([
+        30 * surface / np.linalg.norm(surface, axis=1, keepdims=True),  # dense on a sphere
+        rng.uniform(-500, 500, size=(200, 3)),  # scattered
+        np.round(rng.uniform(-40, 40, size=(500, 3)) / 4.0) * 4.0,  # on block boundaries
+    ])
+    block = 4.0
+    steps = int(np.ceil(2 * reach / block)) + 1
+    offsets = np.linspace(-reach, reach, steps)
+    want = set()
+    for p in points:
+        per_axis = [np.floor((p[a] + offsets) / block).astype(np.int64) + 2**20 for a in range(3)]
+        want.update(
+            (int(x) << 42) | (int(y) << 21) | int(z)
+            for x in per_axis[0] for y in per_axis[1] for z in per_axis[2]
+        )
+    got = _block_keys(points, block, reach)
+    assert got.tolist() == sorted(want)
+
+
 def test_block_estimate_bounds_memory(sphere_views):
     scans, poses = sphere_views
     blocks = estimate_blocks(scans, poses, voxel_size=1.0)
@@ -138,7 +196,13 @@ def _voxels(volume):
     return centres, tsdf, weight
 
 
-def test_every_voxel_gets_the_weighted_average_of_its_observations(sphere_views):
+HAVE_NUMBA = _compiled_update() is not None
+UPDATES = [False, pytest.param(True, marks=pytest.mark.skipif(
+    not HAVE_NUMBA, reason="numba (the fast extra) not installed"))]
+
+
+@pytest.mark.parametrize("compiled", UPDATES, ids=["numpy", "numba"])
+def test_every_voxel_gets_the_weighted_average_of_its_observations(sphere_views, compiled):
     # each voxel of the blocks near a scan: the height map sampled at its centre (bilinear
     # height and quality weight), truncated, averaged with the earlier scans' by weight
     scans, poses = sphere_views
@@ -146,7 +210,7 @@ def test_every_voxel_gets_the_weighted_average_of_its_observations(sphere_views)
     trunc = 3.0
     maps = [height_map(s, poses[s.name], pixel=1.0) for s in scans[:3]]
     for depth in maps:
-        volume.integrate(depth, chunk_blocks=7)  # chunks end inside the block list
+        volume.integrate(depth, chunk_blocks=7, compiled=compiled)  # chunks end inside the list
     centres, tsdf, weight = _voxels(volume)
     points = centres.reshape(-1, 3)
     num = np.zeros(len(points))
@@ -166,6 +230,89 @@ def test_every_voxel_gets_the_weighted_average_of_its_observations(sphere_views)
     np.testing.assert_allclose(weight.reshape(-1)[seen], den[seen], rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(tsdf.reshape(-1)[seen], num[seen] / den[seen], atol=2e-5)
     assert (count >= 2).sum() > 10_000  # overlapping scans were averaged
+
+
+@pytest.mark.skipif(not HAVE_NUMBA, reason="numba (the fast extra) not installed")
+def test_compiled_and_numpy_updates_agree_bit_for_bit(sphere_views):
+    # every scan, with noise and quality weights: the same float32 operations in the same
+    # order, so the same tsdf and weight in every voxel, run after run
+    scans, poses = sphere_views
+    maps = [height_map(s, poses[s.name], pixel=0.9) for s in scans]
+    grids = []
+    for compiled in (False, True, True):
+        volume = TsdfVolume(0.9, truncation=4.0)
+        for depth in maps:
+            volume.integrate(depth, compiled=compiled)
+        centres, tsdf, weight = _voxels(volume)
+        order = np.lexsort(centres[:, 0].T)  # blocks by position (open3d's buffer order varies)
+        grids.append((centres[order], tsdf[order], weight[order]))
+    (c0, t0, w0), *others = grids
+    assert (w0 > 0).sum() > 100_000 and (w0 > 1).sum() > 10_000  # observed, and overlapping
+    for c, t, w in others:
+        np.testing.assert_array_equal(c, c0)
+        assert np.array_equal(t.view(np.uint32), t0.view(np.uint32))
+        assert np.array_equal(w.view(np.uint32), w0.view(np.uint32))
+
+
+def test_the_kernel_is_loaded_once_it_pays(sphere_views, monkeypatch):
+    # numpy until the volume has updated COMPILED_FROM_BLOCKS blocks (loading numba costs
+    # more than it saves on a small fusion), then the kernel; at once where it is loaded
+    scans, poses = sphere_views
+    maps = [height_map(s, poses[s.name], pixel=1.0) for s in scans[:3]]
+    calls = []
+
+    def load():
+        calls.append("load")
+        fuse_module._KERNEL.append(lambda *args: calls.append(len(args[2])))
+        return fuse_module._KERNEL[0]
+
+    monkeypatch.setattr(fuse_module, "_KERNEL", [])
+    monkeypatch.setattr(fuse_module, "_compiled_update", load)
+    volume = TsdfVolume(1.0)
+    volume.integrate(maps[0])
+    first = volume.blocks_updated
+    assert calls == [] and first > 100 and (_voxels(volume)[2] > 0).sum() > 1000
+    monkeypatch.setattr(fuse_module, "COMPILED_FROM_BLOCKS", first + 1)
+    volume.integrate(maps[1])  # first < first + 1: numpy again
+    assert calls == []
+    before = volume.blocks_updated
+    volume.integrate(maps[2])
+    assert calls == ["load", volume.blocks_updated - before]  # the kernel, on every block
+    monkeypatch.setattr(fuse_module, "_compiled_update", lambda: fuse_module._KERNEL[0])
+    TsdfVolume(1.0).integrate(maps[0])  # loaded in this process: used from the start
+    assert len(calls) == 3
+
+
+def test_the_numpy_update_is_chosen_without_numba(sphere_views, monkeypatch):
+    # the automatic choice follows what is installed; asking for the kernel without it fails
+    scans, poses = sphere_views
+    depth = height_map(scans[0], poses["view0"], pixel=1.0)
+    monkeypatch.setattr(fuse_module, "COMPILED_FROM_BLOCKS", 0)
+    monkeypatch.setattr(fuse_module, "_KERNEL", [None])
+    volume = TsdfVolume(1.0)
+    volume.integrate(depth)
+    assert (_voxels(volume)[2] > 0).sum() > 1000  # updated, in numpy
+    with pytest.raises(SlscanError, match="numba is not installed"):
+        TsdfVolume(1.0).integrate(depth, compiled=True)
+
+
+@pytest.mark.skipif(not HAVE_NUMBA, reason="numba (the fast extra) not installed")
+def test_the_kernel_compiles_in_memory_where_it_cannot_be_cached():
+    # numba refuses cache=True for a function whose source file it cannot cache beside
+    # (here: none at all, as for a read-only install without a user cache folder)
+    import types
+
+    import numba
+
+    from slscan._tsdf_numba import jit
+
+    def twice(a):
+        return 2 * a
+
+    homeless = types.FunctionType(twice.__code__.replace(co_filename="<nowhere>"), {})
+    with pytest.raises(RuntimeError, match="cannot cache"):
+        numba.njit(cache=True)(homeless)
+    assert jit(homeless)(np.arange(3)).tolist() == [0, 2, 4]
 
 
 def test_the_estimated_grid_is_never_regrown(sphere_views):

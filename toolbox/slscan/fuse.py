@@ -17,11 +17,14 @@ per-vertex quality interpolated at the ray hit (for Stanford scans: cos(view ang
 a ramp to 0 at the scan's boundary [1]_) — or 1 with ``weighting="uniform"``. open3d's
 own ``integrate`` takes pinhole depth images and counts observations with weight 1 (its
 kernel adds exactly 1 per call; no weight per pixel or per call), so the update is done
-here, in numpy, in place on the grid's own attribute buffers (no copies of the grid),
-``chunk_blocks`` blocks at a time: every step a whole-array operation on the chunk's
-voxels, small enough to stay in the CPU's cache, the four pixels around each voxel
-fetched with one gather each from shifted views of the map, the blocks' tsdf and weight
-rows gathered and written back whole.
+here, in place on the grid's own attribute buffers (no copies of the grid): compiled by
+numba (:mod:`slscan._tsdf_numba`, the ``fast`` extra; one loop over the blocks' voxels)
+when numba is installed and the volume has updated :data:`COMPILED_FROM_BLOCKS` blocks
+(below that, loading numba costs more than it saves), otherwise in numpy, ``chunk_blocks`` blocks at a time: every
+step a whole-array operation on the chunk's voxels, small enough to stay in the CPU's
+cache, the four pixels around each voxel fetched with one gather each from shifted
+views of the map, the blocks' tsdf and weight rows gathered and written back whole. Both
+do the same float32 operations in the same order: the same volume bit for bit.
 
 Memory stays bounded: scans are integrated one at a time (an iterable is consumed
 lazily), the blocks a sequence of scans will need are counted before the grid is made
@@ -166,7 +169,8 @@ class HeightMap:
         """(k, 3) float64 world points of the pixels that see the surface."""
         r, c = np.nonzero(np.isfinite(self.height))
         local = np.stack([c * self.pixel, r * self.pixel, self.height[r, c].astype(np.float64)], 1)
-        return local @ self.frame + self.origin
+        # einsum, not matmul: BLAS takes 5x longer for (k, 3) @ (3, 3) (same to rounding)
+        return np.einsum("ij,jk->ik", local, self.frame) + self.origin
 
     def bordered(self) -> tuple[np.ndarray, np.ndarray]:
         """Flat (rows * cols,) float32 copies of ``height`` and ``weight`` whose border
@@ -327,14 +331,47 @@ def _block_keys(points: np.ndarray, block_size: float, reach: float) -> np.ndarr
     offsets = np.linspace(-reach, reach, steps)
     # per axis, the (shifted) block coordinate of every point moved by every offset
     axes = [
-        [
-            (np.floor((points[:, a] + off) / block_size).astype(np.int64) + 2**20) << shift
-            for off in offsets
-        ]
-        for a, shift in ((0, 42), (1, 21), (2, 0))
+        [np.floor((points[:, a] + off) / block_size).astype(np.int64) + 2**20 for off in offsets]
+        for a in range(3)
     ]
+    axes = _distinct_coordinates(axes) or axes
+    axes = [[c << shift for c in axis] for axis, shift in zip(axes, (42, 21, 0))]
     keys = [np.unique(x | y | z) for x in axes[0] for y in axes[1] for z in axes[2]]
     return np.unique(np.concatenate(keys))
+
+
+def _distinct_coordinates(axes: list[list[np.ndarray]]) -> list[list[np.ndarray]] | None:
+    """:func:`_block_keys`' block coordinates per axis and offset, of one point of each
+    distinct combination of all of them (points alike in every one touch the same
+    blocks): each point's coordinates at the first offset and their increases at the
+    others, packed into one int64 (one ``np.unique`` over the points instead of one per
+    combination of offsets), unpacked for the distinct ones. None when they do not fit."""
+    first = [axis[0] for axis in axes]
+    low = [int(c.min()) for c in first]
+    spans = [int(c.max()) - m + 1 for c, m in zip(first, low)]
+    steps = [axis[j] - axis[0] for axis in axes for j in range(1, len(axis))]
+    if any(int(d.min()) < 0 for d in steps):
+        return None
+    base = max((int(d.max()) for d in steps), default=0) + 1
+    if math.prod(spans) * base ** len(steps) >= 2**62:
+        return None
+    code = ((first[0] - low[0]) * spans[1] + (first[1] - low[1])) * spans[2] + (first[2] - low[2])
+    for d in steps:
+        code = code * base + d
+    code = np.unique(code)
+    unpacked = []
+    for _ in steps:
+        unpacked.append(code % base)
+        code //= base
+    unpacked.reverse()
+    z = code % spans[2] + low[2]
+    code //= spans[2]
+    coordinates = [code // spans[1] + low[0], code % spans[1] + low[1], z]
+    per_axis = len(axes[0]) - 1
+    return [
+        [c] + [c + d for d in unpacked[a * per_axis : (a + 1) * per_axis]]
+        for a, c in enumerate(coordinates)
+    ]
 
 
 def _key_coords(keys: np.ndarray) -> np.ndarray:
@@ -376,6 +413,27 @@ _VOXEL_LATTICE = np.stack(
 """(512, 3) voxel offsets (x, y, z) within a block, x fastest (open3d's storage order)."""
 
 
+COMPILED_FROM_BLOCKS = 100_000
+"""Blocks a volume updates in numpy before it loads the numba kernel: loading it (import
+numba and the cached kernel) costs about 0.4 s CPU, the kernel saves about 5 µs a block
+(measured on 2 cores), so a small fusion is done sooner without it."""
+_KERNEL: list = []
+"""The numba voxel update once looked for: [] not yet, [None] numba missing, [kernel]."""
+
+
+def _compiled_update():
+    """:func:`slscan._tsdf_numba.update`, or None without numba (imported on first use, so
+    that only fusion pays for numba's import and the kernel's compile or cache load)."""
+    if not _KERNEL:
+        try:
+            from slscan._tsdf_numba import update
+        except ImportError as exc:  # numba missing, or not importable with this numpy
+            log.debug("TSDF update in numpy: %s", exc)
+            update = None
+        _KERNEL.append(update)
+    return _KERNEL[0]
+
+
 class TsdfVolume:
     """A sparse weighted-TSDF volume (open3d VoxelBlockGrid) that integrates range scans one by one.
 
@@ -394,13 +452,23 @@ class TsdfVolume:
         self.truncation = float(truncation)
         self.grid = self._empty_grid(block_count)
         self.n_scans = 0
+        self.blocks_updated = 0
+        """Blocks updated so far, summed over the scans (decides the voxel update)."""
 
     @property
     def n_blocks(self) -> int:
         return int(self.grid.hashmap().size())
 
-    def integrate(self, depth: HeightMap, *, chunk_blocks: int = 256) -> None:
-        """Add one scan's height map to the volume (see the module docstring)."""
+    def integrate(
+        self, depth: HeightMap, *, chunk_blocks: int = 256, compiled: bool | None = None
+    ) -> None:
+        """Add one scan's height map to the volume (see the module docstring).
+
+        compiled : update the voxels with the numba kernel (:mod:`slscan._tsdf_numba`,
+            the ``fast`` extra) or in numpy, whose results are the same bit for bit;
+            None: the kernel when numba is installed and either this process has loaded
+            it already or the volume has updated :data:`COMPILED_FROM_BLOCKS` blocks.
+        """
         points = depth.surface_points()
         if len(points) == 0:
             return
@@ -427,6 +495,19 @@ class TsdfVolume:
         tsdf = self.grid.attribute("tsdf").numpy().reshape(-1, res3)
         weight = self.grid.attribute("weight").numpy().reshape(-1, res3)
         inv_trunc = np.float32(1.0 / trunc)
+        use_kernel = compiled
+        if use_kernel is None:  # once the kernel pays for its loading, or when loaded already
+            use_kernel = bool(_KERNEL) or self.blocks_updated >= COMPILED_FROM_BLOCKS
+        kernel = _compiled_update() if use_kernel else None
+        self.blocks_updated += len(buf)
+        if compiled and kernel is None:
+            raise SlscanError("compiled TSDF update asked for, but numba is not installed "
+                              "(pip install 'slscan[fast]')")
+        if kernel is not None:
+            kernel(tsdf, weight, buf, base.astype(np.float32), np.ascontiguousarray(lattice),
+                   height, weight_px, cols_px, x_max, y_max, np.float32(-trunc), inv_trunc)
+            self.n_scans += 1
+            return
         for start in range(0, len(buf), chunk_blocks):
             rows = buf[start : start + chunk_blocks]
             b = base[start : start + chunk_blocks].astype(np.float32)
@@ -600,19 +681,41 @@ def canonical_order(mesh: Mesh) -> Mesh:
     """
     if mesh.n_vertices == 0:
         return mesh
-    order = np.lexsort(mesh.vertices.T[::-1])
+    order = _position_order(mesh.vertices)
     rank = np.empty_like(order)
     rank[order] = np.arange(len(order))
     faces = rank[mesh.faces]
     start = np.argmin(faces, axis=1)[:, None]
     faces = np.take_along_axis(faces, (start + np.arange(3)) % 3, axis=1)
-    faces = faces[np.lexsort(faces.T[::-1])]
+    if mesh.n_vertices <= 2**21:
+        # one int64 key per face (21 bits a vertex) sorts like the three columns; faces
+        # with equal keys are equal rows, so the sort need not be stable
+        faces = faces[np.argsort((faces[:, 0] << 42) | (faces[:, 1] << 21) | faces[:, 2])]
+    elif mesh.n_vertices <= 2**31:
+        faces = faces[np.lexsort(((faces[:, 1] << 32) | faces[:, 2], faces[:, 0]))]
+    else:
+        faces = faces[np.lexsort(faces.T[::-1])]
     return Mesh(
         mesh.vertices[order],
         faces,
         None if mesh.normals is None else mesh.normals[order],
         None if mesh.colors is None else mesh.colors[order],
     )
+
+
+def _position_order(vertices: np.ndarray) -> np.ndarray:
+    """``np.lexsort(vertices.T[::-1])``: the stable order by x, then y, then z; with two
+    sort keys instead of three when every coordinate is a float32 (open3d's marching
+    cubes): x and y in one uint64 of order-preserving bit patterns, then z."""
+    single = vertices.astype(np.float32)
+    if not np.array_equal(single, vertices):  # also NaN
+        return np.lexsort(vertices.T[::-1])
+    single += np.float32(0.0)  # -0 to +0, equal to it as a float
+    bits = single.view(np.uint32)
+    # negative floats: all bits flipped (larger magnitude, smaller key); others: sign set
+    keys = np.where(bits >> 31 == 1, ~bits, bits | np.uint32(2**31))
+    xy = (keys[:, 0].astype(np.uint64) << np.uint64(32)) | keys[:, 1]
+    return np.lexsort((keys[:, 2], xy))
 
 
 def _weld(pieces: list[tuple[Mesh, np.ndarray, float]], voxel_size: float) -> Mesh:
