@@ -12,7 +12,7 @@ import pytest
 from slscan.albedo.lights import LightCalibration
 from slscan.albedo.photometric import AlbedoConfig, SpecularLobe, fit_specular, solve_pixels
 from slscan.albedo.surface import occluded, rasterise
-from slscan.albedo.unshade import albedo_session, albedo_view, load_range_map
+from slscan.albedo.unshade import AlbedoSummary, albedo_session, albedo_view, load_range_map
 from slscan.colour import read_albedo_png
 from slscan.decode.pipeline import decode_view
 from slscan.decode.rangemap import RangeMap, read_ply
@@ -322,7 +322,15 @@ def test_session_outputs(tmp_path, figurine, calibrated):
     assert [r.view for r in results] == ["view_000", "view_001"]
     meta = json.loads((out / "albedo.json").read_text())
     assert meta["format"] == "slscan.albedo" and len(meta["views"]) == 2
-    for result in results:
+    for summary, entry in zip(results, meta["views"]):
+        view = session.view(summary.view)
+        range_map, _ = load_range_map(range_maps, view)
+        result = albedo_view(session, view, range_map, calibrated, AlbedoConfig())  # what the stage wrote
+        expected = AlbedoSummary.of(result)  # all but the timings
+        assert (summary.view, summary.light_ids, summary.lobe, summary.metrics, summary.unusable) == (
+            expected.view, expected.light_ids, expected.lobe, expected.metrics, expected.unusable)
+        assert summary.valid_pixels == int(result.valid.sum()) and summary.seen_pixels == int(result.surface.hit.sum())
+        assert entry["metrics"] == summary.metrics and entry["lights_used"] == list(summary.light_ids)
         image = read_albedo_png(out / f"{result.view}_albedo.png", out / f"{result.view}_valid.png")
         valid = np.isfinite(image[..., 0])
         np.testing.assert_array_equal(valid, result.valid)
@@ -332,11 +340,11 @@ def test_session_outputs(tmp_path, figurine, calibrated):
         mesh = read_ply(out / f"{result.view}.ply")
         assert mesh.view == result.view and len(mesh.vertices) == len(result.vertex_albedo)
         assert np.isfinite(result.vertex_albedo).all(axis=1).mean() > 0.5
-        assert result.valid.sum() > 0.6 * result.surface.hit.sum()
-        truth = session.load_ground_truth(session.view(result.view)).albedo
-        good = result.valid & np.isfinite(truth[..., 0])
+        assert summary.valid_pixels > 0.6 * summary.seen_pixels
+        truth = session.load_ground_truth(view).albedo
+        good = valid & np.isfinite(truth[..., 0])
         # quarter size: coarse range maps and blur at every paint edge; a sanity bound
-        assert np.all(relative_rms(result.albedo[good], truth[good]) < 0.15)
+        assert np.all(relative_rms(image[good], truth[good]) < 0.15)
     assert not list(tmp_path.glob(".*partial*"))
 
 
@@ -412,7 +420,9 @@ def test_srgb_camera_is_linearised(tmp_path, figurine, calibrated):
     linear = albedo_session(session, range_maps, tmp_path / "linear", lights=calibrated)
     coded = albedo_session(srgb, range_maps, tmp_path / "coded", lights=calibrated)
     for a, b in zip(linear, coded):
-        both = a.valid & b.valid
-        assert both.sum() > 0.8 * a.valid.sum()
-        ratio = np.median(b.albedo[both] / np.maximum(a.albedo[both], 1e-3), axis=0)
+        image_a = read_albedo_png(tmp_path / "linear" / f"{a.view}_albedo.png", tmp_path / "linear" / f"{a.view}_valid.png")
+        image_b = read_albedo_png(tmp_path / "coded" / f"{b.view}_albedo.png", tmp_path / "coded" / f"{b.view}_valid.png")
+        both = np.isfinite(image_a[..., 0]) & np.isfinite(image_b[..., 0])
+        assert both.sum() > 0.8 * a.valid_pixels
+        ratio = np.median(image_b[both] / np.maximum(image_a[both], 1e-3), axis=0)
         np.testing.assert_allclose(ratio, 1.0, atol=0.03)

@@ -335,8 +335,8 @@ def run_albedo(
             progress=bar.step,
             executor=executor or LOCAL,
         )
-    valid = sum(int(r.valid.sum()) for r in results)
-    seen = sum(int(r.surface.hit.sum()) for r in results)
+    valid = sum(r.valid_pixels for r in results)
+    seen = sum(r.seen_pixels for r in results)
     console().print(
         f"[green]wrote[/] {out}: {len(results)} albedo image(s) and mesh(es), {valid:,} valid pixels "
         f"({100 * valid / max(seen, 1):.1f} % of the range maps'), {time.perf_counter() - t0:.1f} s"

@@ -94,6 +94,33 @@ class ViewAlbedo:
         }
 
 
+@dataclass(frozen=True)
+class AlbedoSummary:
+    """What :func:`albedo_session` keeps of a view once its files are written: counts and
+    metrics, not the per-pixel arrays (146 full-size views of those are about 19 GiB).
+
+    view : the view's name; valid_pixels : pixels with an albedo; seen_pixels : pixels on
+    the range map; light_ids : the light of each lit image used; lobe : the fitted
+    specular lobe; metrics, seconds : as :class:`ViewAlbedo`'s; unusable : why the view
+    was left out, or None
+    """
+
+    view: str
+    valid_pixels: int
+    seen_pixels: int
+    light_ids: tuple[int, ...]
+    lobe: SpecularLobe
+    metrics: dict[str, float]
+    seconds: dict[str, float]
+    unusable: str | None = None
+
+    @classmethod
+    def of(cls, result: ViewAlbedo) -> AlbedoSummary:
+        return cls(result.view, int(result.valid.sum()), int(result.surface.hit.sum()),
+                   tuple(int(k) for k in result.light_ids), result.lobe, result.metrics, dict(result.seconds),
+                   _why_unusable(result))
+
+
 def mixed_pixels(surface: SurfaceMap, edge_px: int = 1, *, jump_mm: float = 10.0) -> np.ndarray:
     """(h, w) bool: pixels within ``edge_px`` of the range map's border or of a depth jump
     larger than ``jump_mm`` between neighbouring pixels."""
@@ -397,9 +424,10 @@ def _why_unusable(result: ViewAlbedo) -> str | None:
     return None
 
 
-def _albedo_task(task: tuple) -> tuple[ViewAlbedo, RangeMap, str]:
-    """Un-shade one view and write its files (runs in a worker process)."""
-    session, view_name, range_maps_dir, lights, config, folder = task
+def _albedo_task(task: tuple) -> tuple[AlbedoSummary, ViewAlbedo | None, RangeMap | None, str]:
+    """Un-shade one view and write its files (runs in a worker process); the full result
+    and range map come back only when ``full`` (for logging), the summary always."""
+    session, view_name, range_maps_dir, lights, config, folder, full = task
     view = session.view(view_name)
     range_map, source = load_range_map(range_maps_dir, view)
     result = albedo_view(session, view, range_map, lights, config, range_map_source=source)
@@ -407,7 +435,8 @@ def _albedo_task(task: tuple) -> tuple[ViewAlbedo, RangeMap, str]:
     write_png(folder / f"{view.name}_albedo.png", albedo_png(result.albedo, result.valid))
     write_png(folder / f"{view.name}_valid.png", (result.valid * 255).astype(np.uint8))
     write_albedo_ply(range_map, result.vertex_albedo, folder / f"{view.name}.ply")
-    return result, range_map, source
+    summary = AlbedoSummary.of(result)
+    return (summary, result, range_map, source) if full else (summary, None, None, source)
 
 
 def albedo_session(
@@ -421,8 +450,9 @@ def albedo_session(
     rec=None,
     progress: Callable[[str], None] | None = None,
     executor: Executor = LOCAL,
-) -> list[ViewAlbedo]:
-    """Un-shade every view of a session into folder ``out``, atomically.
+) -> list[AlbedoSummary]:
+    """Un-shade every view of a session into folder ``out``, atomically; a summary per
+    usable view (the images are in ``out``: :func:`slscan.colour.read_albedo_png`).
 
     Per view writes ``VIEW_albedo.png`` (16-bit **linear** RGB, ``albedo * 65535``, 0
     where invalid), ``VIEW_valid.png`` (8-bit mask, 255 valid) and ``VIEW.ply`` (the
@@ -480,15 +510,15 @@ def albedo_session(
     unusable = {}
     with atomic_output_dir(out, overwrite=overwrite) as tmp:
         tasks = [
-            (session, view.name, range_maps_dir, lights, config, tmp) for view in views
+            (session, view.name, range_maps_dir, lights, config, tmp, rec is not None) for view in views
         ]
         done = executor.map(_albedo_task, tasks)
-        for index, (view, (result, range_map, source)) in enumerate(zip(views, done)):
+        for index, (view, (summary, result, range_map, source)) in enumerate(zip(views, done)):
             if rec is not None:
                 _log_view(rec, session, view, result, range_map, lights, index)
             if progress:
                 progress(view.name)
-            why = _why_unusable(result)
+            why = summary.unusable
             if why:
                 unusable[view.name] = why
                 log.warning("%s: unusable view, left out: %s", view.name, why)
@@ -502,13 +532,13 @@ def albedo_session(
                     "valid": f"{view.name}_valid.png",
                     "mesh": f"{view.name}.ply",
                     "range_map": source,
-                    "lights_used": [int(k) for k in result.light_ids],
-                    "specular": result.lobe.to_dict(),
-                    "metrics": result.metrics,
-                    "seconds": result.seconds,
+                    "lights_used": list(summary.light_ids),
+                    "specular": summary.lobe.to_dict(),
+                    "metrics": summary.metrics,
+                    "seconds": summary.seconds,
                 }
             )
-            results.append(result)
+            results.append(summary)
         if not entries:
             reasons = "; ".join(f"{name}: {why}" for name, why in unusable.items())
             raise SlscanError(f"{session.root}: no usable view for albedo ({reasons})")

@@ -153,7 +153,7 @@ def _run_albedo(ctx: StageContext, config) -> dict[str, Any]:
     results = albedo_session(ctx.inputs["session"], ctx.inputs["range_maps"], ctx.out, lights=lights,
                              config=config, overwrite=True, rec=ctx.rec, progress=ctx.progress,
                              executor=ctx.executor or LOCAL)
-    return {"views": len(results), "valid_pixels": sum(int(r.valid.sum()) for r in results)}
+    return {"views": len(results), "valid_pixels": sum(r.valid_pixels for r in results)}
 
 
 @dataclass(frozen=True)
