@@ -262,6 +262,38 @@ def model_accuracy(out: Path, work: Path) -> dict:
     return {"faces": len(model.triangles), "mean_mm": float(d.mean()), "p95_mm": float(np.percentile(d, 95))}
 
 
+def pipeline_accuracy(out: Path, work: Path, every: int = 10) -> dict:
+    """Registration against the true poses (every view), and albedo against the true
+    albedo (every ``every``-th view): relative error on valid pixels."""
+    sys.path.insert(0, str(TOOLBOX))
+    from slscan.capture.session import load_session
+    from slscan.colour import read_albedo_png
+
+    session = load_session(work / "capture", validate=False)
+    reg = json.loads((out / "aligned" / "registration.json").read_text())
+    frame = np.asarray(reg["frame"]["object_from_reference"], float)
+    rot, shift = [], []
+    for view in session.views:
+        if view.name not in reg["poses"]:
+            continue
+        d = np.linalg.inv(frame @ np.linalg.inv(view.rig_from_object)) @ np.asarray(reg["poses"][view.name], float)
+        rot.append(math.degrees(math.acos(min(1.0, max(-1.0, (np.trace(d[:3, :3]) - 1) / 2)))))
+        shift.append(float(np.linalg.norm(d[:3, 3])))
+    errors = []
+    for view in session.views[::every]:
+        image = out / "albedo" / f"{view.name}_albedo.png"
+        if not image.is_file():
+            continue
+        albedo = read_albedo_png(image, out / "albedo" / f"{view.name}_valid.png")
+        truth = session.load_ground_truth(view).albedo
+        good = np.isfinite(albedo[..., 0]) & np.isfinite(truth[..., 0]) & (truth[..., 0] > 0.05)
+        errors.append(np.abs(albedo[good] / truth[good] - 1).ravel())
+    rel = np.concatenate(errors) if errors else np.array([np.nan])
+    return {"registered": len(rot), "views": len(session.views), "max_rot_deg": max(rot), "max_shift_mm": max(shift),
+            "albedo_median_rel": float(np.median(rel)), "albedo_within_5pc": float(np.mean(rel < 0.05)),
+            "albedo_views": len(errors)}
+
+
 def print_table(capture: dict | None, rows: list[dict], accuracy: dict | None, views: int) -> None:
     print(f"\npaper recipe, {views} views of the 1.7 m statue" + (f" (scale {ARGS.scale:g})" if ARGS.scale != 1 else ""))
     if capture:
@@ -287,6 +319,12 @@ def print_table(capture: dict | None, rows: list[dict], accuracy: dict | None, v
     if accuracy:
         print(f"model vs statue: {accuracy['faces']:,} faces, mean {accuracy['mean_mm']:.3f} mm, "
               f"p95 {accuracy['p95_mm']:.3f} mm")
+        if "registered" in accuracy:
+            print(f"registration: {accuracy['registered']}/{accuracy['views']} views, worst pose error "
+                  f"{accuracy['max_rot_deg']:.3f} deg / {accuracy['max_shift_mm']:.3f} mm; albedo "
+                  f"({accuracy['albedo_views']} views): median relative error "
+                  f"{100 * accuracy['albedo_median_rel']:.1f} %, {100 * accuracy['albedo_within_5pc']:.1f} % "
+                  f"of pixels within 5 %")
 
 
 ARGS: argparse.Namespace
@@ -360,7 +398,7 @@ def main() -> None:
     elif not args.dask_only:
         out = args.work / "runs" / "local"
         rows += run_stages(args.work, out, args, "local")
-        table["accuracy"] = model_accuracy(out, args.work)
+        table["accuracy"] = {**model_accuracy(out, args.work), **pipeline_accuracy(out, args.work)}
         table["rows"] = rows
         table_path.write_text(json.dumps(table, indent=1))
     if args.scheduler == "local":

@@ -512,8 +512,8 @@ def paper_scale_figures(work: str) -> None:
     v, f, c = np.asarray(mesh.vertices), np.asarray(mesh.triangles), np.asarray(mesh.vertex_colors)
     centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
     height = float(v[:, 1].max() - v[:, 1].min())
-    front = _render_mesh(v, f, c, centre + [0.0, 0.0, 2.6 * height], centre, (420, 640), fov_deg=24)
-    above = _render_mesh(v, f, c, centre + [0.0, 1.6 * height, 1.6 * height], centre, (420, 640), fov_deg=30)
+    front = _render_mesh(v, f, c, centre + [0.0, 0.0, 2.6 * height], centre, (400, 720), fov_deg=15)
+    above = _render_mesh(v, f, c, centre + [0.0, 1.6 * height, 1.6 * height], centre, (400, 720), fov_deg=19)
     _write("paper_scale_model.png", _side_by_side(_titled(front, "front"), _titled(above, "from above")))
 
 
