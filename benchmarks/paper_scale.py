@@ -340,6 +340,7 @@ def main() -> None:
     p.add_argument("--scheduler", choices=("none", "local"), default="none",
                    help="local: also run decode and albedo on a local Dask cluster")
     p.add_argument("--dask-only", action="store_true", help="run only the Dask rows (needs a local run's WORK)")
+    p.add_argument("--dask-stages", default="decode,albedo", help="the per-view stages to run on Dask")
     p.add_argument("--voxel", type=float, default=0.0, help="fusion voxel, mm (default 0.57 / scale)")
     p.add_argument("--faces", type=int, default=1_000_000)
     p.add_argument("--texture-size", type=int, default=4096)
@@ -377,7 +378,7 @@ def main() -> None:
                                                  "peak_gib": measured.peak_bytes / 2**30}}
         table_path.write_text(json.dumps(table, indent=1))
     rows = [r for r in table.get("rows", []) if not (r["mode"] == "local" and not (args.dask_only or args.only))
-            and not (r["mode"] == "dask" and args.scheduler == "local") and r["mode"] != args.label]
+            and r["mode"] != args.label]
     if args.only:
         only = tuple(x.strip() for x in args.only.split(",") if x.strip())
         known = [stage for stage, _ in stage_commands(args.work, args.work, args, None)]
@@ -411,7 +412,11 @@ def main() -> None:
             out.mkdir(parents=True, exist_ok=True)
             if not (out / "lights.json").exists():
                 shutil.copy(local / "lights.json", out / "lights.json")
-            rows += run_stages(args.work, out, args, "dask", only=("decode", "albedo"), dask=dask)
+            stages = tuple(x.strip() for x in args.dask_stages.split(",") if x.strip())
+            if not set(stages) <= {"decode", "albedo"}:
+                raise SystemExit(f"--dask-stages: only decode and albedo hand work to the executor, got {stages}")
+            rows = [r for r in rows if not (r["mode"] == "dask" and r["stage"] in stages)] + \
+                run_stages(args.work, out, args, "dask", only=stages, dask=dask)
         finally:
             dask.close()
         table["rows"] = rows

@@ -249,8 +249,11 @@ def _map_dask(address: str, fn: Callable[..., T], items: list[Any]) -> Iterator[
     try:
         log.info("running %d item(s) on the Dask cluster at %s", len(items), address)
         futures = client.map(functools.partial(_on_dask_worker, fn), items, pure=False)
-        for future in futures:
-            yield future.result()
+        for index, future in enumerate(futures):
+            result = future.result()
+            futures[index] = None  # the cluster forgets a result once it is here (146 views' range maps)
+            future.release()
+            yield result
     finally:
         client.close()
 
