@@ -348,6 +348,7 @@ def main() -> None:
     p.add_argument("--only", default="", help="re-run only these stages (comma-separated) as column --label, "
                    "from the local run's results (e.g. --only decode,fuse --label new after a change)")
     p.add_argument("--label", default="rerun", help="the column of an --only run")
+    p.add_argument("--table", action="store_true", help="print WORK's stored table and stop")
     p.add_argument("--child-capture", action="store_true", help=argparse.SUPPRESS)
     args = ARGS = p.parse_args()
     # this tree's slscan for every process started from here: the stages, and the Dask
@@ -361,6 +362,11 @@ def main() -> None:
         return
     table_path = args.work / "table.json"
     table = json.loads(table_path.read_text()) if table_path.is_file() else {}
+    if args.table:
+        if not table:
+            raise SystemExit(f"{table_path}: no table yet (run the benchmark with --work {args.work})")
+        print_table(table.get("capture"), table.get("rows", []), table.get("accuracy"), table["capture"]["views"])
+        return
     session = args.work / "capture" / "session.json"
     key = {"views": args.views, "scale": args.scale}
     if not session.is_file() or table.get("capture_key") != key:
