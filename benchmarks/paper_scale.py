@@ -195,11 +195,18 @@ class DaskCluster:
     """A local Dask cluster: single-threaded worker processes, their CPU and memory
     measured from outside (they are not children of the stage's process)."""
 
-    def __init__(self, workers: int) -> None:
+    def __init__(self, workers: int, threads: int = 1) -> None:
+        import dask
         from distributed import LocalCluster
 
-        self.cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                    dashboard_address=None)
+        # Dask starts its workers with OMP_NUM_THREADS=1 (and MKL's, OpenBLAS's); ``threads``
+        # other than 1 lets Open3D and NumPy in each worker use that many, as the local
+        # executor's processes do (they are left at the machine's cores)
+        env = {f"distributed.nanny.pre-spawn-environ.{k}": threads
+               for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
+        with dask.config.set(env if threads != 1 else {}):
+            self.cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                        dashboard_address=None)
         self.address = self.cluster.scheduler_address
 
     def pids(self) -> list[int]:
@@ -341,6 +348,9 @@ def main() -> None:
                    help="local: also run decode and albedo on a local Dask cluster")
     p.add_argument("--dask-only", action="store_true", help="run only the Dask rows (needs a local run's WORK)")
     p.add_argument("--dask-stages", default="decode,albedo", help="the per-view stages to run on Dask")
+    p.add_argument("--dask-threads", type=int, default=1, help="OpenMP/BLAS threads per Dask worker "
+                   "(Dask's default 1; the local executor's processes use the machine's cores); its rows "
+                   "are labelled 'dask Nt' when not 1")
     p.add_argument("--voxel", type=float, default=0.0, help="fusion voxel, mm (default 0.57 / scale)")
     p.add_argument("--faces", type=int, default=1_000_000)
     p.add_argument("--texture-size", type=int, default=4096)
@@ -412,7 +422,8 @@ def main() -> None:
         local = args.work / "runs" / "local"
         if not (local / "maps").is_dir():
             raise SystemExit(f"--scheduler local needs the local run's range maps in {local} (run without --dask-only)")
-        dask = DaskCluster(args.workers)
+        dask = DaskCluster(args.workers, args.dask_threads)
+        mode = "dask" if args.dask_threads == 1 else f"dask {args.dask_threads}t"
         try:
             out = args.work / "runs" / "dask"
             out.mkdir(parents=True, exist_ok=True)
@@ -421,8 +432,8 @@ def main() -> None:
             stages = tuple(x.strip() for x in args.dask_stages.split(",") if x.strip())
             if not set(stages) <= {"decode", "albedo"}:
                 raise SystemExit(f"--dask-stages: only decode and albedo hand work to the executor, got {stages}")
-            rows = [r for r in rows if not (r["mode"] == "dask" and r["stage"] in stages)] + \
-                run_stages(args.work, out, args, "dask", only=stages, dask=dask)
+            rows = [r for r in rows if not (r["mode"] == mode and r["stage"] in stages)] + \
+                run_stages(args.work, out, args, mode, only=stages, dask=dask)
         finally:
             dask.close()
         table["rows"] = rows
