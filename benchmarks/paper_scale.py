@@ -133,7 +133,7 @@ def prepare_capture(work: Path, views: int, scale: float, workers: int) -> dict:
     """Write the statue, the campaign's poses and the capture session (in this process)."""
     sys.path.insert(0, str(TOOLBOX))
     from slscan.executor import Executor
-    from slscan.virtual.device import VirtualCaptureConfig, capture_session
+    from slscan.virtual.device import VirtualCaptureConfig, capture_session, images_per_view
 
     t0 = time.perf_counter()
     vertices, faces = write_statue(work / "statue.ply")
@@ -144,13 +144,13 @@ def prepare_capture(work: Path, views: int, scale: float, workers: int) -> dict:
     (work / "poses.json").write_text(json.dumps([p.tolist() for p in poses]))
     t_prep = time.perf_counter() - t0
     done = [0]
-    total = views
+    per_view = images_per_view(config)
 
     def progress(label: str) -> None:
-        if label.endswith("lit_5.png"):
-            done[0] += 1
-            print(f"  captured {done[0]}/{total} views at {time.perf_counter() - t0:.0f} s", file=sys.stderr,
-                  flush=True)
+        done[0] += 1
+        if done[0] % per_view == 0:
+            print(f"  captured {done[0] // per_view}/{views} views at {time.perf_counter() - t0:.0f} s",
+                  file=sys.stderr, flush=True)
 
     session = capture_session(config, work / "capture", poses=poses, overwrite=True, progress=progress,
                               executor=Executor(workers=workers))
@@ -394,7 +394,7 @@ def main() -> None:
                                                  "peak_gib": measured.peak_bytes / 2**30}}
         table_path.write_text(json.dumps(table, indent=1))
     rows = [r for r in table.get("rows", []) if not (r["mode"] == "local" and not (args.dask_only or args.only))
-            and r["mode"] != args.label]
+            and not (args.only and r["mode"] == args.label)]
     if args.only:
         only = tuple(x.strip() for x in args.only.split(",") if x.strip())
         known = [stage for stage, _ in stage_commands(args.work, args.work, args, None)]

@@ -132,7 +132,7 @@ def _pid_and_trim(_item):
 
     from slscan import executor
 
-    return os.getpid(), executor._MALLOC_TUNED
+    return os.getpid(), executor._MALLOC_TUNED is (sys.platform == "linux")
 
 
 def test_dask_results_are_released_and_malloc_tuned():

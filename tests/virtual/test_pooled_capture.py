@@ -33,15 +33,20 @@ def _same_tree(a: Path, b: Path) -> list[str]:
     return out
 
 
-@pytest.mark.parametrize("jpeg", [0, 90])
-def test_pooled_capture_writes_the_drivers_session(tmp_path, jpeg):
+@pytest.mark.parametrize("sensor, lit_exposure", [
+    (Sensor(), 1.0),
+    (Sensor(jpeg_quality=90), 1.0),
+    (Sensor(bit_depth=16, response="srgb", exposure=0.9), 0.3),  # 0.9 * 0.3 / 0.3 != 0.9
+])
+def test_pooled_capture_writes_the_drivers_session(tmp_path, sensor, lit_exposure):
     config = VirtualCaptureConfig(views=3, camera_scale=0.2, projector_scale=0.25, levels=6,
-                                  patterns="both", sensor=Sensor(jpeg_quality=jpeg))
+                                  patterns="both", sensor=sensor, lit_exposure=lit_exposure)
     pooled = capture_session(config, tmp_path / "pooled", executor=POOL)
     capture_session(config, tmp_path / "driver", executor=ONE)  # one worker: the driver
     assert [v.name for v in pooled.views] == ["view_000", "view_001", "view_002"]
     assert _same_tree(tmp_path / "pooled", tmp_path / "driver") == []
     assert len(load_session(tmp_path / "pooled").views) == 3
+    assert pooled.views[2].exposure["sensor"]["exposure"] == sensor.exposure  # restored exactly
 
 
 def test_pooled_capture_with_given_poses_and_progress(tmp_path):
@@ -73,7 +78,7 @@ def test_pooled_capture_failure_leaves_nothing(tmp_path, monkeypatch):
     config = VirtualCaptureConfig(views=2, camera_scale=0.2, projector_scale=0.25, levels=6, lit_images=False)
     with pytest.raises(DeviceError, match="view_001"):
         capture_session(config, tmp_path / "s", executor=POOL)
-    assert not (tmp_path / "s").exists()
+    assert list(tmp_path.iterdir()) == []  # no session, and no view a helper was still writing
 
 
 def test_executor_parallel():

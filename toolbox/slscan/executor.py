@@ -16,12 +16,14 @@ importing the stage's modules, while this process reads its inputs.
 from __future__ import annotations
 
 import atexit
+import concurrent.futures
 import functools
 import importlib
 import logging
 import multiprocessing
 import os
 import threading
+import uuid
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -202,15 +204,19 @@ def _map_shared(pool: ProcessPoolExecutor, helpers: int, fn: Callable[..., T], i
             back = front  # hand out nothing more
             for future in futures.values():
                 future.cancel()
+            running = [f for f in futures.values() if not f.cancelled()]
+        # a helper's item already under way finishes before the caller goes on (it may be
+        # writing into a folder the caller is about to remove after an error)
+        concurrent.futures.wait(running)
 
 
-_MALLOC_TUNED = False
+_MALLOC_TUNED: bool | None = None  # whether glibc took the thresholds; None: not tried yet
 MMAP_THRESHOLD = 32 << 20
 """Allocations below this come from the heap on a Dask worker (glibc's own ceiling for its
 dynamic threshold on 64-bit); freed heap above twice that goes back to the system."""
 
 
-def _tune_malloc() -> None:
+def _tune_malloc() -> bool:
     """Undo, once per Dask worker process, what Dask's ``MALLOC_TRIM_THRESHOLD_=65536``
     does to per-view work: setting any malloc threshold switches glibc's dynamic mmap
     threshold off, so every array above 128 KiB is mapped and unmapped afresh and its
@@ -218,22 +224,27 @@ def _tune_malloc() -> None:
     instead of 0.1 s), 2-3x the CPU. Setting the thresholds glibc itself would reach keeps
     big temporaries on the heap. Nothing happens off glibc."""
     global _MALLOC_TUNED
-    if _MALLOC_TUNED:
-        return
-    _MALLOC_TUNED = True
-    try:
-        import ctypes
+    if _MALLOC_TUNED is None:
+        try:
+            import ctypes
 
-        libc = ctypes.CDLL("libc.so.6")
-        libc.mallopt(-3, MMAP_THRESHOLD)  # M_MMAP_THRESHOLD
-        libc.mallopt(-1, 2 * MMAP_THRESHOLD)  # M_TRIM_THRESHOLD
-    except (OSError, AttributeError):
-        pass
+            libc = ctypes.CDLL("libc.so.6")
+            _MALLOC_TUNED = (libc.mallopt(-3, MMAP_THRESHOLD) == 1  # M_MMAP_THRESHOLD
+                             and libc.mallopt(-1, 2 * MMAP_THRESHOLD) == 1)  # M_TRIM_THRESHOLD
+        except (OSError, AttributeError):
+            _MALLOC_TUNED = False
+        if not _MALLOC_TUNED:
+            log.debug("malloc thresholds not set (not glibc?)")
+    return _MALLOC_TUNED
 
 
-def _on_dask_worker(fn: Callable[..., T], item: Any) -> T:
-    """``fn(item)`` on a Dask worker, with the worker's malloc tuned for per-view work."""
+def _on_dask_worker(cwd: str, fn: Callable[..., T], item: Any) -> T:
+    """``fn(item)`` on a Dask worker, with the worker's malloc tuned for per-view work, from
+    the caller's working directory when the worker has it (the same files at the same
+    paths), so that paths relative to it resolve as for local helpers."""
     _tune_malloc()
+    if os.getcwd() != cwd and os.path.isdir(cwd):
+        os.chdir(cwd)
     return fn(item)
 
 
@@ -248,7 +259,9 @@ def _map_dask(address: str, fn: Callable[..., T], items: list[Any]) -> Iterator[
         raise SlscanError(f"--scheduler {address}: cannot reach the Dask scheduler ({exc})") from None
     try:
         log.info("running %d item(s) on the Dask cluster at %s", len(items), address)
-        futures = client.map(functools.partial(_on_dask_worker, fn), items, pure=False)
+        name = getattr(fn, "__name__", "slscan")  # the stage's task name on the dashboard
+        futures = client.map(functools.partial(_on_dask_worker, os.getcwd(), fn), items, pure=False,
+                             key=[f"{name}-{uuid.uuid4().hex}" for _ in items])
         for index, future in enumerate(futures):
             result = future.result()
             futures[index] = None  # the cluster forgets a result once it is here (146 views' range maps)

@@ -499,10 +499,10 @@ class TsdfVolume:
         if use_kernel is None:  # once the kernel pays for its loading, or when loaded already
             use_kernel = bool(_KERNEL) or self.blocks_updated >= COMPILED_FROM_BLOCKS
         kernel = _compiled_update() if use_kernel else None
-        self.blocks_updated += len(buf)
         if compiled and kernel is None:
             raise SlscanError("compiled TSDF update asked for, but numba is not installed "
                               "(pip install 'slscan[fast]')")
+        self.blocks_updated += len(buf)
         if kernel is not None:
             kernel(tsdf, weight, buf, base.astype(np.float32), np.ascontiguousarray(lattice),
                    height, weight_px, cols_px, x_max, y_max, np.float32(-trunc), inv_trunc)

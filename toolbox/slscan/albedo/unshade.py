@@ -117,7 +117,7 @@ class AlbedoSummary:
     @classmethod
     def of(cls, result: ViewAlbedo) -> AlbedoSummary:
         return cls(result.view, int(result.valid.sum()), int(result.surface.hit.sum()),
-                   tuple(int(k) for k in result.light_ids), result.lobe, result.metrics, dict(result.seconds),
+                   tuple(int(k) for k in result.light_ids), result.lobe, dict(result.metrics), dict(result.seconds),
                    _why_unusable(result))
 
 

@@ -279,6 +279,7 @@ def scan(
                 if plan.reference_frame and plan.stale_retries:
                     shooter.shoot(proj.blank, timing, f"{name} reference frame (projector dark)",
                                   identical_only=True)
+                pattern_exposure = None  # what the lit images' exposure replaced, to restore exactly
                 for frame_index, record in enumerate(records):
                     where = f"{name} image {record.file}"
                     if record.kind == "pattern":
@@ -288,7 +289,7 @@ def scan(
                         shown = None
                         if record.light == 0:
                             proj.blank()
-                            _set_lit_exposure(cam, plan.lit_exposure, on=True)
+                            pattern_exposure = _set_lit_exposure(cam, plan.lit_exposure)
 
                         def switch(k=record.light):
                             if k > 0:
@@ -306,8 +307,9 @@ def scan(
                 where = f"{name} (after its last image)"
                 if n_lights:
                     lights.switch(n_lights - 1, False)
-                    _set_lit_exposure(cam, plan.lit_exposure, on=False)
-                exposure = {**cam.exposure_record(), "lit_exposure": plan.lit_exposure, "settle_s": plan.settle_s}
+                    if pattern_exposure is not None:
+                        cam.set_controls(exposure=pattern_exposure)
+                exposure = view_exposure(cam.exposure_record(), plan)
                 gt = stage.ground_truth()
                 gt_file = None
                 if gt is not None:
@@ -343,15 +345,24 @@ def capture_records(patterns, n_lights: int, *, jpeg: bool = False) -> list[Imag
     return records
 
 
-def _set_lit_exposure(cam: Camera, factor: float, *, on: bool) -> None:
+def _set_lit_exposure(cam: Camera, factor: float) -> float | None:
+    """Scale the camera's exposure by ``factor`` for the lit images; the exposure it had
+    (to set back exactly, not divided: ``e * f / f`` drifts by an ulp view after view), or
+    None when nothing changed."""
     if factor == 1.0:
-        return
+        return None
     if "exposure" not in cam.controls():
-        if on:
-            log.warning("%s: the camera's exposure cannot be set; lit images use the pattern exposure", cam.name)
-        return
+        log.warning("%s: the camera's exposure cannot be set; lit images use the pattern exposure", cam.name)
+        return None
     e = cam.get_controls()["exposure"]
-    cam.set_controls(exposure=e * factor if on else e / factor)
+    cam.set_controls(exposure=e * factor)
+    return e
+
+
+def view_exposure(camera_record: dict, plan: ScanPlan) -> dict:
+    """A view's ``exposure`` record in ``session.json``: the camera's settings for the
+    pattern images and how the lit images and the waits differed."""
+    return {**camera_record, "lit_exposure": plan.lit_exposure, "settle_s": plan.settle_s}
 
 
 # --- latency ------------------------------------------------------------------------------

@@ -607,6 +607,20 @@ def load_session(path: str | os.PathLike, *, validate: bool = True) -> Session:
     return session
 
 
+def write_capture(path: Path, image: np.ndarray, *, bit_depth: int, jpeg_quality: int | None) -> None:
+    """Write one capture as the session stores it: a JPEG when ``path`` is named so (at
+    ``jpeg_quality``), else a lossless PNG; its pixels must be of the session's depth."""
+    expected_dtype = np.uint8 if bit_depth == 8 else np.uint16
+    if image.dtype != expected_dtype:
+        raise SlscanError(f"{path.name}: expected {expected_dtype.__name__} pixels, got {image.dtype}")
+    if image_format(path) == "jpeg":
+        if jpeg_quality is None:
+            raise SlscanError(f"{path.name}: a JPEG capture, but the writer has no jpeg_quality")
+        write_jpeg(path, image, jpeg_quality)
+    else:
+        write_png(path, image)
+
+
 class SessionWriter:
     """Write a capture session view by view.
 
@@ -720,16 +734,8 @@ class SessionWriter:
         return folder
 
     def write_image(self, view_name: str, rec: ImageRecord, image: np.ndarray) -> None:
-        expected_dtype = np.uint8 if self._meta["bit_depth"] == 8 else np.uint16
-        if image.dtype != expected_dtype:
-            raise SlscanError(f"{rec.file}: expected {expected_dtype.__name__} pixels, got {image.dtype}")
-        path = self.view_folder(view_name) / rec.file
-        if image_format(path) == "jpeg":
-            if self._jpeg_quality is None:
-                raise SlscanError(f"{rec.file}: a JPEG capture, but the writer has no jpeg_quality")
-            write_jpeg(path, image, self._jpeg_quality)
-        else:
-            write_png(path, image)
+        write_capture(self.view_folder(view_name) / rec.file, image, bit_depth=self._meta["bit_depth"],
+                      jpeg_quality=self._jpeg_quality)
 
     def discard_view(self, name: str) -> None:
         """Remove what was written of an unfinished view."""

@@ -547,7 +547,8 @@ def nan_median(stack: np.ndarray) -> np.ndarray:
 def _short_median(values: np.ndarray, n: np.ndarray) -> np.ndarray:
     """:func:`nan_median` of ``values`` (k, m), missing values +inf, ``n`` (m,) the count of
     the others; sorted in place row by row with element-wise min/max exchanges (for a
-    short ``k``, several times faster than ``np.sort`` along it; the same result)."""
+    short ``k``, several times faster than ``np.sort`` along it; the same result for
+    finite and NaN input: a −inf would count as missing here)."""
     k = len(values)
     for top in range(k - 1, 0, -1):  # bubble the largest left up to row ``top``
         for i in range(top):

@@ -16,7 +16,14 @@ from pathlib import Path
 
 import numpy as np
 
-from slscan.capture.driver import FrameCaptured, ScanDevices, ScanPlan, capture_records, scan
+from slscan.capture.driver import (
+    FrameCaptured,
+    ScanDevices,
+    ScanPlan,
+    capture_records,
+    scan,
+    view_exposure,
+)
 from slscan.capture.session import (
     LIT,
     SHADOW,
@@ -25,13 +32,12 @@ from slscan.capture.session import (
     Session,
     ViewRecord,
     read_capture,
+    write_capture,
 )
-from slscan.devices.base import DeviceError
 from slscan.errors import SlscanError
-from slscan.fsio import write_jpeg, write_png
 from slscan.patterns import PatternImage, render, standard_set
 from slscan.rig import Rig, default_rig, transform_points
-from slscan.virtual.devices import VirtualRig, turntable_pose
+from slscan.virtual.devices import VirtualRig, check_view_geometry, exposure_record, turntable_pose
 from slscan.virtual.effects import apply_effects, parse_effects
 from slscan.virtual.placement import check_pose_text, parse_pose, parse_units, placement_record
 from slscan.virtual.render import (
@@ -336,36 +342,41 @@ class _ViewJob:
     folder: str
 
 
+def _file_stamp(name: str) -> tuple[int, int] | None:
+    """(modification time, size) of a mesh-file scene, None for a built-in one: a worker
+    (kept for the whole run) reads a mesh file again when it has changed."""
+    try:
+        stat = os.stat(name)
+    except OSError:
+        return None
+    return stat.st_mtime_ns, stat.st_size
+
+
 @functools.lru_cache(maxsize=2)
-def _scene(name: str, units: str | float | None, pose: str | None) -> Scene:
-    """A worker's scene, built once per process (a mesh file is read once, not per view)."""
+def _scene(name: str, units: str | float | None, pose: str | None, stamp: tuple[int, int] | None) -> Scene:
+    """A worker's scene, built once per process and file version (a mesh file is read
+    once, not per view)."""
     return scene_by_name(name, units=units, pose=parse_pose(pose))
 
 
 def _render_view(job: _ViewJob) -> ViewRecord:
-    """Render one view in a worker: its images and ground truth written into ``job.folder``."""
+    """Render one view in a worker: its images and ground truth written into ``job.folder``
+    (made by the caller: a worker whose session was given up meanwhile fails, writes nothing)."""
     config, rig = job.config, job.rig
     name = f"view_{job.view_index:03d}"
-    scene = _scene(config.scene, config.scene_units, config.scene_pose)
+    scene = _scene(config.scene, config.scene_units, config.scene_pose, _file_stamp(config.scene))
     geom = trace_view(scene, rig, job.rig_from_object, config.optics)
-    if not geom.hit.any():  # as the virtual turntable refuses the view
-        raise DeviceError(f"{name}: the camera sees nothing of scene {scene.name!r}")
-    if not geom.proj_lit.any():
-        raise DeviceError(f"{name}: the projector lights nothing the camera sees")
+    check_view_geometry(geom, name, scene.name)
     folder = Path(job.folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    if not folder.is_dir():
+        raise SlscanError(f"{folder}: the view's folder is gone (the capture was given up)")
     sensor, records = config.sensor, []
     for rec, image in _exposed_images(geom, rig, config.pattern_set(rig), config, job.view_index):
-        if sensor.jpeg_quality:
-            write_jpeg(folder / rec.file, image, sensor.jpeg_quality)
-        else:
-            write_png(folder / rec.file, image)
+        write_capture(folder / rec.file, image, bit_depth=sensor.bit_depth, jpeg_quality=sensor.jpeg_quality or None)
         records.append(rec)
     gt_file = "ground_truth.npz"
     ground_truth(geom).save(folder / gt_file)
-    # what the driver records for the virtual camera (VirtualCamera.exposure_record)
-    exposure = {"sensor": sensor.to_dict(), "camera": {"exposure": sensor.exposure, "gain": sensor.gain},
-                "lit_exposure": config.lit_exposure, "settle_s": 0.0}
+    exposure = view_exposure(exposure_record(sensor), scan_plan(config, rig, reference_frame=False))
     return ViewRecord(name, tuple(records), job.rig_from_object, "ground-truth", exposure, gt_file)
 
 
@@ -389,7 +400,11 @@ def _capture_pooled(config: VirtualCaptureConfig, world: VirtualRig, poses: list
 
         on_frame = log_scan.frame_logger(rec)
     with writer:
-        jobs = [_ViewJob(config, rig, pose, v, str(writer.view_folder(f"view_{v:03d}"))) for v, pose in enumerate(poses)]
+        # absolute paths: workers (a Dask cluster's) need not share this process's folder
+        scene_file = config.scene if os.path.isfile(config.scene) else None
+        job_config = dataclasses.replace(config, scene=os.path.abspath(scene_file)) if scene_file else config
+        jobs = [_ViewJob(job_config, rig, pose, v, str(writer.view_folder(f"view_{v:03d}").absolute()))
+                for v, pose in enumerate(poses)]
         executor.start(len(jobs), ("slscan.virtual.device",))
         for v, record in enumerate(executor.map(_render_view, jobs)):
             writer.add_view(record)

@@ -42,6 +42,20 @@ def turntable_pose(rig: Rig, angle_deg: float, placement: np.ndarray | None = No
     return pose if placement is None else pose @ placement
 
 
+def check_view_geometry(geom, name: str, scene_name: str) -> None:
+    """Refuse a traced view (:class:`slscan.virtual.render.ViewGeometry`) in which the
+    camera sees nothing, or sees nothing the projector lights."""
+    if not geom.hit.any():
+        raise DeviceError(f"{name}: the camera sees nothing of scene {scene_name!r}")
+    if not geom.proj_lit.any():
+        raise DeviceError(f"{name}: the projector lights nothing the camera sees")
+
+
+def exposure_record(sensor: Sensor) -> dict:
+    """The virtual camera's settings as a session records them."""
+    return {"sensor": sensor.to_dict(), "camera": {"exposure": sensor.exposure, "gain": sensor.gain}}
+
+
 class VirtualRig:
     """The simulated world behind the virtual devices.
 
@@ -186,7 +200,7 @@ class VirtualCamera(Camera):
         return self.get_controls()
 
     def exposure_record(self) -> dict:
-        return {"sensor": self.sensor.to_dict(), "camera": self.get_controls()}
+        return exposure_record(self.sensor)
 
     def capture(self) -> Frame:
         now = time.monotonic()
@@ -229,12 +243,7 @@ class VirtualTurntable(Stage):
             pose = world.poses[view_index]
         else:
             pose = turntable_pose(world.rig, 360.0 * view_index / views, world.scene.placement)
-        geom = world.place(view_index, pose)
-        name = f"view_{view_index:03d}"
-        if not geom.hit.any():
-            raise DeviceError(f"{name}: the camera sees nothing of scene {world.scene.name!r}")
-        if not geom.proj_lit.any():
-            raise DeviceError(f"{name}: the projector lights nothing the camera sees")
+        check_view_geometry(world.place(view_index, pose), f"view_{view_index:03d}", world.scene.name)
         return Placement(pose, "ground-truth")
 
     def ground_truth(self):
