@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import statistics
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -38,8 +37,8 @@ sys.path.insert(0, str(ROOT / "tests" / "decode"))
 
 from global_stand_in import capture_with_global_stand_in
 from graycode_real import _tile_row
+from measure import kamino410_gray_views
 
-from slscan.capture.kamino410 import import_kamino410
 from slscan.data import shared_data_dir
 from slscan.decode.graycode import decode_gray_images
 from slscan.virtual.device import VirtualCaptureConfig
@@ -68,24 +67,18 @@ def kamino410_table(data: Path, repeat: int) -> None:
             f"{'unrel':>7}{'incons':>7}{'g/d med':>8}{'cpu s':>7}{'wall s':>7}")
     print(head)
     print("-" * len(head))
-    with tempfile.TemporaryDirectory() as tmp:
-        session = import_kamino410(src, Path(tmp) / "session")
-        descs = [p for p in session.patterns if p.family == "gray"]
-        for view in session.views:
-            images = {d.id: session.read_image(view, view.image_for(d.id)) for d in descs}
-            white = session.read_image(view, view.image_for("white"))
-            black = session.read_image(view, view.image_for("black"))
-            for name, robust in MODES:
-                res, cpu, wall = _timed(repeat, (images, descs, white, black), robust)
-                c, r, m = res.column, res.row, res.mask
-                pair = m[:, 1:] & m[:, :-1]
-                mono_col = float(((c[:, 1:] - c[:, :-1])[pair] >= 0).mean())
-                pair = m[1:] & m[:-1]
-                mono_row = float(((r[1:] - r[:-1])[pair] >= 0).mean())
-                d = res.diagnostics
-                print(f"{view.name:<11}{name:<8}{m.mean():>8.4f}{mono_col:>10.5f}{mono_row:>10.5f}"
-                      f"{len(res.edges):>8d}{d.get('unreliable_global', 0):>7d}{d.get('inconsistent', 0):>7d}"
-                      f"{d.get('global_direct_median', float('nan')):>8.3f}{cpu:>7.2f}{wall:>7.2f}", flush=True)
+    for view_name, images, descs, white, black in kamino410_gray_views(src):
+        for name, robust in MODES:
+            res, cpu, wall = _timed(repeat, (images, descs, white, black), robust)
+            c, r, m = res.column, res.row, res.mask
+            pair = m[:, 1:] & m[:, :-1]
+            mono_col = float(((c[:, 1:] - c[:, :-1])[pair] >= 0).mean())
+            pair = m[1:] & m[:-1]
+            mono_row = float(((r[1:] - r[:-1])[pair] >= 0).mean())
+            d = res.diagnostics
+            print(f"{view_name:<11}{name:<8}{m.mean():>8.4f}{mono_col:>10.5f}{mono_row:>10.5f}"
+                  f"{len(res.edges):>8d}{d.get('unreliable_global', 0):>7d}{d.get('inconsistent', 0):>7d}"
+                  f"{d.get('global_direct_median', float('nan')):>8.3f}{cpu:>7.2f}{wall:>7.2f}", flush=True)
 
 
 def tile_table(scale: float) -> None:

@@ -22,13 +22,12 @@ and prints per mode:
 from __future__ import annotations
 
 import argparse
-import tempfile
 from pathlib import Path
 
 import cv2
 import numpy as np
+from measure import kamino410_gray_views
 
-from slscan.capture.kamino410 import import_kamino410
 from slscan.data import shared_data_dir
 from slscan.decode.graycode import decode_gray_images, gray_pairs
 from slscan.patterns.graycode import inverse_gray
@@ -68,25 +67,20 @@ def main() -> None:
     print(f"kamino410 captures from {src}; JPEG round trip at quality {args.quality}")
     print(head)
     print("-" * len(head))
-    with tempfile.TemporaryDirectory() as tmp:
-        session = import_kamino410(src, Path(tmp) / "session")
-        descs = [p for p in session.patterns if p.family == "gray"]
-        for view in session.views:
-            raw = {d.id: session.read_image(view, view.image_for(d.id)) for d in descs}
-            raw["white"] = session.read_image(view, view.image_for("white"))
-            raw["black"] = session.read_image(view, view.image_for("black"))
-            for kind in ("PNG", f"JPEG{args.quality}"):
-                imgs = raw if kind == "PNG" else {k: jpeg(v, args.quality) for k, v in raw.items()}
-                cv_valid, cv_col, cv_row = opencv_rule(imgs, descs, imgs["white"], imgs["black"])
-                for mode in ("adaptive", "opencv"):
-                    res = decode_gray_images(imgs, descs, imgs["white"], imgs["black"], threshold=mode)
-                    same = (res.mask == cv_valid) & (
-                        ~cv_valid | ((res.column == cv_col) & (res.row == cv_row)))
-                    d = res.diagnostics
-                    n = d["pixels"]
-                    print(f"{view.name:<11}{kind:<8}{mode:<10}{res.mask.mean():>7.3f}{cv_valid.mean():>9.3f}"
-                          f"{same.mean():>9.4f}{d['low_contrast'] / n:>13.3f}{d['weak_bit_noise'] / n:>11.3f}"
-                          f"{d['weak_bit_ratio'] / n:>11.3f}{d['noise_dn']:>9.2f}")
+    for view_name, raw, descs, white, black in kamino410_gray_views(src):
+        raw = {**raw, "white": white, "black": black}
+        for kind in ("PNG", f"JPEG{args.quality}"):
+            imgs = raw if kind == "PNG" else {k: jpeg(v, args.quality) for k, v in raw.items()}
+            cv_valid, cv_col, cv_row = opencv_rule(imgs, descs, imgs["white"], imgs["black"])
+            for mode in ("adaptive", "opencv"):
+                res = decode_gray_images(imgs, descs, imgs["white"], imgs["black"], threshold=mode)
+                same = (res.mask == cv_valid) & (
+                    ~cv_valid | ((res.column == cv_col) & (res.row == cv_row)))
+                d = res.diagnostics
+                n = d["pixels"]
+                print(f"{view_name:<11}{kind:<8}{mode:<10}{res.mask.mean():>7.3f}{cv_valid.mean():>9.3f}"
+                      f"{same.mean():>9.4f}{d['low_contrast'] / n:>13.3f}{d['weak_bit_noise'] / n:>11.3f}"
+                      f"{d['weak_bit_ratio'] / n:>11.3f}{d['noise_dn']:>9.2f}")
 
 
 if __name__ == "__main__":

@@ -107,6 +107,24 @@ def run_measured(command: list[str], *, interval: float = 0.1, extra_pids: Seque
     return Measured(proc.returncode, time.perf_counter() - t0, peak, stdout, stderr)
 
 
+def kamino410_gray_views(src: Path):
+    """kamino410's captures in ``src`` imported into a temporary capture session, view by
+    view: ``(view name, {pattern id: image} of its Gray-code images, their
+    PatternImages, white image, black image)``."""
+    import tempfile
+
+    from slscan.capture.kamino410 import import_kamino410
+
+    with tempfile.TemporaryDirectory() as tmp:
+        session = import_kamino410(src, Path(tmp) / "session")
+        descs = [p for p in session.patterns if p.family == "gray"]
+        for view in session.views:
+            images = {d.id: session.read_image(view, view.image_for(d.id)) for d in descs}
+            white = session.read_image(view, view.image_for("white"))
+            black = session.read_image(view, view.image_for("black"))
+            yield view.name, images, descs, white, black
+
+
 def surface_samples(vertices: np.ndarray, faces: np.ndarray, n: int = 500_000, seed: int = 0) -> np.ndarray:
     """(n, 3) points spread uniformly by area on a triangle mesh (fixed seed).
 
