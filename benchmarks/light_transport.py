@@ -37,6 +37,7 @@ from slscan.capture.session import LIT, load_session
 from slscan.decode.pipeline import DecodeConfig, decode_view
 from slscan.virtual.device import VirtualCaptureConfig, capture_session
 from slscan.virtual.effects import EFFECTS, parse_effects
+from slscan.virtual.render import Optics
 
 sys.path.insert(0, str(Path(__file__).parent))
 from reconstruction import coverage, true_surface_distance
@@ -105,14 +106,19 @@ def main() -> None:
     parser.add_argument("--decoders", default="robust,plain",
                         help="robust, plain, each optionally with @key=value DecodeConfig overrides "
                              "(e.g. robust@gray_drop_bits=0)")
+    parser.add_argument("--ir-samples", type=int, default=None,
+                        help="hemisphere rays per receiver of the interreflection effect (default: the rig's, "
+                             "Optics.interreflection_samples)")
     args = parser.parse_args()
     logging.basicConfig(level=logging.ERROR)
+    optics = Optics() if args.ir_samples is None else Optics(interreflection_samples=args.ir_samples)
     levels = min(9, int(np.log2(1024 * args.scale)) - 1)
     families = [f.strip() for f in args.families.split(",")]
     decoders = [d.strip() for d in args.decoders.split(",")]
     dw = max(8, max(len(d) for d in decoders) + 1)
     groups = effect_sets(args.effects)
-    print(f"virtual rig at {args.scale}x the paper's size, {levels} hybrid levels; effects: "
+    print(f"virtual rig at {args.scale}x the paper's size, {levels} hybrid levels, "
+          f"{optics.interreflection_samples} inter-reflection rays per receiver; effects: "
           + ", ".join(f"{e.name} ({e.summary})" for e in EFFECTS.values()))
     header = (f"{'scene':<9}{'effects':<17}{'family':<8}{'decoder':<{dw}}{'vertices':>9}{'mean mm':>9}"
               f"{'p95 mm':>8}{'gross %':>9}{'coverage':>9}{'x direct':>9}{'render s':>9}{'decode s':>9}")
@@ -130,7 +136,7 @@ def main() -> None:
                         continue
                     config = VirtualCaptureConfig(scene=scene_name, views=1, patterns=capture, levels=levels,
                                                   gray_rows=False, lit_images=False, camera_scale=args.scale,
-                                                  projector_scale=args.scale, effects=names)
+                                                  projector_scale=args.scale, effects=names, optics=optics)
                     out = Path(tmp) / f"{scene_name}-{label.replace(' ', '_')}-{capture}"
                     t = time.process_time()
                     capture_session(config, out)

@@ -9,8 +9,13 @@ mean digital level of the white image (what the effect adds). "off" is the direc
 rig, which renders byte-identical images to earlier slscan versions.
 
 Table 2: noise of the indirect term against ``Optics.interreflection_samples`` on the
-``concave`` scene under white: the std over receivers of its relative error against a
-4096-sample reference (``relative`` to the reference's mean), and its trace cost.
+``concave`` scene: under white, the std over receivers of its relative error against a
+4096-sample reference (``relative`` to the reference's mean); under the finest Gray-code
+bit (stripes 2 projector px), the rms over receivers of the error against the reference
+(relative to white's indirect light) when each path reads the pattern at its one point
+("point", slscan before the cone lookups) and over its patch ("cone",
+:func:`slscan.virtual.transport.path_footprint`, what the rig does); and the trace cost.
+The reference reads points: at 4096 rays a patch is a fraction of a projector pixel.
 """
 
 from __future__ import annotations
@@ -21,9 +26,10 @@ import time
 
 import numpy as np
 
+from slscan.patterns import graycode
 from slscan.virtual import transport
 from slscan.virtual.device import VirtualCaptureConfig, capture_view, turntable_pose
-from slscan.virtual.render import trace_view
+from slscan.virtual.render import projector_light_at, trace_view
 
 EFFECTS = {"off": (), "subsurface": ("subsurface",), "interreflection": ("interreflection",),
            "both": ("subsurface", "interreflection")}
@@ -45,25 +51,32 @@ def _view_cost(scene_name: str, scale: float, effects: tuple[str, ...]) -> dict:
             "images": len(images), "white": float(images[0][1][geom.hit].mean())}
 
 
-def _noise(scale: float, samples: list[int], reference: int = 4096) -> list[tuple[int, float, float]]:
+def _noise(scale: float, samples: list[int], reference: int = 4096) -> list[tuple[int, float, float, float, float]]:
     config = VirtualCaptureConfig(scene="concave", camera_scale=scale, projector_scale=scale)
     rig, scene = config.rig(), config.build_scene()
     pose = turntable_pose(rig, 0.0, scene.placement)
 
-    def indirect(n: int) -> tuple[np.ndarray, float]:
+    finest = [p for p in graycode.generate(rig.projector.lens.width, rig.projector.lens.height)
+              if not p.params["inverse"]][-1]
+
+    def indirect(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
         optics = dataclasses.replace(config.optics, interreflection=True, interreflection_samples=n)
         cpu = time.process_time()
         geom = trace_view(scene, rig, pose, optics)
         cost = time.process_time() - cpu
-        values = transport.gather_indirect(geom.transport.indirect, lambda uv: np.ones((len(uv), 3)))[:, 0]
-        return values, cost
+        paths = geom.transport.indirect
+        white = transport.gather_indirect(paths, lambda uv, w: np.ones((len(uv), 3)))[:, 0]
+        point = transport.gather_indirect(paths, lambda uv, w: projector_light_at(uv, finest, optics, 1.0))[:, 0]
+        cone = transport.gather_indirect(paths, lambda uv, w: projector_light_at(uv, finest, optics, w))[:, 0]
+        return white, point, cone, cost
 
-    ref, _ = indirect(reference)
+    ref, ref_fine, _, _ = indirect(reference)
     strong = ref > 0.2 * ref.max()
     rows = []
     for n in samples:
-        values, cost = indirect(n)
-        rows.append((n, float(np.std((values - ref)[strong]) / ref[strong].mean()), cost))
+        white, point, cone, cost = indirect(n)
+        fine_err = [float(np.sqrt(np.mean(((v - ref_fine) / ref)[strong] ** 2))) for v in (point, cone)]
+        rows.append((n, float(np.std((white - ref)[strong]) / ref[strong].mean()), *fine_err, cost))
     return rows
 
 
@@ -87,10 +100,11 @@ def main() -> None:
     if args.no_noise:
         return
     print()
-    print(f"| samples | indirect relative std (concave, scale {args.noise_scale:g}) | trace CPU s |")
-    print("|---|---|---|")
-    for n, std, cost in _noise(args.noise_scale, [16, 64, 128, 256, 1024]):
-        print(f"| {n} | {100 * std:.1f} % | {cost:.2f} |", flush=True)
+    print(f"concave scene, scale {args.noise_scale:g}; errors against a 4096-ray reference")
+    print("| samples | white: relative std | finest bit, point reads: rms | finest bit, cone reads: rms | trace CPU s |")
+    print("|---|---|---|---|---|")
+    for n, std, point, cone, cost in _noise(args.noise_scale, [16, 64, 128, 256, 1024]):
+        print(f"| {n} | {100 * std:.1f} % | {100 * point:.1f} % | {100 * cone:.1f} % | {cost:.2f} |", flush=True)
 
 
 if __name__ == "__main__":

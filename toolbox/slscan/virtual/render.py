@@ -110,7 +110,9 @@ class Optics:
         4096-sample reference relative to its mean (``concave`` scene under white, scale 0.5,
         ``benchmarks/transport_cost.py``): 16 samples 21.7 %, 64: 8.2 %, 128: 5.6 %, 256:
         3.0 %, 1024: 1.1 %; where the indirect light is a quarter of the direct, 128 samples
-        leave about 1.4 % of the image in smooth blotches a receiver step wide
+        leave about 1.4 % of the image in smooth blotches a receiver step wide. Under fine
+        patterns each ray reads the pattern over its patch (:func:`slscan.virtual.transport.
+        path_footprint`), which makes 128 rays as good as about 800 point reads there
     interreflection_stride : camera px between receivers (the indirect light is smooth, so
         it is gathered on this grid and interpolated)
     """
@@ -625,12 +627,14 @@ def _remap_points(plane: np.ndarray, at: np.ndarray) -> np.ndarray:
 
 
 def projector_light_at(uv: np.ndarray, shown: PatternImage | np.ndarray | None, optics: Optics,
-                       *, width: float = 1.0) -> np.ndarray:
+                       width: float | np.ndarray = 1.0) -> np.ndarray:
     """RGB projector emission (k, 3) in [0, 1] at arbitrary projector positions ``uv`` (k, 2)
     (continuous column, row), for a pattern description or a projector image (h, w, 3)
     uint8 (None: switched off): the projector's blurred image box-filtered over ``width``
-    projector px, as :func:`projector_light` does at the camera pixels."""
+    projector px (one for all, or (k,) per position; an image that varies in 2-D is
+    filtered with their median), as :func:`projector_light` does at the camera pixels."""
     uv = np.asarray(uv, dtype=np.float64)
+    width = np.broadcast_to(np.asarray(width, dtype=np.float64), (len(uv),))
     if shown is None:
         return np.zeros((len(uv), 3))
     if isinstance(shown, PatternImage):
@@ -644,12 +648,12 @@ def projector_light_at(uv: np.ndarray, shown: PatternImage | np.ndarray | None, 
         a = 0 if axis == "columns" else 1
         values = np.ascontiguousarray(values, dtype=np.uint8)
         filt = _profile_filter(optics.projector_blur, values.tobytes(), len(values), gamma)
-        light = filt.sample(uv[:, a], np.full(len(uv), float(width)))
+        light = filt.sample(uv[:, a], width)
     else:
         import cv2
 
         plane = emitted(values, gamma).astype(np.float32)
-        sigma = float(np.hypot(optics.projector_blur, width / np.sqrt(12.0)))
+        sigma = float(np.hypot(optics.projector_blur, (np.median(width) if len(width) else 1.0) / np.sqrt(12.0)))
         plane = cv2.GaussianBlur(plane, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
         light = _remap_points(plane, uv)
     black = optics.projector_black
@@ -681,7 +685,7 @@ def _diffuse_irradiance(geom: ViewGeometry, light: np.ndarray, optics: Optics,
     if not transport.active(optics):
         return light, geom.proj_diffuse[hit]
     _check_transport(geom, optics)
-    light_at = None if shown is None else functools.partial(projector_light_at, shown=shown, optics=optics)
+    light_at = None if shown is None else (lambda uv, width: projector_light_at(uv, shown, optics, width))
     irradiance = transport.diffuse_irradiance(geom.transport, hit, light, geom.proj_diffuse[hit].astype(np.float64),
                                               light_at)
     return irradiance, np.ones(len(irradiance))
