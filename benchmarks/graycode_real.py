@@ -1,6 +1,6 @@
 """Gray-code decoding on real captures (kamino410) and plane-fit accuracy on the virtual tile.
 
-    .venv/bin/python benchmarks/graycode_real.py [--data DIR] [--repeat 3] [--no-tile]
+    .venv/bin/python benchmarks/graycode_real.py [--data DIR] [--repeat 3] [--no-tile] [--drop-bits 0,2]
 
 Prints two tables.
 
@@ -9,7 +9,8 @@ Prints two tables.
    pixels whose column and row decode (the mask), share whose column decodes, monotonicity
    (share of horizontally adjacent pixel pairs in the mask whose column does not decrease;
    likewise for rows downwards), stripe-edge samples, estimated noise, and times: reading
-   the 22 PNGs and ``decode_gray_images`` on them (median of ``--repeat``).
+   the 22 PNGs and ``decode_gray_images`` on them (median of ``--repeat``); one row per
+   ``--drop-bits`` value (per-pixel bit dropping, ``drop_bits``; default 0 only).
 2. The virtual flat tile (``VirtualCaptureConfig(scene="tile", patterns="gray")``) at
    reduced size without noise, reduced size with the default sensor noise, and full size
    (1440x960 camera, 1024x768 projector) with default noise: edge position error against
@@ -39,7 +40,7 @@ from slscan.virtual.device import VirtualCaptureConfig, capture_session
 from slscan.virtual.sensor import Sensor
 
 
-def kamino410_table(data: Path, repeat: int) -> None:
+def kamino410_table(data: Path, repeat: int, drop_bits: tuple[int, ...] = (0,)) -> None:
     src = data / "procam_graycode_kamino410" / "sample_data"
     if not src.is_dir():
         print(f"kamino410 captures not found at {src}: table skipped")
@@ -54,32 +55,33 @@ def kamino410_table(data: Path, repeat: int) -> None:
             f"median of {repeat} runs"
         )
         head = (
-            f"{'capture':<11}{'col+row':>8}{'col':>7}{'mono col':>10}{'mono row':>10}"
+            f"{'capture':<11}{'drop':>5}{'col+row':>8}{'col':>7}{'mono col':>10}{'mono row':>10}"
             f"{'edges':>9}{'noise DN':>9}{'read s':>8}{'decode s':>9}"
         )
         print(head)
         print("-" * len(head))
         for view in session.views:
-            t_read, t_dec = [], []
-            for _ in range(repeat):
-                t = time.perf_counter()
-                images = {d.id: session.read_image(view, view.image_for(d.id)) for d in descs}
-                white = session.read_image(view, view.image_for("white"))
-                black = session.read_image(view, view.image_for("black"))
-                t_read.append(time.perf_counter() - t)
-                t = time.perf_counter()
-                res = decode_gray_images(images, descs, white, black)
-                t_dec.append(time.perf_counter() - t)
-            c, r, m = res.column, res.row, res.mask
-            pair = m[:, 1:] & m[:, :-1]
-            mono_col = float(((c[:, 1:] - c[:, :-1])[pair] >= 0).mean())
-            pair = m[1:] & m[:-1]
-            mono_row = float(((r[1:] - r[:-1])[pair] >= 0).mean())
-            print(
-                f"{view.name:<11}{m.mean():>8.3f}{(c >= 0).mean():>7.3f}{mono_col:>10.5f}"
-                f"{mono_row:>10.5f}{len(res.edges):>9d}{res.noise * 255:>9.2f}"
-                f"{statistics.median(t_read):>8.2f}{statistics.median(t_dec):>9.2f}"
-            )
+            for drop in drop_bits:
+                t_read, t_dec = [], []
+                for _ in range(repeat):
+                    t = time.perf_counter()
+                    images = {d.id: session.read_image(view, view.image_for(d.id)) for d in descs}
+                    white = session.read_image(view, view.image_for("white"))
+                    black = session.read_image(view, view.image_for("black"))
+                    t_read.append(time.perf_counter() - t)
+                    t = time.perf_counter()
+                    res = decode_gray_images(images, descs, white, black, drop_bits=drop)
+                    t_dec.append(time.perf_counter() - t)
+                c, r, m = res.column, res.row, res.mask
+                pair = m[:, 1:] & m[:, :-1]
+                mono_col = float(((c[:, 1:] - c[:, :-1])[pair] >= 0).mean())
+                pair = m[1:] & m[:-1]
+                mono_row = float(((r[1:] - r[:-1])[pair] >= 0).mean())
+                print(
+                    f"{view.name:<11}{drop:>5d}{m.mean():>8.3f}{(c >= 0).mean():>7.3f}{mono_col:>10.5f}"
+                    f"{mono_row:>10.5f}{len(res.edges):>9d}{res.noise * 255:>9.2f}"
+                    f"{statistics.median(t_read):>8.2f}{statistics.median(t_dec):>9.2f}"
+                )
 
 
 def _tile_row(label: str, config: VirtualCaptureConfig, **options) -> str:
@@ -158,6 +160,7 @@ def main() -> None:
     parser.add_argument("--data", type=Path, default=None, help="shared data folder")
     parser.add_argument("--repeat", type=int, default=3, help="timing repetitions (median)")
     parser.add_argument("--no-tile", action="store_true", help="skip the virtual-tile table")
+    parser.add_argument("--drop-bits", default="0", help="comma-separated drop_bits values, one row each")
     args = parser.parse_args()
     data = args.data or shared_data_dir()
     if data is None or not data.is_dir():
@@ -166,7 +169,7 @@ def main() -> None:
             "procam_graycode_kamino410/); kamino410 table skipped"
         )
     else:
-        kamino410_table(data, args.repeat)
+        kamino410_table(data, args.repeat, tuple(int(v) for v in args.drop_bits.split(",")))
     if not args.no_tile:
         tile_table()
 

@@ -167,10 +167,10 @@ def test_dropped_bits_mesh_their_wider_edge_spacing(figurine):
     assert np.median(d) < 0.15 and np.mean(d < 1.0) > 0.99
 
 
-def test_the_decode_command_drops_washed_out_gray_bits_per_pixel(tmp_path, capsys):
+def test_the_decode_command_drops_washed_out_gray_bits_per_pixel(tmp_path, capsys, caplog):
     """``slscan decode --gray-drop-bits 2`` on marble under subsurface scattering: more of the
-    surface decodes than with the default, and the setting is recorded; a negative count is
-    refused naming the option."""
+    surface decodes than with the default, which says so, and the setting is recorded; a
+    negative count is refused naming the option."""
     import json
 
     from slscan.cli import main
@@ -181,7 +181,10 @@ def test_the_decode_command_drops_washed_out_gray_bits_per_pixel(tmp_path, capsy
     vertices = {}
     for drop in (0, 2):
         out = tmp_path / f"drop{drop}"
+        caplog.clear()
         assert main(["decode", str(session), "--out", str(out), "--gray-drop-bits", str(drop), "--quiet"]) == 0
+        hints = [r for r in caplog.records if "--gray-drop-bits 2" in r.getMessage()]
+        assert len(hints) == (1 if drop == 0 else 0)
         record = json.loads((out / "range_maps.json").read_text())
         assert record["config"]["gray_drop_bits"] == drop
         vertices[drop] = record["views"][0]["metrics"]["vertices"]
