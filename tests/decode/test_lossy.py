@@ -100,3 +100,16 @@ def test_a_lossy_hybrid_only_session_warns_once_with_the_measured_cost(tone_sess
         assert [choose_method(hybrid_only) for _ in range(2)] == ["hybrid"] * 2
     warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warned) == 1 and "0.89 mm" in warned[0] and "lossy" in warned[0]
+
+
+def test_lossy_sessions_decode_gray_code_from_luma(tone_sessions, tmp_path):
+    """Gray code of a lossy (JPEG) session is read as luma, the channel JPEG keeps at full
+    resolution; a lossless one as the mean of its channels."""
+    session = tone_sessions["linear"]
+    view = session.views[0]
+    lossy = dataclasses.replace(session, lossy=True)
+    as_luma = decode_gray(session, view, luma=True).edges
+    as_mean = decode_gray(session, view).edges
+    assert not (len(as_luma) == len(as_mean) and np.array_equal(as_luma.x, as_mean.x))  # the tint differs
+    np.testing.assert_array_equal(decode_gray(lossy, view).edges.x, as_luma.x)
+    np.testing.assert_array_equal(decode_gray(lossy, view, luma=False).edges.x, as_mean.x)

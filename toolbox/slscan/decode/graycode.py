@@ -300,30 +300,51 @@ def gray_pairs(descs: Sequence[PatternImage], axis: str) -> list[tuple[str, str]
     return list(gray_bits(descs, axis).pairs)
 
 
-class _Reader:
-    """Reads captures of one view: grey levels, their fractions of full scale and clipping."""
+LUMA_WEIGHTS = (77, 150, 29)
+"""Integer weights (sum 256) of R, G, B in the luma read of lossy captures: ITU-R BT.601's
+0.299, 0.587, 0.114, the Y that JPEG keeps at full resolution (its chroma is halved)."""
 
-    def __init__(self, white: np.ndarray, where: str) -> None:
+
+class _Reader:
+    """Reads captures of one view: grey levels, their fractions of full scale and clipping.
+
+    luma : RGB captures are read as their luma (:data:`LUMA_WEIGHTS`) instead of the mean
+        of their channels: for lossy (JPEG) captures, whose 4:2:0 chroma is half resolution
+        and whose colour errors the channel mean would add to the stripes."""
+
+    def __init__(self, white: np.ndarray, where: str, luma: bool = False) -> None:
         self.white, self.where = white, where
         self.scale = full_scale(np.empty(0, white.dtype), where)
         self.channels = 1 if white.ndim == 2 else white.shape[2]
+        self.weights = LUMA_WEIGHTS if luma and self.channels == 3 else None
         self.saturated = np.zeros(white.shape[:2], bool)
         self.box = (slice(None), slice(None))  # the part of each image returned
-        # integer captures are kept as levels (the channel sum, in the smallest integer
-        # type that holds it: 1 byte a pixel for 8-bit grey) and turned into the same
-        # float32 fractions as channel_mean gives through a lookup table; float
-        # captures are kept as their float32 fractions (lut None)
+        # integer captures are kept as levels (the channel sum, or the weighted sum for
+        # luma, in the smallest integer type that holds it: 1 byte a pixel for 8-bit grey)
+        # and turned into the same float32 fractions as channel_mean (or the luma) gives
+        # through a lookup table; float captures are kept as their float32 fractions (lut None)
         self.lut = None
         self.level_dtype = np.float32
         self.dn = self.scale if white.dtype != np.float32 and white.dtype != np.float64 else 255.0
         if white.dtype in (np.uint8, np.uint16):
-            top = int(self.scale) * self.channels
+            per_level = sum(self.weights) if self.weights else self.channels
+            top = int(self.scale) * per_level
             self.level_dtype = next(t for t in (np.uint8, np.uint16, np.uint32) if top <= np.iinfo(t).max)
             lut = np.arange(top + 1, dtype=np.float32)
-            if self.channels > 1:
-                lut *= np.float32(1.0 / self.channels)
+            if per_level > 1:
+                lut *= np.float32(1.0 / per_level)
             lut *= np.float32(1.0 / self.scale)
             self.lut = lut
+
+    def _grey(self, image: np.ndarray) -> np.ndarray:
+        """float32 channel mean (or luma) of a checked capture."""
+        if self.weights is None or image.ndim == 2:
+            return channel_mean(image)
+        total = float(sum(self.weights))
+        grey = image[..., 0].astype(np.float32) * np.float32(self.weights[0] / total)
+        for c in (1, 2):
+            grey += image[..., c].astype(np.float32) * np.float32(self.weights[c] / total)
+        return grey
 
     def check(self, image: np.ndarray, name: str) -> np.ndarray:
         """``image`` cropped to the box, its clipping recorded (an error naming it when
@@ -334,7 +355,7 @@ class _Reader:
 
     def __call__(self, image: np.ndarray, name: str) -> np.ndarray:
         """Grey float32 image in fractions of full scale."""
-        grey = channel_mean(self.check(image, name))
+        grey = self._grey(self.check(image, name))
         grey *= np.float32(1.0 / self.scale)
         return grey
 
@@ -343,11 +364,16 @@ class _Reader:
         or grey fractions (float captures); :meth:`fraction` turns them into fractions."""
         image = self.check(image, name)
         if self.lut is None:
-            grey = channel_mean(image)
+            grey = self._grey(image)
             grey *= np.float32(1.0 / self.scale)
             return grey
         if image.ndim == 2:
             return np.array(image, self.level_dtype)
+        if self.weights is not None:
+            out = image[..., 0].astype(self.level_dtype) * self.level_dtype(self.weights[0])
+            for c in (1, 2):
+                out += image[..., c].astype(self.level_dtype) * self.level_dtype(self.weights[c])
+            return out
         out = image[..., 0].astype(self.level_dtype)
         for c in range(1, image.shape[2]):
             out += image[..., c]
@@ -804,6 +830,7 @@ def decode_gray_images(
     separation_bits: int = SEPARATION_BITS,
     consistency_radius: int = CONSISTENCY_RADIUS,
     drop_bits: int = 0,
+    luma: bool = False,
     where: str = "",
 ) -> GrayResult:
     """Decode one view's Gray-code captures into projector columns (rows) and stripe edges.
@@ -814,7 +841,7 @@ def decode_gray_images(
         At least every Gray-code pattern of ``descs`` that is used; other entries are
         ignored, and each is read once, in the order column bits then row bits (pattern,
         inverse), so a mapping that reads on demand and forgets keeps memory bounded.
-        RGB captures are read as the mean of their channels.
+        RGB captures are read as the mean of their channels (or their luma: ``luma``).
     descs : the session's pattern descriptions; only ``family == "gray"`` ones are used.
         A set missing some bits decodes with the leading run of bits present (a warning
         names the missing ones; see ``GrayResult.bits_used``).
@@ -861,6 +888,10 @@ def decode_gray_images(
         set missing those bits would give it (``bits_used``); its edges are found only
         between such blocks, where both sides have the coarse bits. Subsurface
         scattering washes out the finest stripes first. 0: every bit or none.
+    luma : bool
+        Read RGB captures as their luma (BT.601 weights, :data:`LUMA_WEIGHTS`) instead of
+        the mean of their channels: what :func:`decode_gray` does for lossy (JPEG) sessions,
+        whose chroma is stored at half resolution.
     where : str
         Prefix for error messages (e.g. the view folder).
 
@@ -927,7 +958,7 @@ def decode_gray_images(
             f"{where}white: expected an (h, w) or (h, w, 3) image, got shape {white.shape}"
         )
     full_scale(white, f"{where}white")
-    read = _Reader(white, where)
+    read = _Reader(white, where, luma)
     w_img, b_img = read(white, "white"), read(black, "black")
     full_contrast = w_img - b_img
     if threshold == "opencv":  # on the levels: no rounding at ties (white - black = 40 DN)
@@ -1306,6 +1337,7 @@ def decode_gray(session: Session, view: ViewRecord | str, **options) -> GrayResu
     # in linear light: an sRGB camera's curve undone (float fractions of full scale then)
     with _Streamed(lambda pid: session.read_image(view, records[pid], linear=True), ids) as images:
         white, black = images[white_id], images[black_id]
+        options.setdefault("luma", session.lossy)
         result = decode_gray_images(images, descs, white, black, where=where, **options)
     if session.response != "linear":  # colour downstream from the capture as the camera saved it
         white = session.read_image(view, records[white_id])
