@@ -193,3 +193,24 @@ def test_the_decode_command_drops_washed_out_gray_bits_per_pixel(tmp_path, capsy
     assert main(["decode", str(session), "--out", str(tmp_path / "bad"), "--gray-drop-bits", "-1"]) == 2
     assert "--gray-drop-bits must be 0 or more, got -1" in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()
+
+
+def test_decode_warns_when_hybrid_lines_wash_out(tmp_path, caplog):
+    """Marble under subsurface scattering: the hybrid's one-pixel lines wash out, so the
+    decode stage says what covers such a surface (Gray code with bit dropping, which the
+    session has); under direct light it says nothing. (At 0.75 of the paper's size: at
+    half size a projector pixel is about 1.4 mm at the working distance, and its lines
+    survive the 1.5 mm mean free path; lines reach 0.93 of the lit pixels there, 0.17 at 0.75.)"""
+    from slscan.cli import main
+
+    said = {}
+    for effects in ("", "subsurface"):
+        session = tmp_path / f"marble{effects}"
+        args = ["capture", "--scene", "marble", "--patterns", "both", "--scale", "0.75", "--no-lit",
+                "--out", str(session), "--quiet"]
+        assert main(args + (["--effects", effects] if effects else [])) == 0
+        caplog.clear()
+        assert main(["decode", str(session), "--out", str(tmp_path / f"decoded{effects}"), "--quiet"]) == 0
+        said[effects] = [r.getMessage() for r in caplog.records if "hybrid line samples" in r.getMessage()]
+    assert said[""] == []
+    assert len(said["subsurface"]) == 1 and "--method gray --gray-drop-bits 2" in said["subsurface"][0]
