@@ -2,8 +2,10 @@
 
     .venv/bin/python benchmarks/calibration.py [--scale 1.0] [--poses 6] [--board chessboard]
         [--data DIR] [--no-virtual] [--no-real]
+    .venv/bin/python benchmarks/calibration.py --response [--against REV] [--scale 0.5]
+        [--panel-scale 0.25]
 
-Prints three tables.
+Prints three tables (``--response``: the camera-response tables below instead).
 
 1. Virtual rig (full size unless --scale): a board session (``--poses`` poses, white,
    hybrid and Gray code with row codes) calibrated by both methods. Errors against the
@@ -27,11 +29,26 @@ Prints three tables.
    75 mm squares only with the projector coordinates doubled), so its projector
    intrinsics are compared after halving (``projector_scale=0.5``), and our stereo RMS is
    also given with the projector residuals in its units.
+
+``--response``: does calibration undo the camera's tone curve (``camera.response``)? The
+board session (Gray code with row codes, inverse-camera method) and the light panel
+session are rendered twice, by a linear camera and by an sRGB one (the ``tone`` effect),
+and calibrated by this tree and by ``--against REV`` (each in a child process with its
+``toolbox/`` first on the path; the sessions are the same files): errors against the
+true rig as above, the stereo and camera reprojection RMS, and the ring lights' position
+error (mm) and intensity error (% of the true, max over RGB). Then the board corners found
+in the white image as stored and with the curve undone, against their true projections
+(the corner detector sees the stored image), and the kamino410 captures imported as
+linear and as sRGB, calibrated by both trees. Last, a linearity check of the captures:
+a pattern and its inverse add up to white plus black in linear light (``P + I = W + B``
+whatever the blur and the global light), so on stripe-edge pixels (``|P - I|`` under a
+quarter of ``W - B``) the median of ``(P + I - 2B) / (W - B)`` is 1 in the right response.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 import tempfile
@@ -54,6 +71,7 @@ from slscan.virtual.device import VirtualCaptureConfig, capture_session
 from slscan.virtual.scenes import builtin_object, flat_tile
 
 sys.path.insert(0, str(Path(__file__).parent))
+from measure import export_toolbox, run_json
 from reconstruction import true_surface_distance
 
 KAMINO_SQUARE_MM = 75.0
@@ -285,6 +303,198 @@ def real_table(data: Path) -> None:
     )
 
 
+# --- camera response (--response) -------------------------------------------------------------
+
+
+def response_child(paths: dict) -> dict:
+    """Calibrate the sessions ``paths`` names with the toolbox on the path (one version)."""
+    from slscan.albedo.lights import calibrate_lights
+
+    board = Board(kind=paths["board_kind"], square=paths["square"])
+    out: dict = {}
+    for response in ("linear", "srgb"):
+        session = load_session(paths[f"board-{response}"])
+        truth = session.calibration
+        run = calibrate_session(session, CalibrationConfig(board=board, method="inverse-camera"))
+        cal = run.calibration
+        out[f"board-{response}"] = {
+            "camera": _lens_errors(cal.camera, truth.camera),
+            "projector": _lens_errors(cal.projector.lens, truth.projector.lens),
+            "baseline_mm": float(np.linalg.norm(cal.projector.center) - np.linalg.norm(truth.projector.center)),
+            "centre_mm": float(np.linalg.norm(cal.projector.center - truth.projector.center)),
+            "stereo_rms": run.inverse_camera.stereo_rms,
+            "camera_rms": run.camera.rms,
+        }
+        panel = load_session(paths[f"panel-{response}"])
+        true = np.array([light.position for light in panel.calibration.lights])
+        true_i = np.array([light.intensity for light in panel.calibration.lights])
+        rng = np.random.default_rng(3)  # started 40-80 mm off, as tests/albedo does
+        start = true + rng.choice([-1, 1], true.shape) * rng.uniform(40, 80, true.shape)
+        lights = calibrate_lights(panel, initial=start)
+        out[f"panel-{response}"] = {
+            "position_mm": np.linalg.norm(lights.positions - true, axis=1).tolist(),
+            "intensity_pct": (100 * np.abs(lights.intensities / true_i - 1).max(axis=1)).tolist(),
+        }
+    if paths.get("kamino-linear"):
+        board = Board(kind="chessboard", columns=9, rows=7, square=KAMINO_SQUARE_MM)
+        for response in ("linear", "srgb"):
+            run = calibrate_session(
+                load_session(paths[f"kamino-{response}"]),
+                CalibrationConfig(board=board, method="inverse-camera"),
+            )
+            cal = run.calibration
+            out[f"kamino-{response}"] = {
+                "stereo_rms": run.inverse_camera.stereo_rms,
+                "camera_rms": run.camera.rms,
+                **{f"camera {k}": float(getattr(cal.camera, k)) for k in ("fx", "fy", "cx", "cy")},
+                **{f"projector {k}": float(getattr(cal.projector.lens, k)) for k in ("fx", "fy", "cx", "cy")},
+                "baseline mm": float(np.linalg.norm(cal.projector.center)),
+            }
+    return out
+
+
+def _lens_errors(lens, truth) -> list[float]:
+    return [lens.fx - truth.fx, lens.fy - truth.fy, lens.cx - truth.cx, lens.cy - truth.cy]
+
+
+def corner_errors(session, board: Board) -> tuple[float, float]:
+    """RMS (px) of the board corners found in the white images against their true
+    projections: in the image as stored, and with the camera's curve undone."""
+    from slscan.calibrate.camera import detect_corners
+    from slscan.calibrate.target import board_image_id
+    from slscan.capture.session import linearise
+
+    white = board_image_id(session)
+    sq = [[], []]
+    for view in session.views:
+        image = session.read_image(view, view.image_for(white))
+        true = session.calibration.camera.project_local(
+            board.object_points() @ view.rig_from_object[:3, :3].T + view.rig_from_object[:3, 3])
+        # a float image is read as fractions of full scale
+        for k, img in enumerate((image, linearise(image, session.response))):
+            det = detect_corners(img, board)
+            if det:
+                sq[k].append(np.sum((det.corners - true[det.ids]) ** 2, axis=1))
+    return tuple(float(np.sqrt(np.mean(np.concatenate(s)))) if s else float("nan") for s in sq)
+
+
+def edge_sum_ratio(session, view, response: str) -> float:
+    """Median ``(P + I - 2B) / (W - B)`` on stripe-edge pixels of the column bits, the
+    captures read as ``response``: 1 in linear light (see ``--response``)."""
+    from slscan.capture.session import linearise
+    from slscan.decode.graycode import gray_pairs
+    from slscan.decode.masks import channel_mean
+
+    def read(pid: str) -> np.ndarray:
+        image = session.read_image(view, view.image_for(pid))
+        top = float(np.iinfo(image.dtype).max)
+        return channel_mean(linearise(image, response) if response != "linear" else image / np.float32(top))
+
+    white_id, black_id = session.flat_frame_ids()
+    w, b = read(white_id), read(black_id)
+    span = w - b
+    lit = span > 0.2
+    ratios = []
+    for pid, inv in gray_pairs(session.patterns, "columns"):
+        p, q = read(pid), read(inv)
+        edge = lit & (np.abs(p - q) < 0.25 * span)
+        ratios.append(((p + q - 2 * b) / np.where(edge, span, 1))[edge])
+    return float(np.median(np.concatenate(ratios)))
+
+
+def response_tables(args) -> None:
+    from slscan.virtual.panels import (
+        LightPanelConfig,
+        capture_light_calibration,
+        light_calibration_poses,
+    )
+
+    board = Board(kind=args.board, square=args.square)
+    levels = min(9, int(np.log2(1024 * args.scale)) - 1)
+    base = VirtualCaptureConfig(patterns="gray", gray_rows=True, lit_images=False, levels=levels,
+                                camera_scale=args.scale, projector_scale=args.scale)
+    panel_config = LightPanelConfig(scale=args.panel_scale).capture_config()
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        paths: dict = {"board_kind": args.board, "square": args.square}
+        t = time.perf_counter()
+        sessions = {}
+        for response, effects in (("linear", ()), ("srgb", ("tone",))):
+            sessions[response] = capture_calibration_session(
+                tmp / f"board-{response}", board, config=replace(base, effects=effects), n_poses=args.poses)
+            paths[f"board-{response}"] = str(tmp / f"board-{response}")
+            config = replace(panel_config, effects=effects)
+            capture_light_calibration(tmp / f"panel-{response}", config=config,
+                                      poses=light_calibration_poses(config.rig()))
+            paths[f"panel-{response}"] = str(tmp / f"panel-{response}")
+        t_capture = time.perf_counter() - t
+        data = None if args.no_real else (args.data or shared_data_dir())
+        src = None if data is None else data / "procam_graycode_kamino410" / "sample_data"
+        kamino = {}
+        if src is not None and src.is_dir():
+            for response in ("linear", "srgb"):
+                kamino[response] = import_kamino410(src, tmp / f"kamino-{response}", response=response)
+                paths[f"kamino-{response}"] = str(tmp / f"kamino-{response}")
+        versions = []
+        if args.against:
+            versions.append((args.against, export_toolbox(args.against, tmp / "against")))
+        versions.append(("this tree", None))
+        results = {}
+        for label, toolbox in versions:
+            t = time.perf_counter()
+            results[label] = run_json(
+                [sys.executable, __file__, "--response-child", json.dumps(paths)], f"{label} calibration", toolbox)
+            print(f"({label}: calibrations {time.perf_counter() - t:.0f} s)", file=sys.stderr)
+
+        truth = sessions["linear"].calibration
+        print(
+            f"(R1) virtual rig: camera {truth.camera.width}x{truth.camera.height}, {board.describe()}, "
+            f"{args.poses} poses, Gray code with row codes, inverse-camera method; light panel at scale "
+            f"{args.panel_scale}, {len(panel_config.rig().lights)} lights (capture {t_capture:.0f} s). "
+            "Camera: linear, or sRGB (effect 'tone')"
+        )
+        head = (f"{'camera':<8}{'code':<12}{'cam fx':>8}{'cam fy':>8}{'cam cx':>8}{'cam cy':>8}"
+                f"{'prj fx':>8}{'prj fy':>8}{'prj cx':>8}{'prj cy':>8}{'base mm':>9}{'ctr mm':>8}"
+                f"{'stereo':>8}{'cam rms':>8}{'light mm':>9}{'max mm':>8}{'int %':>7}{'max %':>7}")
+        print("errors vs truth (px unless named); RMS px; lights: mean and max over the lights")
+        print(head)
+        print("-" * len(head))
+        for response in ("linear", "srgb"):
+            for label, _ in versions:
+                r, lt = results[label][f"board-{response}"], results[label][f"panel-{response}"]
+                print(
+                    f"{response:<8}{label[:11]:<12}" + "".join(f"{v:>+8.3f}" for v in r["camera"] + r["projector"])
+                    + f"{r['baseline_mm']:>+9.3f}{r['centre_mm']:>8.3f}{r['stereo_rms']:>8.3f}{r['camera_rms']:>8.3f}"
+                    f"{np.mean(lt['position_mm']):>9.2f}{np.max(lt['position_mm']):>8.2f}"
+                    f"{np.mean(lt['intensity_pct']):>7.2f}{np.max(lt['intensity_pct']):>7.2f}"
+                )
+        print("\n(R2) board corners found in the white image vs their true projections (RMS px)")
+        head = f"{'camera':<8}{'as stored':>11}{'curve undone':>14}"
+        print(head)
+        print("-" * len(head))
+        for response, session in sessions.items():
+            stored, undone = corner_errors(session, board)
+            print(f"{response:<8}{stored:>11.4f}{undone:>14.4f}")
+        print("\n(R3) linearity check: median (P + I - 2B) / (W - B) on stripe-edge pixels (1 in linear light)")
+        head = f"{'captures':<28}{'read as linear':>16}{'read as sRGB':>14}"
+        print(head)
+        print("-" * len(head))
+        checks = [(f"virtual, {r} camera", s, s.views[0]) for r, s in sessions.items()]
+        checks += [(f"kamino410 {v.name}", kamino["linear"], v) for v in kamino["linear"].views] if kamino else []
+        for name, session, view in checks:
+            print(f"{name:<28}{edge_sum_ratio(session, view, 'linear'):>16.3f}"
+                  f"{edge_sum_ratio(session, view, 'srgb'):>14.3f}")
+        if kamino:
+            print("\n(R4) kamino410 captures, inverse-camera method, imported as linear and as sRGB")
+            keys = list(results[versions[-1][0]]["kamino-linear"])
+            head = f"{'':<20}" + "".join(f"{r + ' ' + label[:9]:>20}" for r in ("linear", "srgb") for label, _ in versions)
+            print(head)
+            print("-" * len(head))
+            for k in keys:
+                print(f"{k:<20}" + "".join(f"{results[label][f'kamino-{r}'][k]:>20.3f}"
+                                         for r in ("linear", "srgb") for label, _ in versions))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -310,8 +520,21 @@ def main() -> None:
     )
     parser.add_argument("--no-virtual", action="store_true")
     parser.add_argument("--no-real", action="store_true")
+    parser.add_argument("--response", action="store_true",
+                        help="the camera-response tables (linear vs sRGB camera) instead")
+    parser.add_argument("--against", metavar="REV",
+                        help="with --response: git revision calibrated side by side with this tree")
+    parser.add_argument("--panel-scale", type=float, default=0.25,
+                        help="with --response: light panel session scale (default 0.25)")
+    parser.add_argument("--response-child", help=argparse.SUPPRESS)
     args = parser.parse_args()
     logging.basicConfig(level=logging.ERROR)
+    if args.response_child:
+        print(json.dumps(response_child(json.loads(args.response_child))))
+        return
+    if args.response:
+        response_tables(args)
+        return
     if not args.no_virtual:
         virtual_tables(args)
     if not args.no_real:

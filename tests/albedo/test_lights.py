@@ -113,3 +113,27 @@ def test_virtual_light_calibration_run(tmp_path):
     true = np.array([light.position for light in rig.lights])
     assert np.linalg.norm(lights.positions - true, axis=1).max() < 5.0
     np.testing.assert_allclose(lights.intensities, 0.8, rtol=0.01)
+
+
+def test_srgb_camera_panel_is_read_in_linear_light(tmp_path):
+    # a camera that saves sRGB codes (the 'tone' effect): the panel's codes are turned back
+    # into light before the fit, so the lights come out as a linear camera's would (codes
+    # read as light put them up to 65 mm off, their intensities 17 % low)
+    from dataclasses import replace
+
+    from slscan.virtual.panels import (
+        LightPanelConfig,
+        capture_light_calibration,
+        light_calibration_poses,
+    )
+
+    config = replace(LightPanelConfig(poses=3, scale=0.2).capture_config(), effects=("tone",))
+    session = capture_light_calibration(
+        tmp_path / "session", config=config, poses=light_calibration_poses(config.rig(), count=3)
+    )
+    assert session.response == "srgb"
+    rig = session.calibration
+    true = np.array([light.position for light in rig.lights])
+    lights = calibrate_lights(session, initial=true + 50.0)
+    assert np.linalg.norm(lights.positions - true, axis=1).max() < 3.0
+    np.testing.assert_allclose(lights.intensities, [light.intensity for light in rig.lights], rtol=0.01)

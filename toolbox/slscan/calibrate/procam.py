@@ -47,7 +47,7 @@ from slscan.calibrate.camera import distortion_flags, lens_from_opencv
 from slscan.calibrate.target import MIN_CORNERS, Board, CornerDetection, pose_matrix
 from slscan.capture.session import Session, ViewRecord
 from slscan.decode.graycode import GrayResult, decode_gray_images
-from slscan.decode.masks import channel_mean
+from slscan.decode.masks import channel_mean, full_scale
 from slscan.errors import SlscanError
 from slscan.rig import PinholeModel, Projector, Rig
 
@@ -185,7 +185,11 @@ def decode_gray_axes(session: Session, view: ViewRecord) -> GrayAxes:
     """Decode a view's Gray code (with row codes), and the row edges along camera columns.
 
     The row edges come from decoding the transposed images with rows and columns swapped
-    in the pattern descriptions (:func:`slscan.decode.graycode.decode_gray_images`).
+    in the pattern descriptions (:func:`slscan.decode.graycode.decode_gray_images`). The
+    captures are read in linear light (:meth:`Session.read_image` ``linear=True``: an sRGB
+    camera's curve undone), as :func:`~slscan.decode.graycode.decode_gray` reads them, so
+    the column decode is the decode stage's and the thresholds and the direct/global split
+    see light, not tone-curve codes.
 
     Raises
     ------
@@ -203,7 +207,7 @@ def decode_gray_axes(session: Session, view: ViewRecord) -> GrayAxes:
         raise SlscanError(f"{session.root}: the pattern set needs all-white and all-black frames")
 
     def read(pid: str) -> np.ndarray:
-        return session.read_image(view, view.image_for(pid))
+        return session.read_image(view, view.image_for(pid), linear=True)
 
     images = {d.id: read(d.id) for d in descs}
     white, black = read(flat[(255, 255, 255)]), read(flat[(0, 0, 0)])
@@ -211,12 +215,11 @@ def decode_gray_axes(session: Session, view: ViewRecord) -> GrayAxes:
     swap = {"rows": "columns", "columns": "rows"}
     descs_t = [replace(d, axis=swap[d.axis], width=d.height, height=d.width) for d in descs]
 
-    full = 255.0 if white.dtype == np.uint8 else 65535.0
+    scale = np.float32(1.0 / full_scale(white, f"{where}: white"))
 
     def t(image: np.ndarray) -> np.ndarray:
         """Transposed grey image, float32 in [0, 1] (the decoder reads RGB as the mean)."""
-        grey = channel_mean(image)
-        return np.ascontiguousarray((grey * np.float32(1.0 / full)).T)
+        return np.ascontiguousarray((channel_mean(image) * scale).T)
 
     rows = decode_gray_images(
         {k: t(v) for k, v in images.items()},
