@@ -97,6 +97,15 @@ into the unlit image, which would read as global light (the kamino410 captures' 
 stripes keep 0.50 of their 16 px stripes' contrast, the virtual rig's 0.51; their 4 px
 stripes 0.76 and 0.86)."""
 
+FLAT_RADIUS = 2
+"""Camera px a pixel must lie inside a stripe (from its pattern's and inverse's own edges)
+for the noise estimate to use it (:func:`estimate_noise`): camera blur of σ 0.6–1 px
+leaks 0.04–2 % of the light this far."""
+
+MIN_FLAT_RESIDUALS = 2000
+"""Fewest residuals (pixels x bits inside stripes) the noise estimate takes at a radius
+before it tries a smaller one: the MAD of 2000 is within about 3 % (1 sigma)."""
+
 CONSISTENCY_RADIUS = 2
 """Half-size (px) of the window in which a decoded code must agree with most of its
 valid neighbours (:func:`_inconsistent`)."""
@@ -405,30 +414,6 @@ def _mad_sigma(resid: np.ndarray) -> float:
     return 1.4826 * mad / np.sqrt(2.0)
 
 
-def _xor_noise(diffs: _BitDiffs, base: int, iy: np.ndarray, ix: np.ndarray) -> float:
-    """XOR codes: standard deviation of ``pattern - inverse`` from how far each image coarser
-    than ``base`` departs from the base image (or its inverse) on the subsample ``(iy, ix)``.
-
-    Away from its own (rare) boundaries, image ``k < base`` shows the base stripes or
-    their inverse, blurred alike, so the difference is noise alone; ``pattern + inverse``
-    against ``white + black`` (:func:`estimate_noise`) is not, for high-frequency stripes:
-    blur leaks light into the unlit stripes, and a camera curve steep in the darks (sRGB)
-    turns a 3 % leak into 19 %, which at every pixel of every image outweighs the noise.
-    """
-    f = diffs.read.fraction
-    pb, qb = f(diffs.pattern[base, iy, ix]), f(diffs.inverse[base, iy, ix])
-    base_on = pb > qb
-    resid = []
-    for k in range(base):
-        pk, qk = f(diffs.pattern[k, iy, ix]), f(diffs.inverse[k, iy, ix])
-        same = (pk > qk) == base_on
-        resid.append(np.where(same, pk - pb, pk - qb))
-        resid.append(np.where(same, qk - qb, qk - pb))
-    resid = np.concatenate(resid)
-    # each residual is the difference of two images' noise, as ``pattern - inverse`` is
-    return 1.4826 * float(np.median(np.abs(resid - np.median(resid))))
-
-
 def _noise_index(where: np.ndarray, bits: int) -> np.ndarray:
     """Flat indices of the ``where`` pixels the noise estimate uses (about 200 000 residuals)."""
     # 200 000 residuals fix the MAD to about 0.3 %
@@ -436,23 +421,71 @@ def _noise_index(where: np.ndarray, bits: int) -> np.ndarray:
     return np.flatnonzero(where)[::step]
 
 
-def estimate_noise(pattern_sums: np.ndarray, flat_sum: np.ndarray, where: np.ndarray) -> float:
-    """Standard deviation of ``pattern - inverse`` from how far ``pattern + inverse``
-    departs from ``white + black`` (equal in expectation for binary patterns, blur or not).
+def _same_light(diffs: _BitDiffs, k: int, j: int | None, iy: np.ndarray, ix: np.ndarray,
+                radius: int) -> np.ndarray:
+    """Whether image pair ``k`` shows the same stripes as pair ``j`` (or their inverse; ``j``
+    None: as white and black, i.e. no stripe edge) around ``(iy, ix)``: the relation of
+    their bits is the same at the pixel and at the 8 points ``radius`` px away on a 3 x 3
+    grid around it, so no straight edge of one that the other lacks is nearer than
+    ``radius`` px (an edge at distance ``t < radius`` leaves a grid point on its far side)."""
+    h, w = diffs.pattern.shape[1:]
 
-    pattern_sums : (bits, h, w) float32 ``pattern + inverse`` per bit
-    flat_sum : (h, w) float32 ``white + black``
-    where : (h, w) bool pixels to use (lit ones)
+    def relation(y: np.ndarray, x: np.ndarray) -> np.ndarray:
+        bit = diffs.pattern[k, y, x] > diffs.inverse[k, y, x]
+        return bit if j is None else bit == (diffs.pattern[j, y, x] > diffs.inverse[j, y, x])
 
-    The residual has about twice the variance of ``pattern - inverse``; a median absolute
-    deviation keeps camera non-linearity at mid-grey pixels from inflating it.
-    (:func:`decode_gray_images` computes the same on the subsample only, as it reads.)
+    here = relation(iy, ix)
+    same = np.ones(len(iy), bool)
+    for dy in (-radius, 0, radius):
+        y = np.clip(iy + dy, 0, h - 1)
+        for dx in (-radius, 0, radius):
+            if dy or dx:
+                same &= relation(y, np.clip(ix + dx, 0, w - 1)) == here
+    return same
+
+
+def estimate_noise(diffs: _BitDiffs, flat_sum: np.ndarray, iy: np.ndarray, ix: np.ndarray,
+                   radius: int = FLAT_RADIUS, min_residuals: int = MIN_FLAT_RESIDUALS) -> float:
+    """Standard deviation of ``pattern - inverse`` (fraction of full scale) from how far
+    each bit's ``pattern + inverse`` departs from that of a reference showing the same
+    light, on the subsample ``(iy, ix)`` (:func:`_noise_index`); plain Gray and XOR codes
+    alike.
+
+    diffs : every column bit's pattern and inverse (the captured images; the XOR
+        decoding is not used)
+    flat_sum : ``white + black`` on the subsample, fractions of full scale
+
+    The reference of bit ``k`` at a pixel is ``white + black`` where the pixel lies at
+    least ``radius`` px inside a stripe of bit ``k`` (a flat stripe interior), else bit
+    ``k + 1``'s ``pattern + inverse`` where the two bits show the same stripes there or
+    their inverse (:func:`_same_light`; XOR codes' images coarser than the base all show
+    the base stripes away from their own rare boundaries); other pixels are not used.
+    In linear light every ``pattern + inverse`` equals ``white + black`` in expectation,
+    blur or global light or not, but a camera curve not undone (an sRGB camera: steep in
+    the darks) turns the light blur leaks into a fine stripe's dark half from 3 % into
+    19 %, which near every edge outweighs the noise; a reference showing the same light
+    is blurred and curved alike. The residual has about twice the variance of ``pattern
+    - inverse``; a median absolute deviation keeps odd pixels from inflating it. The
+    radius shrinks (to 0: every pixel against ``white + black``) while fewer than
+    ``min_residuals`` residuals qualify (stripes only a couple of camera px wide).
     """
-    if not where.any():
+    if not len(iy):
         return 0.0
-    idx = _noise_index(where, len(pattern_sums))
-    resid = pattern_sums.reshape(len(pattern_sums), -1)[:, idx] - flat_sum.reshape(-1)[idx]
-    return _mad_sigma(resid)
+    f = diffs.read.fraction
+    sums = [f(diffs.pattern[k, iy, ix]) + f(diffs.inverse[k, iy, ix]) for k in range(len(diffs))]
+    for r in range(radius, 0, -1):
+        resid = []
+        for k, s in enumerate(sums):
+            flat = _same_light(diffs, k, None, iy, ix, r)
+            alike = _same_light(diffs, k, k + 1, iy, ix, r) if k + 1 < len(sums) else flat[:0]
+            if alike.sum() > flat.sum():
+                resid.append((s - sums[k + 1])[alike])
+            else:
+                resid.append((s - flat_sum)[flat])
+        resid = np.concatenate(resid)
+        if len(resid) >= min_residuals:
+            return _mad_sigma(resid)
+    return _mad_sigma(np.concatenate([s - flat_sum for s in sums]))
 
 
 def separate_light(highs: Sequence[np.ndarray], black: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -943,7 +976,7 @@ def decode_gray_images(
     read.box = box = lit_bounds(full_lit, max_edge_gap + 2)
     y0, x0 = box[0].start, box[1].start
     w_img, b_img, contrast, lit = w_img[box], b_img[box], full_contrast[box], full_lit[box]
-    # the noise estimate's subsample of lit pixels (as estimate_noise picks it)
+    # the noise estimate's subsample of lit pixels
     idx = _noise_index(lit, len(col_pairs))
     iy, ix = np.divmod(idx, lit.shape[1])
     flat_sub = w_img[iy, ix] + b_img[iy, ix]
@@ -951,22 +984,15 @@ def decode_gray_images(
     del b_img
 
     # column bits: both captures' levels kept (1 byte a pixel each for 8-bit grey), for
-    # the thresholds once the noise is known and for the edges; the noise residual read
-    # on the subsample as they come
+    # the thresholds once the noise is known, for the noise estimate and for the edges
     shape = (len(col_pairs),) + contrast.shape
     col_diffs = _BitDiffs(read, np.empty(shape, read.level_dtype), np.empty(shape, read.level_dtype),
                           col_bits.base)
-    sub_sums = np.empty((len(col_pairs), len(idx)), np.float32)
     for k, (pid, inv) in enumerate(col_pairs):
         col_diffs.pattern[k] = read.levels(images[pid], pid)
         col_diffs.inverse[k] = read.levels(images[inv], inv)
-        sub_sums[k] = read.fraction(col_diffs.pattern[k, iy, ix]) + read.fraction(
-            col_diffs.inverse[k, iy, ix])
-    if col_bits.base and len(idx):
-        estimated = _xor_noise(col_diffs, col_bits.base, iy, ix)
-    else:
-        estimated = _mad_sigma(sub_sums - flat_sub) if len(idx) else 0.0
-    del sub_sums, flat_sub
+    estimated = estimate_noise(col_diffs, flat_sub, iy, ix)
+    del flat_sub
     if noise is not None:
         sigma = float(noise)
     else:  # at least the quantisation noise of a difference of two images (0.41 DN;
