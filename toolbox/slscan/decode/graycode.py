@@ -421,27 +421,26 @@ def _noise_index(where: np.ndarray, bits: int) -> np.ndarray:
     return np.flatnonzero(where)[::step]
 
 
-def _same_light(diffs: _BitDiffs, k: int, j: int | None, iy: np.ndarray, ix: np.ndarray,
-                radius: int) -> np.ndarray:
-    """Whether image pair ``k`` shows the same stripes as pair ``j`` (or their inverse; ``j``
-    None: as white and black, i.e. no stripe edge) around ``(iy, ix)``: the relation of
-    their bits is the same at the pixel and at the 8 points ``radius`` px away on a 3 x 3
-    grid around it, so no straight edge of one that the other lacks is nearer than
-    ``radius`` px (an edge at distance ``t < radius`` leaves a grid point on its far side)."""
+def _grid_bits(diffs: _BitDiffs, iy: np.ndarray, ix: np.ndarray, radius: int) -> np.ndarray:
+    """(bits, 9, n) bool: each image pair's bit (``pattern > inverse``) at ``(iy, ix)`` and
+    at the 8 points ``radius`` px away on a 3 x 3 grid around it (clipped to the image);
+    the pixel itself is grid point 4."""
     h, w = diffs.pattern.shape[1:]
+    at = np.stack([np.clip(iy + dy, 0, h - 1) * w + np.clip(ix + dx, 0, w - 1)
+                   for dy in (-radius, 0, radius) for dx in (-radius, 0, radius)])
+    n = len(diffs)
+    pattern, inverse = diffs.pattern.reshape(n, -1), diffs.inverse.reshape(n, -1)
+    return np.stack([pattern[k][at] > inverse[k][at] for k in range(n)])
 
-    def relation(y: np.ndarray, x: np.ndarray) -> np.ndarray:
-        bit = diffs.pattern[k, y, x] > diffs.inverse[k, y, x]
-        return bit if j is None else bit == (diffs.pattern[j, y, x] > diffs.inverse[j, y, x])
 
-    here = relation(iy, ix)
-    same = np.ones(len(iy), bool)
-    for dy in (-radius, 0, radius):
-        y = np.clip(iy + dy, 0, h - 1)
-        for dx in (-radius, 0, radius):
-            if dy or dx:
-                same &= relation(y, np.clip(ix + dx, 0, w - 1)) == here
-    return same
+def _same_light(a: np.ndarray, b: np.ndarray | None = None) -> np.ndarray:
+    """Whether grid bits ``a`` (9, n) show the same stripes as ``b`` or their inverse (None:
+    as white and black, i.e. no stripe edge) around each pixel: the relation of the bits is
+    the same at all 9 grid points (:func:`_grid_bits`), so no straight edge of one that the
+    other lacks is nearer than the grid's radius (an edge at distance ``t < radius`` leaves
+    a grid point on its far side)."""
+    rel = a if b is None else a == b
+    return (rel == rel[4]).all(axis=0)
 
 
 def estimate_noise(diffs: _BitDiffs, flat_sum: np.ndarray, iy: np.ndarray, ix: np.ndarray,
@@ -455,29 +454,30 @@ def estimate_noise(diffs: _BitDiffs, flat_sum: np.ndarray, iy: np.ndarray, ix: n
         decoding is not used)
     flat_sum : ``white + black`` on the subsample, fractions of full scale
 
-    The reference of bit ``k`` at a pixel is ``white + black`` where the pixel lies at
-    least ``radius`` px inside a stripe of bit ``k`` (a flat stripe interior), else bit
-    ``k + 1``'s ``pattern + inverse`` where the two bits show the same stripes there or
-    their inverse (:func:`_same_light`; XOR codes' images coarser than the base all show
-    the base stripes away from their own rare boundaries); other pixels are not used.
     In linear light every ``pattern + inverse`` equals ``white + black`` in expectation,
-    blur or global light or not, but a camera curve not undone (an sRGB camera: steep in
+    blur and global light or not, but a camera curve not undone (an sRGB camera, steep in
     the darks) turns the light blur leaks into a fine stripe's dark half from 3 % into
-    19 %, which near every edge outweighs the noise; a reference showing the same light
-    is blurred and curved alike. The residual has about twice the variance of ``pattern
-    - inverse``; a median absolute deviation keeps odd pixels from inflating it. The
-    radius shrinks (to 0: every pixel against ``white + black``) while fewer than
-    ``min_residuals`` residuals qualify (stripes only a couple of camera px wide).
+    19 %, which near every edge outweighs the noise. So each bit is compared only where a
+    reference shows the same light, blurred and curved alike: ``white + black`` where the
+    pixel lies at least ``radius`` px inside a stripe of the bit (a flat stripe interior),
+    or the next bit's ``pattern + inverse`` where the two show the same stripes or their
+    inverse (:func:`_same_light`), whichever holds at more pixels (the next bit for XOR
+    codes' images coarser than the base, which all show the base stripes away from their
+    own rare boundaries; white and black for the rest). The residual has about twice the
+    variance of ``pattern - inverse``; a median absolute deviation keeps odd pixels from
+    inflating it. The radius shrinks (to 0: every pixel against ``white + black``) while
+    fewer than ``min_residuals`` residuals qualify (stripes a couple of camera px wide).
     """
     if not len(iy):
         return 0.0
     f = diffs.read.fraction
     sums = [f(diffs.pattern[k, iy, ix]) + f(diffs.inverse[k, iy, ix]) for k in range(len(diffs))]
     for r in range(radius, 0, -1):
+        grid = _grid_bits(diffs, iy, ix, r)
         resid = []
         for k, s in enumerate(sums):
-            flat = _same_light(diffs, k, None, iy, ix, r)
-            alike = _same_light(diffs, k, k + 1, iy, ix, r) if k + 1 < len(sums) else flat[:0]
+            flat = _same_light(grid[k])
+            alike = _same_light(grid[k], grid[k + 1]) if k + 1 < len(sums) else flat[:0]
             if alike.sum() > flat.sum():
                 resid.append((s - sums[k + 1])[alike])
             else:
