@@ -5,7 +5,13 @@ inverse: ``bit = pattern > inverse``. Comparing the pair instead of thresholding
 makes the read independent of albedo, ambient light and the projector's black level. A
 pixel is trusted only when every bit's ``|pattern - inverse|`` clears a threshold set by
 the pixel's own white-minus-black signal and by the images' noise, estimated from the
-data (see :func:`estimate_noise`).
+data the same way for plain Gray and XOR codes (:func:`estimate_noise`): each bit's
+``pattern + inverse`` against a reference showing the same light, blurred and curved
+alike: ``white + black`` inside flat stripe interiors, away from the bit's edges, or the
+next bit's pair where both show the same stripes (XOR codes' images coarser than the base).
+The sum equals ``white + black`` in linear light everywhere, but not near edges for a camera
+curve not undone (sRGB: steep in the darks, it makes blur's light leak into fine dark
+stripes large).
 
 The measured features are the stripe edges: along each camera row, where the decoded
 column steps from ``c`` to ``c + 1``, exactly one Gray-code bit flips, and the zero
@@ -866,7 +872,7 @@ def decode_gray_images(
         ...and this many standard deviations of the noise of ``pattern - inverse``.
     noise : float, optional
         That standard deviation, fraction of full scale; default: estimated from the
-        images (:func:`estimate_noise`), at least the quantisation noise.
+        column images (:func:`estimate_noise`), at least the quantisation noise.
     black_threshold, white_threshold : float, DN
         The ``"opencv"`` rule's thresholds (OpenCV's defaults 40 and 5).
     max_edge_gap : int, px
