@@ -1,7 +1,14 @@
 """Decoding accuracy on saturated paint and across camera blur, on the virtual rig.
 
     .venv/bin/python benchmarks/colour_blur.py [--scale 0.5 | --full] [--seed 0]
-        [--decoder-option KEY=VALUE ...] [--variant KEY=VALUE ...]
+        [--decoder-option KEY=VALUE ...] [--variant KEY=VALUE ...] [--tables paint,axes]
+        [--axes-scenes object tile] [--axes-blurs 0.4 0.7 1.0] [--beta 0.5] [--global-sigma 40]
+
+Two tables (``--tables``, default ``paint``): ``paint``, the 3D error per paint class of
+the hybrid decoder and Gray code on a painted tile and sphere (below), and ``axes``, the
+hybrid decoder's variants on the green lines' axes in camera px (further below).
+
+**paint**:
 
 A neutral tile (400 x 300 mm, tilted 15° and 8°, as the built-in ``tile``) with a sphere
 (radius 60 mm) in front of it; a saturated red and a saturated blue patch on the tile, a
@@ -30,6 +37,26 @@ blurs twice as many mm). ``--decoder-option KEY=VALUE`` (repeatable; JSON values
 ``--variant KEY=VALUE`` (repeatable) decodes the hybrid pattern once more per variant with
 that field set on top (decoder column ``hybrid KEY=VALUE``), side by side in the same run,
 e.g. ``--variant max_line_sigma=0 --variant max_line_sigma=0.1``.
+
+**axes**: the hybrid decoder under physical colour, camera blur and a stand-in for global
+light. One view per scene of ``--axes-scenes`` (built-in scenes) and camera blur of
+``--axes-blurs`` with ``Optics(colour_model="physical")`` (the paint acts after the
+projector → camera crosstalk), decoded by ``decode_hybrid_images`` with every variant side
+by side in the same run:
+
+- ``global``: one crosstalk matrix for the view (the decoder before 2026-11)
+- ``pixel``: per-pixel mixing from the session's own bands (the default)
+- ``pixel+edges``: also drops lines across paint edges (``paint_edges=True``)
+- ``pixel+global``: also removes the global light estimated from the finest levels
+  (``global_light=True``)
+
+Per variant: samples, indexed % (line index right), RMS and p95 camera-x error of the
+axis (px, :func:`stripe_axes.evaluate`), the share of samples more than 1 px off or
+wrongly indexed ("gross %"), and the RMS on neutral, red and blue surfaces with the
+red/neutral and blue/neutral ratios. ``--beta B`` (0: none) adds a row block with a
+TEST-ONLY STAND-IN for global light (not a light-transport model): every capture gets
+``B`` times a Gaussian-blurred (sigma ``--global-sigma`` camera px) copy of its own
+black-subtracted image, as a smooth indirect term would add, before decoding.
 """
 
 from __future__ import annotations
@@ -45,9 +72,11 @@ import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from slscan.capture.session import LIT
+from slscan.decode.hybrid import decode_hybrid_images, hybrid_pattern_ids
 from slscan.decode.pipeline import DecodeConfig, decode_view
 from slscan.decode.rangemap import covered_pixels
 from slscan.errors import SlscanError
@@ -59,6 +88,7 @@ from slscan.virtual.scenes import Scene, _uv_sphere, surface_albedo
 from slscan.virtual.sensor import Sensor
 
 sys.path.insert(0, str(Path(__file__).parent))
+import stripe_axes
 from reconstruction import true_surface_distance
 from stripe_axes import surface_class
 
@@ -71,6 +101,14 @@ CLASSES = ("neutral", "red paint", "blue paint")
 SWEEP = (0.4, 0.5, 0.6, 0.8, 1.0)  # camera blur sigma, px
 OLD_BLURS = (0.5, 0.35)  # camera, projector sigma (px) before the lens-model defaults
 GROSS_MM = 1.0
+TABLES = ("paint", "axes")
+AXES_VARIANTS = {
+    "global": {"mixing": "global"},
+    "pixel": {"mixing": "pixel"},
+    "pixel+edges": {"mixing": "pixel", "paint_edges": True},
+    "pixel+global": {"mixing": "pixel", "global_light": True},
+}
+"""The hybrid decoder variants of the ``axes`` table (``decode_hybrid_images`` options)."""
 
 
 @dataclass(frozen=True)
@@ -173,17 +211,8 @@ def measure(session, scene: Scene, method: str, options: dict) -> dict[str, tupl
     return out
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--scale", type=float, default=0.5, help="sensor size (1: 1440x960 camera); default 0.5")
-    parser.add_argument("--full", action="store_true", help="the paper's size (--scale 1)")
-    parser.add_argument("--seed", type=int, default=0, help="noise seed (the same for every rendering)")
-    parser.add_argument("--decoder-option", dest="options", action="append", default=[], metavar="KEY=VALUE",
-                        help="DecodeConfig field for both decoders (repeatable)")
-    parser.add_argument("--variant", dest="variants", action="append", default=[], metavar="KEY=VALUE",
-                        help="decode the hybrid pattern again with this DecodeConfig field on top (repeatable)")
-    args = parser.parse_args()
-    scale = 1.0 if args.full else args.scale
+def paint_table(args, scale: float) -> None:
+    """The ``paint`` table: the tile and sphere, every rendering, hybrid (and variants) and Gray code."""
     options = parse_options(args.options)
     methods = [("hybrid", "hybrid", options)]
     methods += [(f"hybrid {item}", "hybrid", {**options, **parse_options([item])}) for item in args.variants]
@@ -231,6 +260,104 @@ def main() -> None:
                 print(f"{label:<18}{model:<10}{camera:>6.2f}{projector:>7.2f}  {method:<{width}}{name:<12}{n:>9d}"
                       f"{mean:>9.4f}{p95:>8.4f}{100 * gross:>8.2f}{100 * cover:>8.1f}{mean / neutral:>10.2f}{rel_best}")
             print()
+
+
+
+def stand_in_global(image: np.ndarray, black: np.ndarray, beta: float, sigma: float) -> np.ndarray:
+    """TEST-ONLY STAND-IN for global light: ``image + beta * blur(image - black)``."""
+    full = 255.0 if image.dtype == np.uint8 else 65535.0 if image.dtype == np.uint16 else 1.0
+    direct = image.astype(np.float32) - black.astype(np.float32)
+    out = image.astype(np.float32) + beta * cv2.GaussianBlur(direct, (0, 0), sigma)
+    return np.clip(np.round(out) if full > 1 else out, 0, full).astype(image.dtype)
+
+
+def axes_row(label: str, m: dict, seconds: float) -> str:
+    surf = m["by_surface"]
+    rms = {k: surf[k][1] if k in surf else float("nan") for k in ("neutral", "red paint", "blue paint")}
+    return (
+        f"{label:<30}{m['samples']:>8d}{m['indexed']:>9.2f}{m['rms']:>8.3f}{m['p95']:>8.3f}"
+        f"{m['gross']:>8.2f}{rms['neutral']:>9.3f}{rms['red paint']:>8.3f}{rms['blue paint']:>8.3f}"
+        f"{rms['red paint'] / rms['neutral']:>7.2f}{rms['blue paint'] / rms['neutral']:>7.2f}"
+        f"{seconds:>8.2f}"
+    )
+
+
+def gross_share(session, result) -> float:
+    """% of samples wrongly indexed or more than 1 camera px off the true axis."""
+    truth = session.load_ground_truth(session.views[0])
+    s = result.samples
+    true_x = truth.column_crossings(s.row, s.x, s.projector_column)
+    bad = ~np.isfinite(true_x) | (np.abs(s.x - np.nan_to_num(true_x, nan=1e9)) > 1.0)
+    return 100.0 * float(bad.mean()) if len(s) else 0.0
+
+
+def axes_table(args, scale: float) -> None:
+    """The ``axes`` table: hybrid decoder variants per built-in scene and camera blur, camera px."""
+    levels = min(9, int(np.log2(1024 * scale)) - 1)
+    print(f"physical colour, scale {scale}, {levels} levels; errors in camera px")
+    header = (f"{'scene / blur / variant':<30}{'samples':>8}{'idx %':>9}{'RMS':>8}{'p95':>8}"
+              f"{'gross%':>8}{'neutral':>9}{'red':>8}{'blue':>8}{'r/n':>7}{'b/n':>7}{'cpu s':>8}")
+    print(header)
+    print("-" * len(header))
+    with tempfile.TemporaryDirectory() as tmp:
+        for scene in args.axes_scenes:
+            for blur in args.axes_blurs:
+                config = VirtualCaptureConfig(
+                    camera_scale=scale, projector_scale=scale, levels=levels,
+                    lit_images=False, scene=scene, sensor=Sensor(blur_sigma=blur),
+                    optics=Optics(colour_model="physical"),
+                )
+                session = capture_session(config, Path(tmp) / f"{scene}-{blur}")
+                view = session.views[0]
+                white_id, black_id, descs = hybrid_pattern_ids(session)
+                recs = {r.pattern: r for r in view.images if r.kind == "pattern"}
+                raw = {pid: session.read_image(view, recs[pid]) for pid in (white_id, black_id,
+                                                                           *(d.id for d in descs))}
+                blocks = [("", raw)]
+                if args.beta > 0:
+                    black = raw[black_id]
+                    blocks.append((f" +global {args.beta:g}", {
+                        k: (v if k == black_id else stand_in_global(v, black, args.beta, args.global_sigma))
+                        for k, v in raw.items()}))
+                for suffix, images in blocks:
+                    for name, options in AXES_VARIANTS.items():
+                        t = time.process_time()
+                        result = decode_hybrid_images(
+                            images[white_id], images[black_id], images, descs,
+                            bit_depth=session.bit_depth, **options)
+                        seconds = time.process_time() - t
+                        m = stripe_axes.evaluate(session, result)
+                        m["gross"] = gross_share(session, result)
+                        print(axes_row(f"{scene} {blur:g}{suffix} {name}", m, seconds), flush=True)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scale", type=float, default=0.5, help="sensor size (1: 1440x960 camera); default 0.5")
+    parser.add_argument("--full", action="store_true", help="the paper's size (--scale 1)")
+    parser.add_argument("--seed", type=int, default=0, help="noise seed (the same for every rendering)")
+    parser.add_argument("--decoder-option", dest="options", action="append", default=[], metavar="KEY=VALUE",
+                        help="DecodeConfig field for both decoders (repeatable)")
+    parser.add_argument("--variant", dest="variants", action="append", default=[], metavar="KEY=VALUE",
+                        help="decode the hybrid pattern again with this DecodeConfig field on top (repeatable)")
+    parser.add_argument("--tables", default="paint",
+                        help="tables to print, comma-separated: paint (tile and sphere, mm), axes (line axes, px)")
+    parser.add_argument("--axes-scenes", nargs="+", default=["object", "tile"], help="axes table: built-in scenes")
+    parser.add_argument("--axes-blurs", type=float, nargs="+", default=[0.4, 0.7, 1.0],
+                        help="axes table: camera blur sigmas, px")
+    parser.add_argument("--beta", type=float, default=0.5,
+                        help="axes table: strength of the TEST-ONLY global-light stand-in (0: no such block)")
+    parser.add_argument("--global-sigma", type=float, default=40.0, help="axes table: the stand-in's spread, px")
+    args = parser.parse_args()
+    scale = 1.0 if args.full else args.scale
+    tables = [t.strip() for t in args.tables.split(",") if t.strip()]
+    unknown = sorted(set(tables) - set(TABLES))
+    if unknown or not tables:
+        raise SystemExit(f"--tables {args.tables!r}: expected a comma-separated subset of {', '.join(TABLES)}")
+    for i, table in enumerate(tables):
+        if i:
+            print()
+        (paint_table if table == "paint" else axes_table)(args, scale)
 
 
 if __name__ == "__main__":

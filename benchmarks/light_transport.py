@@ -2,7 +2,7 @@
 exercise them, decoded with and without the robust decoding, side by side in one run.
 
     .venv/bin/python benchmarks/light_transport.py [--scale 1.0] [--scenes object,concave,marble,bronze]
-        [--effects none,EACH,all] [--families hybrid,gray,xor]
+        [--effects none,EACH,all] [--families hybrid,gray,xor] [--against REV]
 
 For every scene and set of effects one capture is rendered (view 0 faces the camera; the
 pattern families are rendered into the same session where they can share it) and decoded
@@ -16,6 +16,9 @@ switched off ("plain", the options in ``PLAIN``). Per row:
              a range-map triangle
   x direct   mean error / the same scene, family and decoder under direct light only
 
+``--against REV`` runs the same (renders included) with REV's toolbox (git archive, a child
+process) and prints its row under each row of this tree, the decoder named ``NAME@REV``.
+
 Issue #18's targets, for the default decoder with all effects on: mean <= 1.5x direct and
 gross outliers <= 0.1 %, on every scene. Every figure here comes from our own simulator
 (the effects are models, each with its reference in docs/virtual-rig.md): a weak claim on
@@ -25,6 +28,7 @@ its own, checked against real captures only where ../shared/data has them.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 import tempfile
@@ -40,6 +44,7 @@ from slscan.virtual.effects import EFFECTS, parse_effects
 from slscan.virtual.render import Optics
 
 sys.path.insert(0, str(Path(__file__).parent))
+from measure import export_toolbox, run_json
 from reconstruction import coverage, true_surface_distance
 
 PLAIN: dict[str, dict] = {"hybrid": {"mixing": "global"}, "gray": {"gray_robust": False}, "xor": {"gray_robust": False}}
@@ -109,20 +114,32 @@ def main() -> None:
     parser.add_argument("--ir-samples", type=int, default=None,
                         help="hemisphere rays per receiver of the interreflection effect (default: the rig's, "
                              "Optics.interreflection_samples)")
+    parser.add_argument("--against", metavar="REV", help="git revision to run side by side (its rows under ours)")
+    parser.add_argument("--json", action="store_true", help=argparse.SUPPRESS)  # an --against child's output
     args = parser.parse_args()
     logging.basicConfig(level=logging.ERROR)
     optics = Optics() if args.ir_samples is None else Optics(interreflection_samples=args.ir_samples)
+    theirs: dict[tuple, dict] = {}
+    if args.against:
+        with tempfile.TemporaryDirectory() as tmp:
+            toolbox = export_toolbox(args.against, Path(tmp) / "against")
+            argv = [a for i, a in enumerate(sys.argv[1:]) if a != "--against" and sys.argv[i] != "--against"]
+            rows = run_json([sys.executable, __file__, *argv, "--json"], f"--against {args.against}", toolbox)
+        theirs = {tuple(r["key"]): r for r in rows}
+    out_rows = []
     levels = min(9, int(np.log2(1024 * args.scale)) - 1)
     families = [f.strip() for f in args.families.split(",")]
     decoders = [d.strip() for d in args.decoders.split(",")]
-    dw = max(8, max(len(d) for d in decoders) + 1)
+    dw = max(8, max(len(d) for d in decoders) + 1 + (len(args.against) + 1 if args.against else 0))
     groups = effect_sets(args.effects)
-    print(f"virtual rig at {args.scale}x the paper's size, {levels} hybrid levels, "
-          f"{optics.interreflection_samples} inter-reflection rays per receiver; effects: "
+    say = (lambda *a, **k: None) if args.json else print
+    say(f"virtual rig at {args.scale}x the paper's size, {levels} hybrid levels, "
+        f"{optics.interreflection_samples} inter-reflection rays per receiver; effects: "
           + ", ".join(f"{e.name} ({e.summary})" for e in EFFECTS.values()))
-    header = (f"{'scene':<9}{'effects':<17}{'family':<8}{'decoder':<{dw}}{'vertices':>9}{'mean mm':>9}"
+    ew = max(17, max(len(label) for label, _ in groups) + 1)
+    header = (f"{'scene':<9}{'effects':<{ew}}{'family':<8}{'decoder':<{dw}}{'vertices':>9}{'mean mm':>9}"
               f"{'p95 mm':>8}{'gross %':>9}{'coverage':>9}{'x direct':>9}{'render s':>9}{'decode s':>9}")
-    print(header)
+    say(header)
     direct: dict[tuple, float] = {}
     worst: dict[tuple, list] = {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -153,10 +170,22 @@ def main() -> None:
                         ratio = m["mean"] / direct[key] if key in direct else np.nan
                         if label == "all":
                             worst.setdefault((family, decoder), []).append((scene_name, ratio, m["gross"]))
-                        print(f"{scene_name:<9}{label:<17}{family:<8}{decoder:<{dw}}{m['vertices']:>9d}"
-                              f"{m['mean']:>9.4f}{m['p95']:>8.3f}{m['gross']:>9.3f}{m['coverage']:>9.3f}"
-                              f"{ratio:>9.2f}{render_s[CAPTURE_FAMILY[family]]:>9.1f}{m['cpu']:>9.2f}",
-                              flush=True)
+                        m["render"] = render_s[CAPTURE_FAMILY[family]]
+                        out_rows.append({"key": [scene_name, label, family, decoder], "m": m, "ratio": ratio})
+                        lines = [(decoder, m, ratio)]
+                        other = theirs.get((scene_name, label, family, decoder))
+                        if other is not None:
+                            lines.append((f"{decoder}@{args.against}", other["m"], other["ratio"]))
+                            if label == "all":
+                                worst.setdefault((family, lines[-1][0]), []).append(
+                                    (scene_name, other["ratio"], other["m"]["gross"]))
+                        for name, r, q in lines:
+                            say(f"{scene_name:<9}{label:<{ew}}{family:<8}{name:<{dw}}{r['vertices']:>9d}"
+                                f"{r['mean']:>9.4f}{r['p95']:>8.3f}{r['gross']:>9.3f}{r['coverage']:>9.3f}"
+                                f"{q:>9.2f}{r['render']:>9.1f}{r['cpu']:>9.2f}", flush=True)
+    if args.json:
+        print(json.dumps(out_rows))
+        return
     if worst:
         print("\nall effects on, against the targets (mean <= 1.5x direct, gross <= 0.1 %):")
         print(f"{'family':<8}{'decoder':<{dw}}{'worst x direct':>16}{'worst gross %':>15}{'meets':>7}")

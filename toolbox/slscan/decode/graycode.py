@@ -5,7 +5,13 @@ inverse: ``bit = pattern > inverse``. Comparing the pair instead of thresholding
 makes the read independent of albedo, ambient light and the projector's black level. A
 pixel is trusted only when every bit's ``|pattern - inverse|`` clears a threshold set by
 the pixel's own white-minus-black signal and by the images' noise, estimated from the
-data (see :func:`estimate_noise`).
+data the same way for plain Gray and XOR codes (:func:`estimate_noise`): each bit's
+``pattern + inverse`` against a reference showing the same light, blurred and curved
+alike: ``white + black`` inside flat stripe interiors, away from the bit's edges, or the
+next bit's pair where both show the same stripes (XOR codes' images coarser than the base).
+The sum equals ``white + black`` in linear light everywhere, but not near edges for a camera
+curve not undone (sRGB: steep in the darks, it makes blur's light leak into fine dark
+stripes large).
 
 The measured features are the stripe edges: along each camera row, where the decoded
 column steps from ``c`` to ``c + 1``, exactly one Gray-code bit flips, and the zero
@@ -96,6 +102,15 @@ over lit pixels is below this share of the best fine bit's: blur puts their dire
 into the unlit image, which would read as global light (the kamino410 captures' 2 px
 stripes keep 0.50 of their 16 px stripes' contrast, the virtual rig's 0.51; their 4 px
 stripes 0.76 and 0.86)."""
+
+FLAT_RADIUS = 2
+"""Camera px a pixel must lie inside a stripe (from its pattern's and inverse's own edges)
+for the noise estimate to use it (:func:`estimate_noise`): camera blur of σ 0.6–1 px
+leaks 0.04–2 % of the light this far."""
+
+MIN_FLAT_RESIDUALS = 2000
+"""Fewest residuals (pixels x bits inside stripes) the noise estimate takes at a radius
+before it tries a smaller one: the MAD of 2000 is within about 3 % (1 sigma)."""
 
 CONSISTENCY_RADIUS = 2
 """Half-size (px) of the window in which a decoded code must agree with most of its
@@ -431,54 +446,79 @@ def _mad_sigma(resid: np.ndarray) -> float:
     return 1.4826 * mad / np.sqrt(2.0)
 
 
-def _xor_noise(diffs: _BitDiffs, base: int, iy: np.ndarray, ix: np.ndarray) -> float:
-    """XOR codes: standard deviation of ``pattern - inverse`` from how far each image coarser
-    than ``base`` departs from the base image (or its inverse) on the subsample ``(iy, ix)``.
-
-    Away from its own (rare) boundaries, image ``k < base`` shows the base stripes or
-    their inverse, blurred alike, so the difference is noise alone; ``pattern + inverse``
-    against ``white + black`` (:func:`estimate_noise`) is not, for high-frequency stripes:
-    blur leaks light into the unlit stripes, and a camera curve steep in the darks (sRGB)
-    turns a 3 % leak into 19 %, which at every pixel of every image outweighs the noise.
-    """
-    f = diffs.read.fraction
-    pb, qb = f(diffs.pattern[base, iy, ix]), f(diffs.inverse[base, iy, ix])
-    base_on = pb > qb
-    resid = []
-    for k in range(base):
-        pk, qk = f(diffs.pattern[k, iy, ix]), f(diffs.inverse[k, iy, ix])
-        same = (pk > qk) == base_on
-        resid.append(np.where(same, pk - pb, pk - qb))
-        resid.append(np.where(same, qk - qb, qk - pb))
-    resid = np.concatenate(resid)
-    # each residual is the difference of two images' noise, as ``pattern - inverse`` is
-    return 1.4826 * float(np.median(np.abs(resid - np.median(resid))))
-
-
 def _noise_index(where: np.ndarray, bits: int) -> np.ndarray:
-    """Flat indices of the ``where`` pixels the noise estimate uses (about 200 000 residuals)."""
-    # 200 000 residuals fix the MAD to about 0.3 %
+    """Flat indices of the ``where`` pixels the noise estimate uses (about 200 000 pixel-bits,
+    of which :func:`estimate_noise` keeps those with a reference showing the same light)."""
+    # 200 000 residuals fix the MAD to about 0.3 % (the 60-95 % kept: 0.4 %)
     step = max(1, int(where.sum()) * bits // 200_000)
     return np.flatnonzero(where)[::step]
 
 
-def estimate_noise(pattern_sums: np.ndarray, flat_sum: np.ndarray, where: np.ndarray) -> float:
-    """Standard deviation of ``pattern - inverse`` from how far ``pattern + inverse``
-    departs from ``white + black`` (equal in expectation for binary patterns, blur or not).
+def _grid_bits(diffs: _BitDiffs, iy: np.ndarray, ix: np.ndarray, radius: int) -> np.ndarray:
+    """(bits, 9, n) bool: each image pair's bit (``pattern > inverse``) at ``(iy, ix)`` and
+    at the 8 points ``radius`` px away on a 3 x 3 grid around it (clipped to the image);
+    the pixel itself is grid point 4."""
+    h, w = diffs.pattern.shape[1:]
+    at = np.stack([np.clip(iy + dy, 0, h - 1) * w + np.clip(ix + dx, 0, w - 1)
+                   for dy in (-radius, 0, radius) for dx in (-radius, 0, radius)])
+    n = len(diffs)
+    pattern, inverse = diffs.pattern.reshape(n, -1), diffs.inverse.reshape(n, -1)
+    return np.stack([pattern[k][at] > inverse[k][at] for k in range(n)])
 
-    pattern_sums : (bits, h, w) float32 ``pattern + inverse`` per bit
-    flat_sum : (h, w) float32 ``white + black``
-    where : (h, w) bool pixels to use (lit ones)
 
-    The residual has about twice the variance of ``pattern - inverse``; a median absolute
-    deviation keeps camera non-linearity at mid-grey pixels from inflating it.
-    (:func:`decode_gray_images` computes the same on the subsample only, as it reads.)
+def _same_light(a: np.ndarray, b: np.ndarray | None = None) -> np.ndarray:
+    """Whether grid bits ``a`` (9, n) show the same stripes as ``b`` or their inverse (None:
+    as white and black, i.e. no stripe edge) around each pixel: the relation of the bits is
+    the same at all 9 grid points (:func:`_grid_bits`), so no straight edge of one that the
+    other lacks is nearer than the grid's radius (an edge at distance ``t < radius`` leaves
+    a grid point on its far side)."""
+    rel = a if b is None else a == b
+    return (rel == rel[4]).all(axis=0)
+
+
+def estimate_noise(diffs: _BitDiffs, flat_sum: np.ndarray, iy: np.ndarray, ix: np.ndarray,
+                   radius: int = FLAT_RADIUS, min_residuals: int = MIN_FLAT_RESIDUALS) -> float:
+    """Standard deviation of ``pattern - inverse`` (fraction of full scale) from how far
+    each bit's ``pattern + inverse`` departs from that of a reference showing the same
+    light, on the subsample ``(iy, ix)`` (:func:`_noise_index`); plain Gray and XOR codes
+    alike.
+
+    diffs : every column bit's pattern and inverse (the captured images; the XOR
+        decoding is not used)
+    flat_sum : ``white + black`` on the subsample, fractions of full scale
+
+    In linear light every ``pattern + inverse`` equals ``white + black`` in expectation,
+    blur and global light or not, but a camera curve not undone (an sRGB camera, steep in
+    the darks) turns the light blur leaks into a fine stripe's dark half from 3 % into
+    19 %, which near every edge outweighs the noise. So each bit is compared only where a
+    reference shows the same light, blurred and curved alike: ``white + black`` where the
+    pixel lies at least ``radius`` px inside a stripe of the bit (a flat stripe interior),
+    or the next bit's ``pattern + inverse`` where the two show the same stripes or their
+    inverse (:func:`_same_light`), whichever holds at more pixels (the next bit for XOR
+    codes' images coarser than the base, which all show the base stripes away from their
+    own rare boundaries; white and black for the rest). The residual has about twice the
+    variance of ``pattern - inverse``; a median absolute deviation keeps odd pixels from
+    inflating it. The radius shrinks (to 0: every pixel against ``white + black``) while
+    fewer than ``min_residuals`` residuals qualify (stripes a couple of camera px wide).
     """
-    if not where.any():
+    if not len(iy):
         return 0.0
-    idx = _noise_index(where, len(pattern_sums))
-    resid = pattern_sums.reshape(len(pattern_sums), -1)[:, idx] - flat_sum.reshape(-1)[idx]
-    return _mad_sigma(resid)
+    f = diffs.read.fraction
+    sums = [f(diffs.pattern[k, iy, ix]) + f(diffs.inverse[k, iy, ix]) for k in range(len(diffs))]
+    for r in range(radius, 0, -1):
+        grid = _grid_bits(diffs, iy, ix, r)
+        resid = []
+        for k, s in enumerate(sums):
+            flat = _same_light(grid[k])
+            alike = _same_light(grid[k], grid[k + 1]) if k + 1 < len(sums) else flat[:0]
+            if alike.sum() > flat.sum():
+                resid.append((s - sums[k + 1])[alike])
+            else:
+                resid.append((s - flat_sum)[flat])
+        resid = np.concatenate(resid)
+        if len(resid) >= min_residuals:
+            return _mad_sigma(resid)
+    return _mad_sigma(np.concatenate([s - flat_sum for s in sums]))
 
 
 def separate_light(highs: Sequence[np.ndarray], black: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -860,7 +900,7 @@ def decode_gray_images(
         ...and this many standard deviations of the noise of ``pattern - inverse``.
     noise : float, optional
         That standard deviation, fraction of full scale; default: estimated from the
-        images (:func:`estimate_noise`), at least the quantisation noise.
+        column images (:func:`estimate_noise`), at least the quantisation noise.
     black_threshold, white_threshold : float, DN
         The ``"opencv"`` rule's thresholds (OpenCV's defaults 40 and 5).
     max_edge_gap : int, px
@@ -974,7 +1014,7 @@ def decode_gray_images(
     read.box = box = lit_bounds(full_lit, max_edge_gap + 2)
     y0, x0 = box[0].start, box[1].start
     w_img, b_img, contrast, lit = w_img[box], b_img[box], full_contrast[box], full_lit[box]
-    # the noise estimate's subsample of lit pixels (as estimate_noise picks it)
+    # the noise estimate's subsample of lit pixels
     idx = _noise_index(lit, len(col_pairs))
     iy, ix = np.divmod(idx, lit.shape[1])
     flat_sub = w_img[iy, ix] + b_img[iy, ix]
@@ -982,22 +1022,15 @@ def decode_gray_images(
     del b_img
 
     # column bits: both captures' levels kept (1 byte a pixel each for 8-bit grey), for
-    # the thresholds once the noise is known and for the edges; the noise residual read
-    # on the subsample as they come
+    # the thresholds once the noise is known, for the noise estimate and for the edges
     shape = (len(col_pairs),) + contrast.shape
     col_diffs = _BitDiffs(read, np.empty(shape, read.level_dtype), np.empty(shape, read.level_dtype),
                           col_bits.base)
-    sub_sums = np.empty((len(col_pairs), len(idx)), np.float32)
     for k, (pid, inv) in enumerate(col_pairs):
         col_diffs.pattern[k] = read.levels(images[pid], pid)
         col_diffs.inverse[k] = read.levels(images[inv], inv)
-        sub_sums[k] = read.fraction(col_diffs.pattern[k, iy, ix]) + read.fraction(
-            col_diffs.inverse[k, iy, ix])
-    if col_bits.base and len(idx):
-        estimated = _xor_noise(col_diffs, col_bits.base, iy, ix)
-    else:
-        estimated = _mad_sigma(sub_sums - flat_sub) if len(idx) else 0.0
-    del sub_sums, flat_sub
+    estimated = estimate_noise(col_diffs, flat_sub, iy, ix)
+    del flat_sub
     if noise is not None:
         sigma = float(noise)
     else:  # at least the quantisation noise of a difference of two images (0.41 DN;

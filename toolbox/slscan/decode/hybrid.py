@@ -1193,7 +1193,7 @@ def decode_hybrid_images(
         from the finest levels (:func:`separate_global`), take it out of the line signal
         and the band redness, and drop line samples where less than ``MIN_DIRECT`` of the
         white frame is direct light (off by default: without global light it costs
-        accuracy, see the CHANGELOG and ``benchmarks/hybrid_colour.py``)
+        accuracy, see the CHANGELOG and ``benchmarks/colour_blur.py --tables axes``)
     paint_edges : with ``mixing="pixel"``, drop lines where a camera channel carrying at
         least ``PAINT_EDGE_FLOOR`` of the white changes by more than ``min_edge_ratio``
         within ``EDGE_RADIUS`` px (a paint edge across the line's profile); fewer wrong
