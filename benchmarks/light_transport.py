@@ -73,12 +73,15 @@ def effect_sets(text: str) -> list[tuple[str, tuple[str, ...]]]:
 
 def decoder_options(family: str, decoder: str) -> dict:
     """DecodeConfig options of ``decoder``: "robust" (the defaults) or "plain", optionally
-    followed by ``@key=value`` overrides (e.g. ``robust@gray_drop_bits=0``)."""
+    followed by ``@key=value`` overrides (e.g. ``robust@gray_drop_bits=0``,
+    ``robust@gray_smooth=false``)."""
     name, *extra = decoder.split("@")
     options = dict(PLAIN[family]) if name == "plain" else {}
     for item in extra:
         key, value = item.split("=", 1)
-        options[key] = int(value) if value.lstrip("-").isdigit() else value
+        booleans = {"true": True, "false": False}
+        options[key] = (int(value) if value.lstrip("-").isdigit()
+                        else booleans.get(value.lower(), value))
     return options
 
 

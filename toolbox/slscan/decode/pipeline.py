@@ -108,6 +108,14 @@ class DecodeConfig:
     """Gray-code pixels whose code global light may have corrupted (a bit failing Gupta's
     direct/global rule) or that disagree with their neighbours are left out instead of
     giving wrong 3D points (``decode.graycode``, ``robust``); False: the decoder as before."""
+    gray_smooth: bool = True
+    """Gray code: average each edge position with the same edge on the rows (columns)
+    either side, ``[1, 2, 1] / 4`` (:meth:`StripeSamples.smoothed`), as the hybrid decoder
+    filters its line signal across rows: each row's crossing is found from that row alone,
+    and its noise (sensor, JPEG) drops to about 0.6 of itself. Mean error at full size
+    (``benchmarks/light_transport.py --decoders robust,robust@gray_smooth=false``):
+    concave corner 0.034 -> 0.024 mm, bronze 0.056 -> 0.052, figurine 0.052 -> 0.051;
+    False: every edge from its own row, as before."""
     gray_drop_bits: int = 0
     """Gray code: a pixel whose finest bits are weak or unreliable (subsurface scattering
     washes out the finest stripes) keeps the coarser code of its leading run of good bits
@@ -279,6 +287,8 @@ def decode_view(
         res = decode_gray(session, view, threshold=config.gray_threshold, robust=config.gray_robust,
                           drop_bits=config.gray_drop_bits)
         samples, mask, codes, saturated = res.edges, res.mask, res.column, res.saturated
+        if config.gray_smooth:
+            samples = samples.smoothed()
         code_max = session.projector_size[0]
         used, bits = res.bits_used.get("columns", (0, 0))
         edge_spacing = 2 ** (bits - used)  # a set missing low bits has edges this many columns apart

@@ -131,6 +131,47 @@ class StripeSamples:
             out += near
         return out
 
+    def smoothed(self, max_dx: float = CONTINUITY_PX) -> StripeSamples:
+        """The samples with each position averaged along its feature, ``[1, 2, 1] / 4``
+        over the previous, own and next line (row, or column for samples found along
+        columns), where both neighbouring lines carry the same feature within ``max_dx``
+        px; elsewhere (line ends, depth steps) the position is kept. A straight feature,
+        slanted or not, keeps its position (the neighbours sit symmetrically about it), and
+        independent noise of the positions drops to 0.61 of itself (``sqrt(6) / 4``).
+
+        For Gray-code edges, where each row's crossing is found from that row alone; the
+        hybrid decoder filters its line signal across rows before finding maxima instead.
+        """
+        n = len(self)
+        if n == 0:
+            return self
+        rows, x = self.lines()
+        stripes = np.asarray(self.stripe, np.int64) - int(np.min(self.stripe))
+        span = int(stripes.max()) + 1
+        keys = rows * span + stripes
+        order = np.argsort(keys, kind="stable")
+        sorted_keys = keys[order]
+        near_x = []
+        for step in (-span, span):
+            wanted = keys + step
+            first = np.searchsorted(sorted_keys, wanted)
+            best = np.full(n, np.nan)
+            for extra in (0, 1):  # a row may cross one plane twice: the nearer of two candidates
+                at = np.minimum(first + extra, n - 1)
+                cand = x[order[at]]
+                ok = (sorted_keys[at] == wanted) & (np.abs(cand - x) <= max_dx)
+                closer = ok & ~(np.abs(best - x) <= np.abs(cand - x))
+                best = np.where(closer, cand, best)
+            near_x.append(best)
+        both = np.isfinite(near_x[0]) & np.isfinite(near_x[1])
+        pos = np.where(both, 0.5 * x + 0.25 * (near_x[0] + near_x[1]), x)
+        if self.along_columns is None or not np.any(self.along_columns):
+            return replace(self, x=pos)
+        along = np.asarray(self.along_columns, bool)
+        y = np.where(along, pos, self.camera_y)
+        return replace(self, x=np.where(along, self.x, pos), y=y,
+                       row=np.where(along, np.rint(y), self.row).astype(np.int32))
+
     def trim_line_ends(self, rows: int) -> StripeSamples:
         """The samples without the last ``rows`` samples at either end of every line run
         (lone samples go with the first)."""
