@@ -3,10 +3,12 @@
     .venv/bin/python benchmarks/colour_blur.py [--scale 0.5 | --full] [--seed 0]
         [--decoder-option KEY=VALUE ...] [--variant KEY=VALUE ...] [--tables paint,axes]
         [--axes-scenes object tile] [--axes-blurs 0.4 0.7 1.0] [--beta 0.5] [--global-sigma 40]
+        [--floor-blurs 0.4 0.5 0.6 0.8 1.0]
 
-Two tables (``--tables``, default ``paint``): ``paint``, the 3D error per paint class of
-the hybrid decoder and Gray code on a painted tile and sphere (below), and ``axes``, the
-hybrid decoder's variants on the green lines' axes in camera px (further below).
+Three tables (``--tables``, default ``paint``): ``paint``, the 3D error per paint class of
+the hybrid decoder and Gray code on a painted tile and sphere (below); ``axes``, the
+hybrid decoder's variants on the green lines' axes in camera px (further below); and
+``floor``, the default hybrid decoder's axis error against its own noise floor (last).
 
 **paint**:
 
@@ -57,6 +59,30 @@ red/neutral and blue/neutral ratios. ``--beta B`` (0: none) adds a row block wit
 TEST-ONLY STAND-IN for global light (not a light-transport model): every capture gets
 ``B`` times a Gaussian-blurred (sigma ``--global-sigma`` camera px) copy of its own
 black-subtracted image, as a smooth indirect term would add, before decoding.
+
+**floor**: the default hybrid decoder (``pixel+edges``) on the ``paint`` table's tile and
+sphere, physical colour, one view per camera blur of ``--floor-blurs`` (default the
+sweep), each rendered with the default sensor noise (twice: seeds ``--seed`` and one more),
+noise-free (``Sensor(noise=False)``, still 8 bit) and noise-free at 16 bit. Per blur and
+paint class (the true albedo under the sample), over the correctly indexed samples
+(``stripe_axes.axis_errors``):
+
+- ``RMS``: the camera-x axis error (px) with noise;
+- ``floor``: the RMS over the same samples of the expected axis standard deviation the
+  decoder computes for each (``HybridResult.axis_sigma``: :func:`line_axis_sigma` of the
+  line's amplitude and width against the view's own noise estimate, carried through the
+  unmixing and the row filter), and ``x floor`` = RMS / floor (the proposed target: <= 1.3);
+- ``>1px %``: samples more than 1 px off (in RMS);
+- ``scatter``: the noise's own share, measured: a second noisy rendering (seed + 1), the
+  samples matched by row and line, RMS of the axis difference over √2 (the bias is the
+  same in both and cancels, and so is a quantisation pattern that the noise is too weak
+  to dither); ``s/floor`` = scatter / floor checks the prediction itself;
+- ``clean``: the RMS error of the noise-free 8-bit render (bias and quantisation), and
+  ``bias``: of the noise-free 16-bit render (what estimator, blur, colour and the
+  renderer leave), also split into its ``tile`` and ``sphere`` samples;
+- ``√(f²+b²)``: the floor and the bias added in quadrature, and ``x pred``: RMS over it.
+  (The floor includes the 8-bit quantisation, 1/12 DN², so the 16-bit bias is the one
+  that adds to it.)
 """
 
 from __future__ import annotations
@@ -76,7 +102,7 @@ import cv2
 import numpy as np
 
 from slscan.capture.session import LIT
-from slscan.decode.hybrid import decode_hybrid_images, hybrid_pattern_ids
+from slscan.decode.hybrid import decode_hybrid, decode_hybrid_images, hybrid_pattern_ids
 from slscan.decode.pipeline import DecodeConfig, decode_view
 from slscan.decode.rangemap import covered_pixels
 from slscan.errors import SlscanError
@@ -101,7 +127,7 @@ CLASSES = ("neutral", "red paint", "blue paint")
 SWEEP = (0.4, 0.5, 0.6, 0.8, 1.0)  # camera blur sigma, px
 OLD_BLURS = (0.5, 0.35)  # camera, projector sigma (px) before the lens-model defaults
 GROSS_MM = 1.0
-TABLES = ("paint", "axes")
+TABLES = ("paint", "axes", "floor")
 AXES_VARIANTS = {
     "global": {"mixing": "global"},
     "pixel": {"mixing": "pixel"},
@@ -331,6 +357,87 @@ def axes_table(args, scale: float) -> None:
                         print(axes_row(f"{scene} {blur:g}{suffix} {name}", m, seconds), flush=True)
 
 
+FLOOR_SENSORS = {"noisy": ({}, 0), "again": ({}, 1), "clean": ({"noise": False}, 0),
+                 "bias": ({"noise": False, "bit_depth": 16}, 0)}
+"""The ``floor`` table's renderings: Sensor fields over the default, and seed offset."""
+
+
+def rms(values: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(values)))) if len(values) else math.nan
+
+
+def floor_samples(session) -> dict[str, np.ndarray]:
+    """The default hybrid decoder's correctly indexed samples in the first view of
+    ``session``: row, stripe, axis error (px), expected axis sigma (px), paint class and
+    whether the sample lies on the sphere (else the tile)."""
+    view = session.views[0]
+    result = decode_hybrid(session, view, axis_sigma=True, **AXES_VARIANTS["pixel+edges"])
+    truth = session.load_ground_truth(view)
+    a = stripe_axes.axis_errors(session, result, truth)
+    s, measured = result.samples, a["measured"]
+    rows = s.row[measured]
+    cols = np.clip(np.round(s.x[measured]).astype(int), 0, truth.albedo.shape[1] - 1)
+    points = transform_points(np.linalg.inv(view.rig_from_object), truth.point[rows, cols].astype(np.float64))
+    return {"row": rows.astype(np.int64), "stripe": s.stripe[measured].astype(np.int64),
+            "error": a["error"][measured], "sigma": result.axis_sigma[measured],
+            "paint": surface_class(truth.albedo[rows, cols].astype(np.float64)),
+            "sphere": np.linalg.norm(points - SPHERE_CENTRE, axis=1) < SPHERE_RADIUS + 2.0}
+
+
+def seed_scatter(a: dict, b: dict, paint_class: str) -> float:
+    """RMS over ``sqrt(2)`` of the axis difference between two noisy renderings of one view
+    (samples of ``paint_class`` in ``a`` matched by row and line): the noise's share of the
+    error, without the bias the two renderings share."""
+    keys = [d["row"] * (1 << 20) + d["stripe"] for d in (a, b)]
+    once = [np.isin(k, np.unique(k)[np.unique(k, return_counts=True)[1] == 1]) for k in keys]
+    pick = once[0] & (a["paint"] == paint_class)
+    _, ia, ib = np.intersect1d(keys[0][pick], keys[1][once[1]], return_indices=True)
+    diff = a["error"][pick][ia] - b["error"][once[1]][ib]
+    return float(np.sqrt(np.mean(diff**2) / 2.0)) if len(diff) else math.nan
+
+
+def floor_table(args, scale: float) -> None:
+    """The ``floor`` table: the default hybrid decoder's axis error over its noise floor."""
+    levels = min(9, int(np.log2(1024 * scale)) - 1)
+    scene = tile_and_sphere()
+    print(f"tile and sphere, physical colour, scale {scale} ({round(1440 * scale)}x{round(960 * scale)} camera), "
+          f"{levels} levels, seed {args.seed}; default hybrid decoder (pixel+edges); errors in camera px")
+    header = (f"{'blur':>5}  {'paint':<12}{'samples':>8}{'RMS':>8}{'floor':>8}{'x floor':>8}{'>1px %':>8}"
+              f"{'scatter':>8}{'s/floor':>8}{'clean':>8}{'bias':>8}{'tile':>8}{'sphere':>8}{'√(f²+b²)':>9}"
+              f"{'x pred':>8}")
+    print(header)
+    print("-" * len(header))
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        for blur in args.floor_blurs:
+            runs = {}
+            for name, (fields, seed) in FLOOR_SENSORS.items():
+                config = VirtualCaptureConfig(
+                    scene=scene.name, patterns="hybrid", levels=levels, lit_images=False,
+                    camera_scale=scale, projector_scale=scale, seed=args.seed + seed,
+                    sensor=Sensor(blur_sigma=blur, **fields), optics=Optics(colour_model="physical"))
+                try:
+                    session = capture_session(config, Path(tmp) / f"{blur}-{name}", scene=scene)
+                except SlscanError as e:
+                    raise SystemExit(f"capture failed: {e}") from None
+                runs[name] = floor_samples(session)
+            for paint_class in CLASSES:
+                mine = {name: run["paint"] == paint_class for name, run in runs.items()}
+                err, sigma = runs["noisy"]["error"][mine["noisy"]], runs["noisy"]["sigma"][mine["noisy"]]
+                measured, floor = rms(err), rms(sigma)
+                scatter = seed_scatter(runs["noisy"], runs["again"], paint_class)
+                clean = rms(runs["clean"]["error"][mine["clean"]])
+                bias = rms(runs["bias"]["error"][mine["bias"]])
+                parts = [rms(runs["bias"]["error"][mine["bias"] & (runs["bias"]["sphere"] == on)]) for on in (False, True)]
+                predicted = math.hypot(floor, bias)
+                gross = 100.0 * float(np.mean(np.abs(err) > 1.0)) if len(err) else math.nan
+                print(f"{blur:>5.2f}  {paint_class:<12}{len(err):>8d}{measured:>8.4f}{floor:>8.4f}"
+                      f"{measured / floor:>8.2f}{gross:>8.3f}{scatter:>8.4f}{scatter / floor:>8.2f}"
+                      f"{clean:>8.4f}{bias:>8.4f}{parts[0]:>8.4f}{parts[1]:>8.4f}{predicted:>9.4f}"
+                      f"{measured / predicted:>8.2f}", flush=True)
+    print(f"({time.perf_counter() - t0:.0f} s)")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scale", type=float, default=0.5, help="sensor size (1: 1440x960 camera); default 0.5")
@@ -341,13 +448,16 @@ def main() -> None:
     parser.add_argument("--variant", dest="variants", action="append", default=[], metavar="KEY=VALUE",
                         help="decode the hybrid pattern again with this DecodeConfig field on top (repeatable)")
     parser.add_argument("--tables", default="paint",
-                        help="tables to print, comma-separated: paint (tile and sphere, mm), axes (line axes, px)")
+                        help="tables to print, comma-separated: paint (tile and sphere, mm), axes (line axes, px), "
+                             "floor (axis error over its noise floor, px)")
     parser.add_argument("--axes-scenes", nargs="+", default=["object", "tile"], help="axes table: built-in scenes")
     parser.add_argument("--axes-blurs", type=float, nargs="+", default=[0.4, 0.7, 1.0],
                         help="axes table: camera blur sigmas, px")
     parser.add_argument("--beta", type=float, default=0.5,
                         help="axes table: strength of the TEST-ONLY global-light stand-in (0: no such block)")
     parser.add_argument("--global-sigma", type=float, default=40.0, help="axes table: the stand-in's spread, px")
+    parser.add_argument("--floor-blurs", type=float, nargs="+", default=list(SWEEP),
+                        help="floor table: camera blur sigmas, px")
     args = parser.parse_args()
     scale = 1.0 if args.full else args.scale
     tables = [t.strip() for t in args.tables.split(",") if t.strip()]
@@ -357,7 +467,7 @@ def main() -> None:
     for i, table in enumerate(tables):
         if i:
             print()
-        (paint_table if table == "paint" else axes_table)(args, scale)
+        {"paint": paint_table, "axes": axes_table, "floor": floor_table}[table](args, scale)
 
 
 if __name__ == "__main__":

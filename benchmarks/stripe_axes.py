@@ -71,8 +71,12 @@ def possible_crossings(u: np.ndarray, lit: np.ndarray, columns: np.ndarray) -> i
     )
 
 
-def evaluate(session: Session, result: HybridResult) -> dict[str, float]:
-    truth = session.load_ground_truth(session.views[0])
+def axis_errors(session: Session, result: HybridResult, truth=None) -> dict[str, np.ndarray]:
+    """Per sample of ``result`` (first view): ``known`` (the truth has a projector column
+    there), ``correct`` (known and indexed as the nearest line), ``measured`` (correct and
+    the truth crosses the line's column in the row) and ``error`` (camera-x px, sample
+    minus truth; NaN where not measured)."""
+    truth = truth if truth is not None else session.load_ground_truth(session.views[0])
     u = truth.projector_uv[..., 0].astype(np.float64)
     columns = line_columns(session)
     s = result.samples
@@ -85,7 +89,18 @@ def evaluate(session: Session, result: HybridResult) -> dict[str, float]:
     correct = known & (nearest == s.stripe)
     true_x = truth.column_crossings(s.row, s.x, s.projector_column)
     measured = correct & np.isfinite(true_x)
-    err = np.abs(s.x - true_x)[measured]
+    return {"known": known, "correct": correct, "measured": measured,
+            "error": np.where(measured, s.x - np.nan_to_num(true_x), np.nan)}
+
+
+def evaluate(session: Session, result: HybridResult) -> dict[str, float]:
+    truth = session.load_ground_truth(session.views[0])
+    u = truth.projector_uv[..., 0].astype(np.float64)
+    columns = line_columns(session)
+    s = result.samples
+    a = axis_errors(session, result, truth)
+    known, correct, measured = a["known"], a["correct"], a["measured"]
+    err = np.abs(a["error"][measured])
     lit = truth.visibility == LIT
     return {
         "samples": len(s),

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from slscan.decode.hybrid import estimate_noise, line_axis_sigma, subpixel_peaks
+from slscan.decode.options import DEFAULT_ESTIMATOR
 from slscan.decode.pipeline import DecodeConfig
 from slscan.errors import SlscanError
 
@@ -29,6 +30,48 @@ def test_expected_axis_sigma_matches_the_measured_scatter(amplitude):
     expected = line_axis_sigma(g, rows, cols, np.full(g.shape, 0.01))
     measured = np.std((x - centre)[ok])
     assert np.median(expected[ok]) == pytest.approx(measured, rel=0.35)
+
+
+def _band_lines(snr: float, width: float, *, rows: int = 4000, seed: int = 0, shot: float = 0.0):
+    """Gaussian lines (amplitude 1, ``width`` px) at random sub-pixel centres between bands
+    where the line signal is 0, as the decoder sees them after unmixing; noise ``1 / snr``
+    at zero signal, plus shot noise of variance ``shot * g``. Returns signal, noise sigma
+    per pixel, true centres."""
+    rng = np.random.default_rng(seed)
+    centre = 20.0 + rng.uniform(-0.5, 0.5, rows)
+    x = np.arange(40)[None, :]
+    clean = np.exp(-0.5 * ((x - centre[:, None]) / width) ** 2)
+    sigma = np.sqrt((1.0 / snr) ** 2 + shot * clean)
+    return clean + sigma * rng.normal(0.0, 1.0, clean.shape), sigma, centre
+
+
+@pytest.mark.parametrize("width", [0.6, 0.8, 1.0, 1.2])
+@pytest.mark.parametrize("snr", [10, 30, 100])
+def test_axis_sigma_predicts_the_default_estimators_error(width, snr):
+    # known answer: the RMS of the predicted axis sigma over a line's samples is the RMS
+    # error of the default (three-point Gaussian) estimator against the true centres
+    g, noise, centre = _band_lines(snr, width, seed=int(10 * width) + snr)
+    rows = np.arange(len(g))
+    cols = np.argmax(g[:, 15:26], axis=1) + 15
+    x, ok = subpixel_peaks(g, rows, cols, estimator=DEFAULT_ESTIMATOR)
+    assert ok.mean() > 0.99
+    predicted = np.sqrt(np.mean(line_axis_sigma(g, rows, cols, noise)[ok] ** 2))
+    measured = np.sqrt(np.mean((x - centre)[ok] ** 2))
+    assert measured == pytest.approx(predicted, rel=0.2)
+
+
+def test_axis_sigma_uses_each_pixels_own_noise():
+    # shot noise: the line's top is noisier than its flanks; the prediction follows the
+    # per-pixel noise, and a flat noise of the peak's level overstates the error
+    g, noise, centre = _band_lines(1000, 0.8, shot=4e-3, seed=5)
+    rows = np.arange(len(g))
+    cols = np.argmax(g[:, 15:26], axis=1) + 15
+    x, ok = subpixel_peaks(g, rows, cols, estimator=DEFAULT_ESTIMATOR)
+    measured = np.sqrt(np.mean((x - centre)[ok] ** 2))
+    predicted = np.sqrt(np.mean(line_axis_sigma(g, rows, cols, noise)[ok] ** 2))
+    flat = np.sqrt(np.mean(line_axis_sigma(g, rows, cols, np.full(g.shape, noise.max()))[ok] ** 2))
+    assert measured == pytest.approx(predicted, rel=0.1)
+    assert flat > 1.2 * measured
 
 
 def test_a_weak_line_is_rejected_and_a_strong_one_kept():
@@ -96,3 +139,27 @@ def test_decoder_rejects_a_negative_threshold(small_tile):
 
     with pytest.raises(SlscanError, match="max_line_sigma"):
         decode_hybrid(small_tile, small_tile.views[0], max_line_sigma=-0.1)
+
+
+def test_decoders_axis_sigma_predicts_the_scatter_between_two_captures(small_tile, tmp_path):
+    # known answer on the virtual rig: two captures of one view differ only in their noise
+    # (every frame's: white, black and patterns), so the RMS of the axis difference over √2
+    # is the noise's share of the axis error, which axis_sigma predicts per sample
+    from slscan.decode.hybrid import decode_hybrid
+    from slscan.virtual.device import VirtualCaptureConfig, capture_session
+
+    config = VirtualCaptureConfig(scene="tile", camera_scale=0.25, projector_scale=0.25, levels=6,
+                                  patterns="hybrid", lit_images=False, seed=1)
+    other = capture_session(config, tmp_path / "again")
+    a = decode_hybrid(small_tile, small_tile.views[0], axis_sigma=True)
+    b = decode_hybrid(other, other.views[0], axis_sigma=True)
+    assert a.axis_sigma is not None and len(a.axis_sigma) == len(a.samples)
+    assert np.all(np.isfinite(a.axis_sigma)) and np.all(a.axis_sigma > 0)
+    assert decode_hybrid(small_tile, small_tile.views[0]).axis_sigma is None  # only when asked
+    key_a = a.samples.row.astype(np.int64) * 4096 + a.samples.stripe
+    key_b = b.samples.row.astype(np.int64) * 4096 + b.samples.stripe
+    _, ia, ib = np.intersect1d(key_a, key_b, return_indices=True)
+    assert len(ia) > 0.9 * len(a.samples)
+    scatter = np.sqrt(np.mean((a.samples.x[ia] - b.samples.x[ib]) ** 2) / 2.0)
+    predicted = np.sqrt(np.mean(a.axis_sigma[ia] ** 2))
+    assert scatter == pytest.approx(predicted, rel=0.2)

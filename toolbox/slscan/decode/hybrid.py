@@ -182,6 +182,10 @@ class HybridResult:
     level_samples : line samples kept per level, coarsest first (before the order test);
         each level has twice the lines of the one before, so the counts double where the
         optics resolve every level (:attr:`finest_share`)
+    axis_sigma : (k,) float64 expected standard deviation (camera px) of each sample's
+        axis from the line's signal against the image noise (:func:`line_axis_sigma`, the
+        noise from :func:`estimate_noise`), in the order of ``samples``; None unless asked
+        for (``axis_sigma=True``) or computed anyway (``max_line_sigma`` > 0)
     """
 
     samples: StripeSamples
@@ -192,6 +196,7 @@ class HybridResult:
     white: np.ndarray | None = None
     rejected: Mapping[str, int] = field(default_factory=dict)
     level_samples: tuple[int, ...] = ()
+    axis_sigma: np.ndarray | None = None
 
     @property
     def finest_share(self) -> float | None:
@@ -927,13 +932,17 @@ def line_axis_sigma(
     rows, cols : (k,) integer maxima
     g_sigma : (h, w) the noise standard deviation of ``g`` (same units)
 
-    The line's amplitude ``A`` is its maximum over the higher of the band minima within
-    ``radius`` px either side (as :func:`find_line_peaks`), its Gaussian width ``s`` (px)
-    from the curvature of ``ln g`` at the maximum (clipped to 0.5..3 px). For the
-    three-point Gaussian estimator on a centred Gaussian profile, error propagation gives
-    ``σ_x = s² σ_g / (√2 A e^(−1/(2 s²)))`` (≈ ``σ_g / A`` px for ``s`` 0.6..1 px, i.e.
-    width over SNR); the other estimators are within a small factor of it.
-    Non-positive amplitudes give ``inf``.
+    The line is modelled as a Gaussian ``f(i) = A exp(−(i − δ)² / (2 s²))`` above the
+    higher of the band minima within ``radius`` px either side (as :func:`find_line_peaks`),
+    fitted through the three samples around the maximum: width ``s`` (px) from the
+    curvature of ``ln f`` (clipped to 0.5..3 px), offset ``δ`` from the maximum ``c``, and
+    amplitude ``A``. The three-point Gaussian estimator's offset is
+    ``½ (t₋₁ − t₁) / (t₋₁ − 2 t₀ + t₁)`` with ``tᵢ = ln f(c + i)``; to first order in the
+    noise ``σᵢ`` of each sample this gives
+    ``σ_x² = s⁴ [(δ − ½)² σ₋₁² / f₋₁² + 4 δ² σ₀² / f₀² + (δ + ½)² σ₁² / f₁²]``; for a
+    centred line (``δ = 0``, equal noise) ``σ_x = s² σ / (√2 A e^(−1/(2 s²)))``, about
+    ``σ / A`` px for ``s`` 0.6..1 px (width over SNR). The other estimators are within a
+    small factor of it. Non-positive amplitudes give ``inf``.
     """
     rows = np.asarray(rows, np.intp)
     cols = np.asarray(cols, np.intp)
@@ -942,10 +951,17 @@ def line_axis_sigma(
     amp = f[:, radius] - floor
     t = np.log(np.maximum(f[:, radius - 1 : radius + 2] - floor[:, None], _EPS))
     curvature = t[:, 0] - 2.0 * t[:, 1] + t[:, 2]
+    noise = _window(g_sigma, rows, cols, 1).astype(np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
-        s = np.where(curvature < -_EPS, 1.0 / np.sqrt(np.maximum(-curvature, _EPS)), 3.0)
+        fitted = curvature < -_EPS
+        s = np.where(fitted, 1.0 / np.sqrt(np.maximum(-curvature, _EPS)), 3.0)
         s = np.clip(s, 0.5, 3.0)
-        sigma = s * s * g_sigma[rows, cols] / (np.sqrt(2.0) * amp * np.exp(-0.5 / (s * s)))
+        delta = np.where(fitted, np.clip(0.5 * (t[:, 0] - t[:, 2]) / curvature, -1.0, 1.0), 0.0)
+        i = np.arange(-1.0, 2.0)[None, :]
+        # the model's samples over its amplitude, and each one's weight in the offset
+        shape = np.exp(-((i - delta[:, None]) ** 2 - delta[:, None] ** 2) / (2.0 * (s * s)[:, None]))
+        weight = np.stack([delta - 0.5, -2.0 * delta, delta + 0.5], axis=1)
+        sigma = s * s * np.sqrt(((weight * noise / shape) ** 2).sum(axis=1)) / amp
     return np.where(amp > 0, sigma, np.inf)
 
 
@@ -1122,16 +1138,33 @@ def _keep(ok: np.ndarray, cond: np.ndarray, rejected: dict[str, int], reason: st
 
 
 def _line_noise(
-    gains: np.ndarray, image: np.ndarray, black: np.ndarray, noise: tuple[float, float], smooth_rows: bool
+    gains: np.ndarray,
+    image: np.ndarray,
+    white: np.ndarray,
+    black: np.ndarray,
+    noise: tuple[float, float],
+    smooth_rows: bool,
 ) -> np.ndarray:
     """Standard deviation (h, w) of the line signal of ``image``: the camera noise
-    (``noise``, :func:`estimate_noise`) through the unmixing gains (:func:`signal_gains`)
-    and the row filter."""
+    (``noise``, :func:`estimate_noise`) of the capture and of the white and black frames
+    through the unmixing gains (:func:`signal_gains`) and the row filter.
+
+    The line signal is a combination of ``r_c = (I_c − B_c) / (W_c − B_c)`` per camera
+    channel (the white frame normalises each channel), so with ``∂g/∂I_c = G_c``:
+    ``∂g/∂W_c = −G_c r_c`` and ``∂g/∂B_c = −G_c (1 − r_c)``, and
+    ``σ_g² = Σ_c G_c² (σ²(I_c) + r_c² σ²(W_c) + (1 − r_c)² σ²(B_c))``. This is exact for
+    the per-pixel unmixing; with one crosstalk matrix (``mixing="global"``) the white's
+    term holds where the crosstalk is small."""
     a, b = noise
+    a, b = np.float32(a), np.float32(b)
     var = np.zeros(gains.shape[1:], np.float32)
     for c in range(3):
-        level = np.maximum(np.asarray(image[..., c], np.float32) - np.asarray(black[..., c], np.float32), 0.0)
-        var += gains[c] * gains[c] * (np.float32(a) + np.float32(b) * level)
+        dark = np.asarray(black[..., c], np.float32)
+        level = np.maximum(np.asarray(image[..., c], np.float32) - dark, 0.0)
+        lit = np.maximum(np.asarray(white[..., c], np.float32) - dark, 0.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = np.where(lit > 0, level / lit, 0.0).astype(np.float32)
+        var += gains[c] * gains[c] * ((a + b * level) + r * r * (a + b * lit) + (1 - r) * (1 - r) * a)
     if smooth_rows:
         var = cv2.filter2D(var, -1, (_ROW_KERNEL * _ROW_KERNEL)[:, None], borderType=cv2.BORDER_CONSTANT)
     return np.sqrt(var)
@@ -1155,6 +1188,7 @@ def decode_hybrid_images(
     global_light: bool = False,
     paint_edges: bool = True,
     max_line_sigma: float = DEFAULT_MAX_LINE_SIGMA,
+    axis_sigma: bool = False,
     crosstalk: np.ndarray | None = None,
     bit_depth: int | None = None,
     names: Sequence[str] | None = None,
@@ -1202,6 +1236,9 @@ def decode_hybrid_images(
         (:func:`line_axis_sigma`, camera px; the noise from :func:`estimate_noise`
         carried through the unmixing) exceeds this: a line the paint returns too little of
         to place (rejected as "weak line"); 0 keeps every sample
+    axis_sigma : return that expected axis standard deviation of every kept sample
+        (:attr:`HybridResult.axis_sigma`; costs the noise estimate and its propagation
+        through the unmixing), e.g. to compare the measured error with its noise floor
     crosstalk : (3, 3) camera × projector-primary response; None estimates it from the
         captures (:func:`estimate_crosstalk`); the first guess of the bands with
         ``mixing="pixel"``
@@ -1332,7 +1369,8 @@ def decode_hybrid_images(
     rejected = dict.fromkeys(
         ("sub-pixel fit", "weak line", "ambiguous bit", "edge", "polarity", "paint edge", "global"), 0
     )
-    noise = estimate_noise(white, black, mask, row_step=crosstalk_step) if max_line_sigma > 0 else None
+    want_sigma = max_line_sigma > 0 or axis_sigma
+    noise = estimate_noise(white, black, mask, row_step=crosstalk_step) if want_sigma else None
     gains: dict[tuple, np.ndarray] = {}
     n_peaks = 0
     level_samples: list[int] = []
@@ -1351,12 +1389,14 @@ def decode_hybrid_images(
         n_peaks += len(rows)
         x, ok = subpixel_peaks(g, rows, cols, estimator=estimator)
         rejected["sub-pixel fit"] += int((~ok).sum())
+        sigma = np.full(len(rows), np.nan)
         if noise is not None:
             key = tuple(np.round(shares[k - 1], 6)) if direct is not None else ()
             if key not in gains:
                 gains[key] = signal_gains(signals, black)
-            sigma = line_axis_sigma(g, rows, cols, _line_noise(gains[key], raw, black, noise, smooth_rows))
-            ok = _keep(ok, sigma <= max_line_sigma, rejected, "weak line")
+            sigma = line_axis_sigma(g, rows, cols, _line_noise(gains[key], raw, white, black, noise, smooth_rows))
+            if max_line_sigma > 0:
+                ok = _keep(ok, sigma <= max_line_sigma, rejected, "weak line")
         lines = np.zeros((h, w), bool)  # every maximum, kept or not, for the saturation report
         for o in (-1, 0, 1):
             lines[rows, np.clip(cols + o, 0, w - 1)] = True
@@ -1380,7 +1420,7 @@ def decode_hybrid_images(
         if direct is not None:
             ok = _keep(ok, direct[rows, cols] >= MIN_DIRECT, rejected, "global")
         line_index, line_column = _region_lines(desc)
-        rows, cols, x, region = rows[ok], cols[ok], x[ok], region[ok]
+        rows, cols, x, region, sigma = rows[ok], cols[ok], x[ok], region[ok], sigma[ok]
         level_samples.append(len(rows))
         sat_image = clipped[name] | sat_white
         around = _window(sat_image, rows, cols, 1).any(axis=1)
@@ -1392,11 +1432,12 @@ def decode_hybrid_images(
                 line_index[region].astype(np.int32),
                 g[rows, cols].astype(np.float32),
                 around,
+                sigma,
             )
         )
         redness.append(e)
 
-    row, x, column, stripe, contrast, saturated = (np.concatenate(f) for f in zip(*parts))
+    row, x, column, stripe, contrast, saturated, sigma = (np.concatenate(f) for f in zip(*parts))
     order = np.lexsort((x, row))
     samples = StripeSamples(
         row[order], x[order], column[order], stripe[order], contrast[order], saturated[order]
@@ -1413,6 +1454,7 @@ def decode_hybrid_images(
         ", ".join(f"{v} {k}" for k, v in rejected.items()),
     )
     samples = samples.subset(consistent)
+    sigma = sigma[order][consistent] if want_sigma else None
 
     codes = np.zeros((h, w), np.int64)
     readable = mask.copy()
@@ -1432,6 +1474,7 @@ def decode_hybrid_images(
         white=full_white,
         rejected=rejected,
         level_samples=tuple(level_samples),
+        axis_sigma=sigma,
     )
 
 
