@@ -95,7 +95,7 @@ def test_the_baked_colour_matches_the_true_albedo(run):
     truth, _ = render_into_atlas(in_scene, mesh.faces, atlas, lambda p: surface_albedo(scene, p))
     value = psnr(srgb8(baked.linear), srgb8(truth), baked.observed)
     # quarter-size scans: blurred albedo, registration within about 1 degree of the true
-    # poses: 25.7-26.3 dB for capture seeds 0-3 (15-17 dB while registration let ICP slide
+    # poses: 25.7-26.2 dB for capture seeds 0-3 (15-17 dB while registration let ICP slide
     # the views round the figurine from their exact turntable poses)
     assert value > 24.0, f"PSNR {value:.1f} dB"
     # the same views with their poses turned 3 degrees about the object's vertical axis

@@ -83,8 +83,7 @@ class MultiviewConfig:
     pose_tolerance: float | None = None
     """How far (mm) the initial poses may be off: the first round's correspondence
     distance; a pair ICP moves by more than twice this from its initial poses is rejected,
-    a scan the pose graph moves that far is refined from its initial pose, and the joint
-    refinement holds the scans near their initial poses with this spread. At least 4
+    and a scan the pose graph moves that far is refined from its initial pose. At least 4
     sample spacings. None: :data:`MISFIT_FACTOR` times the initial poses' misfit
     (:func:`pose_misfit`), between 4 sample spacings and 30 of them (at most 1/8 of the
     scans' size): 22 mm on the Stanford bunny perturbed by up to 10 degrees / 10 mm, 4
@@ -498,8 +497,6 @@ def refine_jointly(
     coarse_points: int = 10_000,
     max_iterations: int = 30,
     tolerance: float = 1e-2,
-    anchors: Mapping[int, np.ndarray] | None = None,
-    anchor_tolerance: float | None = None,
 ) -> tuple[dict[int, np.ndarray], list[tuple[float, float]]]:
     """Simultaneous point-to-plane ICP of all scans over all overlapping pairs [2]_, [3]_.
 
@@ -523,24 +520,10 @@ def refine_jointly(
         poses within reach of the finest level, so a sparser stride does (a third of the
         Stanford bunny's samples: this step twice as fast, the same poses to 0.001 degree)
 
-    anchors : {scan index: (4, 4) world_from_scan} recorded poses, good to
-        ``anchor_tolerance`` (mm): a prior that holds each of these scans near its recorded
-        pose where the samples do not say otherwise. Its cost, added to the data's, is
-        σ²·(|v|² + r²|ω|²)/anchor_tolerance², (ω, v) the motion (about the scans' centre)
-        from the recorded pose to the current one, r the RMS distance of the scan's samples
-        from the centre (a turn by anchor_tolerance/r moves them by about
-        anchor_tolerance), σ² the weighted mean square residual (the data term is then the
-        log-likelihood of residuals of that spread). Motions the samples pin down are
-        decided by them; those they leave free (a turn about the axis of a nearly
-        symmetric object, a slide along a sparse or flat surface) go back to the recorded
-        pose instead of drifting with the residuals' bias.
-
     Returns the refined poses and, per pair, (fitness of i onto j: the share of i's
     samples matched, point-to-plane RMS mm) at the finest level.
     """
     poses = {k: np.asarray(p, np.float64).copy() for k, p in poses.items()}
-    if anchors and not (anchor_tolerance and anchor_tolerance > 0):
-        raise SlscanError(f"refine_jointly: anchors need an anchor_tolerance > 0 mm, got {anchor_tolerance}")
     nodes = sorted(poses)
     cols = {k: a for a, k in enumerate(k for k in nodes if k != root)}
     usable = {k: np.flatnonzero(scans[k].quality >= min_quality) for k in nodes}
@@ -549,11 +532,6 @@ def refine_jointly(
     stats: list[tuple[float, float]] = [(0.0, math.nan)] * len(pairs)
     to_centre, from_centre = np.eye(4), np.eye(4)
     to_centre[:3, 3], from_centre[:3, 3] = centre, -centre
-    prior = {k: np.linalg.inv(np.asarray(anchors[k], np.float64)) for k in (anchors or {}) if k in cols}
-    scale = {}
-    for k in prior:
-        radius2 = float(np.mean(np.sum((scans[k].transformed_vertices(poses[k])[usable[k]] - centre) ** 2, axis=1)))
-        scale[k] = np.array([radius2] * 3 + [1.0] * 3)
     sampling = None
     for level, distance in enumerate(distances):
         limit = max_points if level == len(distances) - 1 else min(coarse_points, max_points)
@@ -577,7 +555,6 @@ def refine_jointly(
             size = 6 * len(cols)
             h = np.zeros((size, size))
             g = np.zeros(size)
-            weighted, squares = 0.0, 0.0
             for e, (i, j) in enumerate(pairs):
                 hits, sq = 0, 0.0
                 for a, b in ((i, j), (j, i)):
@@ -604,7 +581,6 @@ def refine_jointly(
                     )  # d r / d (omega_a, v_a); b gets the negative
                     jw = jac * w[:, None]
                     jtj, jtr = jac.T @ jw, jw.T @ r
-                    weighted, squares = weighted + float(np.sum(w)), squares + float(np.sum(w * r * r))
                     blocks = [(cols[k], sign) for k, sign in ((a, 1.0), (b, -1.0)) if k in cols]
                     for u, su in blocks:
                         g[6 * u : 6 * u + 6] += su * jtr
@@ -612,15 +588,6 @@ def refine_jointly(
                             h[6 * u : 6 * u + 6, 6 * v : 6 * v + 6] += su * sv * jtj
             if size == 0:
                 break
-            if prior:
-                spread = squares / weighted if weighted > 0 else 1.0
-                for k, u in cols.items():
-                    if k in prior:
-                        motion = from_centre @ poses[k] @ prior[k] @ to_centre
-                        xi = np.concatenate([Rotation.from_matrix(motion[:3, :3]).as_rotvec(), motion[:3, 3]])
-                        lam = spread * scale[k] / anchor_tolerance**2
-                        h[6 * u : 6 * u + 6, 6 * u : 6 * u + 6] += np.diag(lam)
-                        g[6 * u : 6 * u + 6] += lam * xi
             try:
                 x = -np.linalg.solve(h + 1e-9 * np.trace(h) / size * np.eye(size), g)
             except np.linalg.LinAlgError:
@@ -668,9 +635,8 @@ def register_scans(
        inconsistent edges [1]_), from poses chained along a maximum spanning tree.
     4. Joint point-to-plane refinement of all poses over the pairs that overlap under
        the optimised poses, each scan's ``max_neighbours`` best (:func:`refine_jointly`),
-       at full resolution, with the initial poses as a prior of spread ``pose_tolerance``;
-       a scan the pose graph moved more than twice that from its initial pose starts
-       from the initial pose.
+       at full resolution; a scan the pose graph moved more than twice
+       ``pose_tolerance`` from its initial pose starts from the initial pose.
 
     Parameters
     ----------
@@ -873,8 +839,6 @@ def register_scans(
             root=root,
             distances=[f * spacing for f in config.joint_distances_factor],
             min_quality=pw.min_quality,
-            anchors=poses0,
-            anchor_tolerance=tolerance,
         )
     residuals = tuple(
         PairResidual(
