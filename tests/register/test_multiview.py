@@ -12,10 +12,18 @@ from slscan.errors import SlscanError
 from slscan.register.multiview import (
     RegistrationWarning,
     overlap_matrix,
+    pose_misfit,
     refine_jointly,
     register_scans,
+    usable_rim,
 )
-from slscan.register.pairwise import fit_gauge, pose_error, rigid_transform
+from slscan.register.pairwise import (
+    downsample,
+    fit_gauge,
+    pose_error,
+    rigid_transform,
+    scan_point_cloud,
+)
 from slscan.register.rangescan import (
     load_bun_conf,
     load_range_scan,
@@ -216,3 +224,82 @@ def test_registration_logs_to_rerun(tmp_path, blob_views):
     paths = {c.entity_path for c in RrdReader(out).stream().to_chunks()}
     assert "/object/scans/view0" in paths and "/object/scans/view0/mesh" in paths
     assert any(p.startswith("/plot/register/rmse/") for p in paths)
+
+
+# --- recorded poses that are already good ----------------------------------------------------------
+
+
+def _vase_views(pixel: float, *, seed: int = 0) -> tuple[list, dict[str, np.ndarray]]:
+    """Eight turntable views of a nearly rotationally symmetric vase (radius 60 ± 20 mm,
+    300 mm tall, 3 mm bumps), sampled every ``pixel`` mm with 0.3 mm noise, and their
+    exact poses."""
+    cylinder = o3d.geometry.TriangleMesh.create_cylinder(radius=1.0, height=1.0, resolution=120, split=120)
+    v = np.asarray(cylinder.vertices)
+    z, angle, across = v[:, 2] * 300.0, np.arctan2(v[:, 1], v[:, 0]), np.hypot(v[:, 0], v[:, 1])
+    radius = (60.0 + 20.0 * np.sin(z / 40.0) + 3.0 * np.sin(7 * angle) * np.cos(z / 15.0)) * across
+    vertices = np.stack([radius * np.cos(angle), radius * np.sin(angle), z], axis=1)
+    rng = np.random.default_rng(seed)
+    scans, poses = [], {}
+    for k in range(8):
+        turn = 2 * np.pi * k / 8
+        pose = looking_from([np.cos(turn), np.sin(turn), 0.25], 400.0)
+        scans.append(render_range_scan(vertices, np.asarray(cylinder.triangles), pose,
+                                       shape=(int(340 / pixel), int(200 / pixel)), pixel=pixel,
+                                       name=f"view{k}", noise=0.3, rng=rng))
+        poses[f"view{k}"] = pose
+    return scans, poses
+
+
+def test_exact_poses_of_sparse_scans_stay_where_they_are_without_a_stated_tolerance():
+    """Sparse samples (5 mm) of a nearly symmetric object from exact turntable poses: with
+    no ``pose_tolerance``, ICP may not slide the views round the object. (The rule from
+    the sample spacing alone, 30 spacings, let them slide by up to 155 degrees.)"""
+    scans, truth = _vase_views(5.0)
+    result = register_scans(scans, initial_poses=truth)
+    assert set(result.poses) == set(truth) and not result.left_out
+    for scan in scans:
+        rotation, translation = pose_error(result.poses[scan.name], truth[scan.name], at=scan.vertices.mean(axis=0))
+        assert rotation < 0.5 and translation < 0.5, (scan.name, rotation, translation)
+
+
+def test_the_misfit_of_recorded_poses_tells_exact_from_perturbed(bunny):
+    scans, truth = bunny
+    spacing = 0.75
+    clouds = {k: downsample(scan_point_cloud(s, pose=truth[s.name], min_quality=0.05), 4 * spacing)
+              for k, s in enumerate(scans)}
+    moved = perturbed(truth, keep="bun000")
+    shifted = {k: downsample(scan_point_cloud(s, pose=moved[s.name], min_quality=0.05), 4 * spacing)
+               for k, s in enumerate(scans)}
+    pairs = [(0, 1), (0, 7), (1, 2), (3, 4), (4, 5)]  # bun000-bun045, bun000-bun315, ...
+
+    def misfit(c):
+        return pose_misfit({k: np.asarray(x.points) for k, x in c.items()},
+                           {k: np.asarray(x.normals) for k, x in c.items()}, pairs, 11.0)
+
+    exact, off = misfit(clouds), misfit(shifted)
+    assert exact < 0.5 and off > 3.0  # mm: the scans' noise, against poses 5-12 mm off
+
+
+def test_the_rim_of_a_scan_is_its_outline_and_the_edges_of_its_holes():
+    from slscan.register.rangescan import RangeScan
+
+    rows, cols = 6, 7
+    at = np.arange(rows * cols).reshape(rows, cols)
+    quads = [(at[r, c], at[r, c + 1], at[r + 1, c + 1], at[r + 1, c]) for r in range(rows - 1) for c in range(cols - 1)]
+    every = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))])
+    hole, bad = at[3, 3], at[1, 5]
+    faces = every[~np.any(every == hole, axis=1)]  # no sample at (3, 3)
+    yy, xx = np.mgrid[0:rows, 0:cols].astype(float)
+    vertices = np.stack([xx.ravel(), yy.ravel(), np.zeros(rows * cols)], axis=1)
+    quality = np.ones(rows * cols, np.float32)
+    quality[bad] = 0.0  # an unusable sample: the faces round it take no part
+    scan = RangeScan(vertices, faces.astype(np.int32), np.tile(np.float32([0, 0, 1]), (rows * cols, 1)),
+                     quality, np.array([0.0, 0.0, 1.0]), name="grid")
+
+    def ring(v):
+        return set(every[np.any(every == v, axis=1)].ravel()) - {v}
+
+    outline = set(at[[0, -1], :].ravel()) | set(at[:, [0, -1]].ravel())
+    expected = outline | ring(hole) | {hole} | ring(bad)  # the hole's lone vertex is on no face
+    assert set(np.flatnonzero(usable_rim(scan, 0.05))) == expected
+    assert bad not in expected and at[2, 1] not in expected

@@ -168,8 +168,9 @@ class RegisterConfig:
     reference: str = ""
     """Scan that keeps its pose (default: the first)."""
     pose_tolerance: float = 0.0
-    """How far (mm) the recorded poses may be off; 0: from the scans' sample spacing.
-    Small for an accurate turntable: ICP cannot then slide along a symmetric object."""
+    """How far (mm) the recorded poses may be off; 0: from how well they already fit (5
+    times their misfit, at least 4 sample spacings: exact turntable poses stay within
+    that). Set it when the poses are known to be further off than their misfit shows."""
     poses: str = ""
     """Start from the poses in this file instead of the recorded ones: a Stanford .conf
     (metres), an slscan registration.json or a MeshLab .mlp (mm), one pose per scan by

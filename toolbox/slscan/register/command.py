@@ -276,8 +276,8 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
                             "scan name, one for every scan")
     p.add_argument("--pose-tolerance", type=float, metavar="MM",
                    help="how far (mm) the start poses may be off: the first ICP round's reach; a "
-                        "pair ICP moves by more than twice this is rejected (default: 30 sample "
-                        "spacings, at most 1/8 of the scans' size)")
+                        "pair ICP moves by more than twice this is rejected (default: 5 times the "
+                        "start poses' misfit, between 4 and 30 sample spacings)")
     p.add_argument("--max-neighbours", type=int, metavar="K", default=MAX_NEIGHBOURS,
                    help="with start poses, align each scan with at most K partners, its best "
                         "candidates by estimated overlap, keeping the graph connected; 0: every "

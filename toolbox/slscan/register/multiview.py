@@ -26,6 +26,8 @@ References
    alignments, then a global pass that spreads their error).
 .. [3] Neugebauer, "Reconstruction of real-world objects via simultaneous registration
    and robust combination of multiple range images", IJSMA 3(1), 1997.
+.. [4] Turk, Levoy, "Zippered polygon meshes from range images", SIGGRAPH 1994 (no
+   correspondences onto a mesh's boundary).
 """
 
 from __future__ import annotations
@@ -80,9 +82,14 @@ class MultiviewConfig:
     Stanford bunny the poses agree to 0.001 degree, at 40 % of the ICP cost)."""
     pose_tolerance: float | None = None
     """How far (mm) the initial poses may be off: the first round's correspondence
-    distance and the distance for finding overlapping pairs; a pair ICP moves by more than
-    twice this from its initial poses is rejected. At least 4 sample spacings. None: 30 times the median
-    sample spacing (about 20 mm on the Stanford bunny), at most 1/8 of the scans' size."""
+    distance; a pair ICP moves by more than twice this from its initial poses is rejected,
+    and a scan the pose graph moves that far is refined from its initial pose. At least 4
+    sample spacings. None: :data:`MISFIT_FACTOR` times the initial poses' misfit
+    (:func:`pose_misfit`), between 4 sample spacings and 30 of them (at most 1/8 of the
+    scans' size): 22 mm on the Stanford bunny perturbed by up to 10 degrees / 10 mm, 4
+    spacings from exact poses. (The 30 spacings alone grew with sparse sampling, and let
+    ICP slide exact turntable views round a nearly symmetric object.) Overlapping pairs
+    are found within half the larger of this and 30 spacings."""
     min_overlap: float = 0.2
     """A pair is an edge when at least this fraction of the smaller scan lies on the
     other (with the current poses) and ICP agrees."""
@@ -267,6 +274,50 @@ def pair_overlaps(
     return out
 
 
+MISFIT_FACTOR = 5.0
+"""Without a stated ``pose_tolerance``, the recorded poses are taken to be off by up to this
+many times their measured misfit (:func:`pose_misfit`; between 4 sample spacings and the
+old bound). The misfit sees offsets across the surface only, not along it: on the Stanford
+bunny perturbed by up to 10 degrees / 10 mm it is 4.4-4.7 mm, the largest offset at a
+scan's centroid 12.7 mm; from exact poses it is the scans' noise (0.2-0.7 mm)."""
+
+
+def pose_misfit(
+    clouds: Mapping[int, np.ndarray],
+    normals: Mapping[int, np.ndarray],
+    pairs: Sequence[tuple[int, int]],
+    distance: float,
+    *,
+    max_samples: int | None = None,
+    normal_cos: float = 0.5,
+) -> float | None:
+    """How well the poses the clouds are in already fit: the median over ``pairs`` of the
+    median point-to-plane distance (mm) from a sample of i to its nearest sample of j
+    within ``distance``, both ways, where the two normals agree within acos(``normal_cos``).
+    None when no pair has such samples.
+
+    clouds, normals : {scan index: (k, 3)} points (mm) and unit normals, common frame
+    max_samples : at most this many points of each cloud are looked up (an even stride)
+    """
+    trees: dict[int, cKDTree] = {}
+    medians = []
+    for i, j in pairs:
+        for a, b in ((i, j), (j, i)):
+            if not len(clouds[a]) or not len(clouds[b]):
+                continue
+            if b not in trees:
+                trees[b] = cKDTree(clouds[b])
+            step = max(1, len(clouds[a]) // max_samples) if max_samples else 1
+            p, n = clouds[a][::step], normals[a][::step]
+            d, idx = trees[b].query(p, distance_upper_bound=distance)
+            hit = np.flatnonzero(np.isfinite(d))
+            q, m = clouds[b][idx[hit]], normals[b][idx[hit]]
+            agree = np.einsum("ij,ij->i", n[hit], m) > normal_cos
+            if np.any(agree):
+                medians.append(float(np.median(np.abs(np.einsum("ij,ij->i", m[agree], p[hit][agree] - q[agree])))))
+    return float(np.median(medians)) if medians else None
+
+
 def select_pairs(scores: Mapping[tuple[int, int], float], k: int) -> list[tuple[int, int]]:
     """The candidate pairs to align: each scan's ``k`` best partners by score (a pair is
     kept when either scan ranks the other among its ``k`` best), plus the best remaining
@@ -414,6 +465,25 @@ def optimise_pose_graph(
 # --- joint refinement ----------------------------------------------------------------------------
 
 
+def usable_rim(scan: RangeScan, min_quality: float) -> np.ndarray:
+    """(n,) bool: the vertices on the rim of the scan's usable surface, that is on an edge
+    of only one face whose vertices all have quality >= ``min_quality`` (the scan's outline
+    and the edges of its holes), or usable vertices in no such face."""
+    usable = scan.quality >= min_quality
+    faces = scan.faces[usable[scan.faces].all(axis=1)]
+    rim = usable.copy()
+    if len(faces):
+        edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+        keys, count = np.unique(edges[:, 0].astype(np.int64) * len(usable) + edges[:, 1], return_counts=True)
+        once = keys[count == 1]
+        in_face = np.zeros(len(usable), bool)
+        in_face[faces.ravel()] = True
+        rim = usable & ~in_face
+        rim[once // len(usable)] = True
+        rim[once % len(usable)] = True
+    return rim
+
+
 def refine_jointly(
     scans: Sequence[RangeScan],
     poses: Mapping[int, np.ndarray],
@@ -434,7 +504,10 @@ def refine_jointly(
     w·(n_q·(p - q))², p a source sample, q its nearest target sample within the level's
     distance, n_q the target normal, w the product of the two samples' qualities;
     correspondences onto target samples of quality < ``min_quality`` (the scan's
-    boundary band) or with normals more than acos(``normal_cos``) apart are rejected.
+    boundary band), onto the rim of the usable surface (:func:`usable_rim`: a sample
+    beyond the target's edge or a hole's finds its nearest partner there, and pulls the
+    scans over the edge [4]_), or with normals more than acos(``normal_cos``) apart are
+    rejected.
     Gauss–Newton on the linearised motions, re-matching each iteration, until the largest
     update is below ``tolerance`` (mm, rotations measured at 100 mm; on the bunny, 0.01 mm
     ends within 0.0001 degree of 0.001 mm's poses in two thirds of the iterations).
@@ -447,15 +520,18 @@ def refine_jointly(
         poses within reach of the finest level, so a sparser stride does (a third of the
         Stanford bunny's samples: this step twice as fast, the same poses to 0.001 degree)
 
-    Returns the refined poses and, per pair, (fitness of i onto j, point-to-plane RMS mm)
-    at the finest level.
+    Returns the refined poses and, per pair, (fitness of i onto j: the share of i's
+    samples matched, point-to-plane RMS mm) at the finest level.
     """
     poses = {k: np.asarray(p, np.float64).copy() for k, p in poses.items()}
     nodes = sorted(poses)
     cols = {k: a for a, k in enumerate(k for k in nodes if k != root)}
     usable = {k: np.flatnonzero(scans[k].quality >= min_quality) for k in nodes}
+    rim = {k: usable_rim(scans[k], min_quality) for k in nodes}
     centre = np.mean([scans[k].transformed_vertices(poses[k]).mean(axis=0) for k in nodes], axis=0)
     stats: list[tuple[float, float]] = [(0.0, math.nan)] * len(pairs)
+    to_centre, from_centre = np.eye(4), np.eye(4)
+    to_centre[:3, 3], from_centre[:3, 3] = centre, -centre
     sampling = None
     for level, distance in enumerate(distances):
         limit = max_points if level == len(distances) - 1 else min(coarse_points, max_points)
@@ -466,6 +542,7 @@ def refine_jointly(
             # into the target's frame
             local = {k: scans[k].vertices[samples[k]] for k in nodes}
             trees = {k: cKDTree(local[k]) for k in nodes}
+            inner = {k: ~rim[k][samples[k]] for k in nodes}
         for _ in range(max_iterations):
             world = {}
             for k in nodes:
@@ -488,7 +565,7 @@ def refine_jointly(
                     d, idx = trees[b].query(in_b, distance_upper_bound=distance)
                     ok = np.isfinite(d)
                     src, idx = np.flatnonzero(ok), idx[ok]
-                    ok = np.einsum("ij,ij->i", na[src], nb[idx]) > normal_cos
+                    ok = (np.einsum("ij,ij->i", na[src], nb[idx]) > normal_cos) & inner[b][idx]
                     src, idx = src[ok], idx[ok]
                     p, n = pa[src], nb[idx]
                     r = np.einsum("ij,ij->i", n, p - pb[idx])
@@ -517,8 +594,6 @@ def refine_jointly(
                 log.warning("joint refinement: singular system, stopping")
                 break
             step = 0.0
-            to_centre, from_centre = np.eye(4), np.eye(4)
-            to_centre[:3, 3], from_centre[:3, 3] = centre, -centre
             for k, u in cols.items():
                 xi = x[6 * u : 6 * u + 6]
                 update = np.eye(4)
@@ -560,7 +635,8 @@ def register_scans(
        inconsistent edges [1]_), from poses chained along a maximum spanning tree.
     4. Joint point-to-plane refinement of all poses over the pairs that overlap under
        the optimised poses, each scan's ``max_neighbours`` best (:func:`refine_jointly`),
-       at full resolution.
+       at full resolution; a scan the pose graph moved more than twice
+       ``pose_tolerance`` from its initial pose starts from the initial pose.
 
     Parameters
     ----------
@@ -601,6 +677,8 @@ def register_scans(
     n = len(scans)
     spacing = float(np.median([median_edge_length(s) for s in scans]))
     extent = float(np.median([scan_extent(s) for s in scans]))
+    # how far the recorded poses may be off: as stated, or at most 30 spacings (1/8 of the
+    # scans' size) until the recorded poses' own misfit is measured below
     tolerance = (max(config.pose_tolerance, 4.0 * spacing) if config.pose_tolerance
                  else min(30.0 * spacing, extent / 8.0))
     pw = config.pairwise
@@ -638,6 +716,12 @@ def register_scans(
             if have[i] and have[j] and _pair_overlap(m, i, j) >= config.min_overlap
         }
     chosen = set(select_pairs(candidates, config.max_neighbours))
+    if not config.pose_tolerance:
+        misfit = pose_misfit({k: world[k] for k in coarse}, {k: np.asarray(c.normals) for k, c in coarse.items()},
+                             sorted(chosen), reach, max_samples=config.overlap_samples)
+        if misfit is not None:
+            tolerance = float(np.clip(MISFIT_FACTOR * misfit, 4.0 * spacing, tolerance))
+            log.info("recorded poses: median misfit %.2f mm, tolerance %.1f mm", misfit, tolerance)
     first = replace(
         pw,
         initial_distance=pw.initial_distance or tolerance,
@@ -707,6 +791,14 @@ def register_scans(
 
     # 3. pose graph
     poses, _ = _solve(n, edges, root, poses0.get(root, np.eye(4)), spacing, config, names, rejected)
+    # a recorded pose holds where the pose graph moved it beyond its tolerance (as a pair
+    # that moves that far is rejected): the slide of some edges along a symmetric surface
+    for k in sorted(set(poses) & set(poses0)):
+        moved = _median_displacement(poses[k], poses0[k], world[k], poses0[k])
+        if moved > 2 * tolerance:
+            log.info("%s: the pose graph moved it %.1f mm from its recorded pose (tolerance %.1f mm); "
+                     "refined from the recorded pose", names[k], moved, tolerance)
+            poses[k] = poses0[k].copy()
 
     # 4. joint refinement over the pairs that overlap under the optimised poses
     pairs: list[tuple[int, int]] = []
