@@ -710,7 +710,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-gray-smooth", action="store_true",
                    help="Gray code: keep each row's edge position as found instead of averaging it with the "
                         "same edge on the rows either side ([1, 2, 1] / 4; the default: mean error in the "
-                        "virtual concave corner 0.034 -> 0.024 mm)")
+                        "virtual concave corner 0.034 -> 0.023 mm)")
     p.add_argument("--gray-drop-bits", type=int, default=0, metavar="N",
                    help="Gray code: a pixel whose finest bits are washed out (translucent material, "
                         "defocus) keeps the code of its leading reliable bits if at most N are missing "

@@ -114,7 +114,7 @@ class DecodeConfig:
     filters its line signal across rows: each row's crossing is found from that row alone,
     and its noise (sensor, JPEG) drops to about 0.6 of itself. Mean error at full size
     (``benchmarks/light_transport.py --decoders robust,robust@gray_smooth=false``):
-    concave corner 0.034 -> 0.024 mm, bronze 0.056 -> 0.052, figurine 0.052 -> 0.051;
+    concave corner 0.034 -> 0.023 mm, bronze 0.056 -> 0.052, figurine 0.051 -> 0.050;
     False: every edge from its own row, as before."""
     gray_drop_bits: int = 0
     """Gray code: a pixel whose finest bits are weak or unreliable (subsurface scattering
