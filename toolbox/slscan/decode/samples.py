@@ -111,25 +111,34 @@ class StripeSamples:
         one neighbour is 3.2x (hybrid) and 2.0x (Gray code) that of samples with two
         (``benchmarks/line_ends.py``).
         """
+        previous, following = self._along_feature(max_dx)
+        return (np.isfinite(previous).astype(np.int8) + np.isfinite(following)).astype(np.int8)
+
+    def _along_feature(self, max_dx: float) -> tuple[np.ndarray, np.ndarray]:
+        """(k,) positions along their lines (``lines()``) of the same feature on the line
+        before and after each sample, the nearer of up to two within ``max_dx`` px (a line
+        may cross one plane twice); NaN where there is none."""
         n = len(self)
-        out = np.zeros(n, np.int8)
         if n == 0:
-            return out
+            return np.zeros(0), np.zeros(0)
         rows, x = self.lines()  # rows and x, or columns and y for samples found along columns
         stripes = np.asarray(self.stripe, np.int64) - int(np.min(self.stripe))
         span = int(stripes.max()) + 1
         keys = rows * span + stripes
         order = np.argsort(keys, kind="stable")
         sorted_keys = keys[order]
+        found = []
         for step in (-span, span):
             wanted = keys + step
             first = np.searchsorted(sorted_keys, wanted)
-            near = np.zeros(n, bool)
-            for extra in (0, 1):  # a row may cross one plane twice: look at two candidates
+            best = np.full(n, np.nan)
+            for extra in (0, 1):
                 at = np.minimum(first + extra, n - 1)
-                near |= (sorted_keys[at] == wanted) & (np.abs(x[order[at]] - x) <= max_dx)
-            out += near
-        return out
+                cand = x[order[at]]
+                ok = (sorted_keys[at] == wanted) & (np.abs(cand - x) <= max_dx)
+                best = np.where(ok & ~(np.abs(best - x) <= np.abs(cand - x)), cand, best)
+            found.append(best)
+        return found[0], found[1]
 
     def smoothed(self, max_dx: float = CONTINUITY_PX) -> StripeSamples:
         """The samples with each position averaged along its feature, ``[1, 2, 1] / 4``
@@ -142,27 +151,10 @@ class StripeSamples:
         For Gray-code edges, where each row's crossing is found from that row alone; the
         hybrid decoder filters its line signal across rows before finding maxima instead.
         """
-        n = len(self)
-        if n == 0:
+        if len(self) == 0:
             return self
-        rows, x = self.lines()
-        stripes = np.asarray(self.stripe, np.int64) - int(np.min(self.stripe))
-        span = int(stripes.max()) + 1
-        keys = rows * span + stripes
-        order = np.argsort(keys, kind="stable")
-        sorted_keys = keys[order]
-        near_x = []
-        for step in (-span, span):
-            wanted = keys + step
-            first = np.searchsorted(sorted_keys, wanted)
-            best = np.full(n, np.nan)
-            for extra in (0, 1):  # a row may cross one plane twice: the nearer of two candidates
-                at = np.minimum(first + extra, n - 1)
-                cand = x[order[at]]
-                ok = (sorted_keys[at] == wanted) & (np.abs(cand - x) <= max_dx)
-                closer = ok & ~(np.abs(best - x) <= np.abs(cand - x))
-                best = np.where(closer, cand, best)
-            near_x.append(best)
+        _, x = self.lines()
+        near_x = self._along_feature(max_dx)
         both = np.isfinite(near_x[0]) & np.isfinite(near_x[1])
         pos = np.where(both, 0.5 * x + 0.25 * (near_x[0] + near_x[1]), x)
         if self.along_columns is None or not np.any(self.along_columns):
