@@ -112,7 +112,7 @@ class Optics:
         3.0 %, 1024: 1.1 %; where the indirect light is a quarter of the direct, 128 samples
         leave about 1.4 % of the image in smooth blotches a receiver step wide. Under fine
         patterns each ray reads the pattern over its patch (:func:`slscan.virtual.transport.
-        path_footprint`), which makes 128 rays as good as about 800 point reads there
+        path_footprint`), which makes 128 rays as good as about 400 point reads there (finest Gray bit, ``benchmarks/transport_cost.py``)
     interreflection_stride : camera px between receivers (the indirect light is smooth, so
         it is gathered on this grid and interpolated)
     """
