@@ -48,8 +48,13 @@ class ProgressBar:
             self._progress.__exit__(*exc)
 
     def step(self, label: str = "") -> None:
+        """Advance by one; a task that outgrows its estimated total (a stage's size is a
+        guess before it runs: pairs to register, textures to bake) grows the total with it
+        rather than showing more done than there is (``17/12``)."""
         if not self.quiet:
-            self._progress.update(self._task, advance=1, label=label)
+            task = next(t for t in self._progress.tasks if t.id == self._task)
+            grow = {} if task.total is None or task.completed + 1 <= task.total else {"total": task.completed + 1}
+            self._progress.update(self._task, advance=1, label=label, **grow)
 
     def update(self, done: int, total: int, label: str = "") -> None:
         if not self.quiet:
