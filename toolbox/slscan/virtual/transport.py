@@ -310,8 +310,9 @@ def trace_indirect(scene, rig, rig_from_object: np.ndarray, vertices: np.ndarray
     v0, v1, v2 = vertices[tri[:, 0]], vertices[tri[:, 1]], vertices[tri[:, 2]]
     geo_n = np.cross(v1 - v0, v2 - v0)
     geo_n /= np.linalg.norm(geo_n, axis=1, keepdims=True)
-    cos_secondary = np.abs(np.einsum("ij,ij->i", geo_n, dirs))
-    facing = np.einsum("ij,ij->i", geo_n, dirs) < 0
+    along = np.einsum("ij,ij->i", geo_n, dirs)
+    cos_secondary = np.abs(along)
+    facing = along < 0
     geo_n[~facing] *= -1  # the side the receiver sees
     wts = np.stack([1 - bary[:, 0] - bary[:, 1], bary[:, 0], bary[:, 1]], axis=1)
     n = shading_normals(scene, rig_from_object[:3, :3], tri, wts, geo_n, facing)
