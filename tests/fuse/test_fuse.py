@@ -24,8 +24,9 @@ from slscan.fuse import (
     read_mesh,
     write_mesh,
 )
+from slscan.meshes import boundary_vertices
 from slscan.register.rangescan import render_range_scan
-from slscan.simplify import boundary_vertices, simplify_mesh
+from slscan.simplify import simplify_mesh
 
 RADIUS = 50.0
 DIRECTIONS = [

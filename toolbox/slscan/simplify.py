@@ -196,21 +196,6 @@ def _quadric(
     return m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
 
 
-def boundary_vertices(faces: np.ndarray) -> np.ndarray:
-    """Sorted indices of the vertices on open boundaries (edges used by one face only).
-
-    faces : (m, 3) int
-    """
-    f = np.asarray(faces, np.int64)
-    if len(f) == 0:
-        return np.zeros(0, np.int64)
-    edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    key = edges[:, 0] * (int(f.max()) + 1) + edges[:, 1]
-    unique, counts = np.unique(key, return_counts=True)
-    single = np.isin(key, unique[counts == 1])
-    return np.unique(edges[single].reshape(-1))
-
-
 def simplify_file(
     source: str | os.PathLike,
     target: str | os.PathLike,

@@ -45,6 +45,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from slscan.errors import SlscanError
+from slscan.meshes import boundary_vertices
 from slscan.register.pairwise import (
     PairwiseConfig,
     PairwiseResult,
@@ -471,16 +472,10 @@ def usable_rim(scan: RangeScan, min_quality: float) -> np.ndarray:
     and the edges of its holes), or usable vertices in no such face."""
     usable = scan.quality >= min_quality
     faces = scan.faces[usable[scan.faces].all(axis=1)]
-    rim = usable.copy()
-    if len(faces):
-        edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
-        keys, count = np.unique(edges[:, 0].astype(np.int64) * len(usable) + edges[:, 1], return_counts=True)
-        once = keys[count == 1]
-        in_face = np.zeros(len(usable), bool)
-        in_face[faces.ravel()] = True
-        rim = usable & ~in_face
-        rim[once // len(usable)] = True
-        rim[once % len(usable)] = True
+    in_face = np.zeros(len(usable), bool)
+    in_face[faces.ravel()] = True
+    rim = usable & ~in_face
+    rim[boundary_vertices(faces)] = True
     return rim
 
 
