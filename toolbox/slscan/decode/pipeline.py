@@ -447,6 +447,11 @@ def decode_session(
     return results
 
 
+def _few(names: Sequence[str], shown: int = 5) -> str:
+    """The first ``shown`` view names for a warning, "..." for the rest."""
+    return ", ".join(names[:shown]) + (", ..." if len(names) > shown else "")
+
+
 THIN_SAMPLES_SHARE = 0.5
 """A hybrid view whose line samples reach less than this share of its lit pixels
 (:meth:`StripeSamples.sampled_share`) gets the :func:`_hint_washed_lines` warning: 0.11 on
@@ -471,7 +476,7 @@ def _hint_washed_lines(results: Sequence[ViewDecode], session: Session) -> None:
         "lines wash out (subsurface scattering in marble, alabaster or wax; strong defocus). To cover such "
         "surfaces, %s: on the virtual marble bust under subsurface scattering, coverage 0.11 with the hybrid "
         "pattern, 0.95 with Gray code at 0.10 mm mean error.",
-        len(thin), len(results), ", ".join(v for v, _ in thin[:5]) + (", ..." if len(thin) > 5 else ""),
+        len(thin), len(results), _few([v for v, _ in thin]),
         "/".join(f"{share:.0%}" for _, share in thin[:5]), remedy)
 
 
@@ -499,7 +504,7 @@ def _hint_drop_bits(results: Sequence[ViewDecode], config: DecodeConfig) -> None
             "bust under subsurface scattering: coverage 0.12 -> 0.95 at twice the mean error; kamino410's real "
             "captures: 15-20 %% more pixels decode, 0.04-0.35 %% of neighbouring pixels out of order instead "
             "of <= 0.01 %%).",
-            len(washed), len(results), ", ".join(washed[:5]) + (", ..." if len(washed) > 5 else ""),
+            len(washed), len(results), _few(washed),
             100 * WASHED_OUT_SHARE)
 
 
