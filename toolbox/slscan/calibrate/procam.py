@@ -47,7 +47,6 @@ from slscan.calibrate.camera import distortion_flags, lens_from_opencv
 from slscan.calibrate.target import MIN_CORNERS, Board, CornerDetection, pose_matrix
 from slscan.capture.session import Session, ViewRecord
 from slscan.decode.graycode import GrayResult, decode_gray_images
-from slscan.decode.masks import channel_mean, full_scale
 from slscan.errors import SlscanError
 from slscan.rig import PinholeModel, Projector, Rig
 
@@ -211,15 +210,15 @@ def decode_gray_axes(session: Session, view: ViewRecord) -> GrayAxes:
 
     images = {d.id: read(d.id) for d in descs}
     white, black = read(flat[(255, 255, 255)]), read(flat[(0, 0, 0)])
-    columns = decode_gray_images(images, descs, white, black, where=where)
+    # lossy (JPEG) RGB captures read as luma, as decode_gray reads them
+    columns = decode_gray_images(images, descs, white, black, where=where, luma=session.lossy)
     swap = {"rows": "columns", "columns": "rows"}
     descs_t = [replace(d, axis=swap[d.axis], width=d.height, height=d.width) for d in descs]
 
-    scale = np.float32(1.0 / full_scale(white, f"{where}: white"))
-
     def t(image: np.ndarray) -> np.ndarray:
-        """Transposed grey image, float32 in [0, 1] (the decoder reads RGB as the mean)."""
-        return np.ascontiguousarray((channel_mean(image) * scale).T)
+        """The capture transposed (rows for columns), channels and values as they are, so
+        the decoder reads it as it read the capture."""
+        return np.ascontiguousarray(np.swapaxes(image, 0, 1))
 
     rows = decode_gray_images(
         {k: t(v) for k, v in images.items()},
@@ -228,6 +227,7 @@ def decode_gray_axes(session: Session, view: ViewRecord) -> GrayAxes:
         t(black),
         where=where,
         noise=columns.noise,
+        luma=session.lossy,
     )
     e = rows.edges
     return GrayAxes(
