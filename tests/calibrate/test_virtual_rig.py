@@ -190,5 +190,5 @@ def test_no_row_codes_no_inverse_camera(session, tmp_path):
     for v in meta["views"]:
         v["images"] = [r for r in v["images"] if "gray-row" not in r.get("pattern", "")]
     (copy / "session.json").write_text(json.dumps(meta))
-    with pytest.raises(SlscanError, match="needs Gray-code row patterns"):
+    with pytest.raises(SlscanError, match="needs projector row patterns"):
         calibrate_session(copy, CalibrationConfig(board=BOARD, method="inverse-camera"))

@@ -110,10 +110,10 @@ def test_hybrid_sets_have_no_codes(tmp_path, capsys):
         tmp_path / "hybrid",
     )
     assert main(["decode", str(session.root), "--out", str(tmp_path / "x"), "--codes", "--quiet"]) == 2
-    assert "codes are written for Gray-code pattern sets only" in capsys.readouterr().err
+    assert "codes are written for Gray-code and phase-shifting pattern sets only" in capsys.readouterr().err
     copy = _uncalibrated(session, tmp_path / "copy")
     assert main(["decode", str(copy), "--out", str(tmp_path / "y"), "--quiet"]) == 2
-    assert "codes are written for Gray-code pattern sets only" in capsys.readouterr().err
+    assert "codes are written for Gray-code and phase-shifting pattern sets only" in capsys.readouterr().err
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
 
 

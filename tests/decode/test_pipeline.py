@@ -97,16 +97,16 @@ def test_a_session_with_a_missing_image_writes_no_range_map(figurine, tmp_path):
 
 
 def test_gray_threshold_reaches_the_decoder(figurine, monkeypatch):
-    from slscan.decode import pipeline
+    from slscan.decode import graycode
 
     seen = []
-    real = pipeline.decode_gray
+    real = graycode.decode_gray
 
     def spy(session, view, **options):
         seen.append(options)
         return real(session, view, **options)
 
-    monkeypatch.setattr(pipeline, "decode_gray", spy)
+    monkeypatch.setattr(graycode, "decode_gray", spy)
     res = decode_view(figurine, figurine.views[0], DecodeConfig(method="gray", gray_threshold="opencv"))
     assert seen == [{"threshold": "opencv", "robust": True, "drop_bits": 0}] and len(res.samples) > 1000
     decode_view(figurine, figurine.views[0], DecodeConfig(method="gray", gray_robust=False, gray_drop_bits=2))

@@ -170,14 +170,16 @@ def test_a_change_in_decode_is_caught(rerun, tmp_path, monkeypatch):
 
 
 def test_dropped_samples_are_caught(rerun, tmp_path, monkeypatch):
-    real = pipeline.decode_hybrid
+    from slscan.decode import hybrid
+
+    real = hybrid.decode_hybrid
 
     def lossy(*args, **kw):
         result = real(*args, **kw)
         keep = np.arange(len(result.samples)) % 10 != 0  # a 'bug' losing a tenth of the lines
         return type(result)(**{**result.__dict__, "samples": result.samples.subset(keep)})
 
-    monkeypatch.setattr(pipeline, "decode_hybrid", lossy)
+    monkeypatch.setattr(hybrid, "decode_hybrid", lossy)
     failed = _caught(_rerun(rerun, tmp_path, again=("decode",)), "decode")
     assert {"view_000/samples", "view_000/vertices"} <= set(failed)
 

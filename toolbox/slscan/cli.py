@@ -38,6 +38,7 @@ def _folder_size(path: Path) -> int:
 
 
 def _add_capture_options(p: argparse.ArgumentParser) -> None:
+    from slscan.patterns import add_pattern_arguments
     from slscan.viewer.recording import add_recording_arguments
 
     p.add_argument("--out", required=True, type=Path, help="capture-session folder to create")
@@ -51,8 +52,7 @@ def _add_capture_options(p: argparse.ArgumentParser) -> None:
     from slscan.capture.command import add_placement_arguments
 
     add_placement_arguments(p)
-    p.add_argument("--patterns", choices=("hybrid", "gray", "both", "xor"), default="hybrid",
-                   help="coded patterns after white and black (default: hybrid; xor: Gupta's XOR-04 Gray codes)")
+    add_pattern_arguments(p)
     p.add_argument("--levels", type=int, default=9, help="hybrid subdivision levels (default 9: 511 lines)")
     p.add_argument("--gray-rows", action="store_true", help="also project row Gray codes")
     p.add_argument("--no-lit", action="store_true", help="skip the 6 ring-light images")
@@ -87,6 +87,7 @@ def _check_scale(scale: float) -> None:
 
 def _cmd_capture(args: argparse.Namespace) -> int:
     from slscan.capture.command import placement_settings
+    from slscan.patterns import pattern_options, set_families
     from slscan.viewer.layouts import capture_blueprint
     from slscan.viewer.recording import recording_from_args
     from slscan.virtual.device import VirtualCaptureConfig, capture_session, images_per_view
@@ -95,12 +96,12 @@ def _cmd_capture(args: argparse.Namespace) -> int:
     _check_scale(args.scale)
     config = VirtualCaptureConfig(
         scene=args.scene, views=args.views, patterns=args.patterns, levels=args.levels,
-        gray_rows=args.gray_rows, lit_images=not args.no_lit, camera_scale=args.scale,
+        pattern_options=pattern_options(args), gray_rows=args.gray_rows, lit_images=not args.no_lit, camera_scale=args.scale,
         projector_scale=args.scale, seed=args.seed,
         sensor=Sensor(bit_depth=args.bit_depth, exposure=args.exposure, gain=args.gain, noise=not args.no_noise),
         **placement_settings(args),
     )
-    if config.patterns not in ("gray", "xor"):
+    if "hybrid" in set_families(config.patterns):
         # keep two projector pixels per line on a smaller projector
         width = config.rig().projector.lens.width
         max_levels = int(math.log2(max(4, width))) - 1
@@ -498,9 +499,10 @@ def _cmd_regress(args: argparse.Namespace) -> int:
 
 
 def _cmd_patterns(args: argparse.Namespace) -> int:
-    from slscan.patterns import standard_set, write_pattern_set
+    from slscan.patterns import pattern_options, standard_set, write_pattern_set
 
-    images = standard_set(args.family, width=args.width, height=args.height, levels=args.levels, rows=args.rows)
+    images = standard_set(args.family, width=args.width, height=args.height, levels=args.levels, rows=args.rows,
+                          **pattern_options(args))
     write_pattern_set(args.out, images, overwrite=args.overwrite)
     _console().print(f"[green]wrote[/] {len(images)} pattern images and patterns.json to {args.out}")
     return 0
@@ -644,6 +646,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"slscan {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="more log messages")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    from slscan.patterns import add_pattern_arguments, decodable
 
     p = sub.add_parser(
         "demo", help="scan the built-in figurine on the virtual rig, end to end to a textured model (start here)",
@@ -691,9 +694,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("session", type=Path, help="capture-session folder, or a multi-camera folder (cameras.json)")
     p.add_argument("--out", required=True, type=Path, help="folder for the range maps (and projector codes)")
-    p.add_argument("--method", choices=("auto", "hybrid", "gray"), default="auto",
-                   help="which patterns to decode (default auto: hybrid when captured, but Gray code "
-                        "when the captures are lossy (JPEG) and have it)")
+    p.add_argument("--method", choices=("auto", *decodable()), default="auto",
+                   help="which patterns to decode (default auto: phase shifting when captured, else hybrid, "
+                        "else Gray code; Gray code rather than hybrid when the captures are lossy (JPEG))")
     p.add_argument("--estimator", choices=ESTIMATORS, default=DEFAULT_ESTIMATOR,
                    help=f"green-line sub-pixel estimator (default {DEFAULT_ESTIMATOR})")
     p.add_argument("--trim-line-ends", type=int, default=0, metavar="ROWS",
@@ -824,12 +827,11 @@ def build_parser() -> argparse.ArgumentParser:
                     "order) and patterns.json describing each one.",
     )
     p.add_argument("--out", required=True, type=Path, help="folder to create")
-    p.add_argument("--family", choices=("hybrid", "gray", "both", "xor"), default="hybrid",
-                   help="default: hybrid (xor: Gupta's XOR-04 Gray codes)")
+    add_pattern_arguments(p, flag="--family")
     p.add_argument("--width", type=int, default=1024, help="projector width, px (default 1024)")
     p.add_argument("--height", type=int, default=768, help="projector height, px (default 768)")
     p.add_argument("--levels", type=int, default=9, help="hybrid levels (default 9: 511 lines)")
-    p.add_argument("--rows", action="store_true", help="Gray code: also row patterns")
+    p.add_argument("--rows", action="store_true", help="Gray code and phase shifting: also row patterns")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.set_defaults(func=_cmd_patterns)
 

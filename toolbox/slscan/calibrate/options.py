@@ -10,8 +10,9 @@ DISTORTION_MODELS = ("none", "radial", "radial-tangential", "full")
 """Lens models: no distortion; ``k1, k2``; ``k1, k2, p1, p2``; ``k1, k2, p1, p2, k3``."""
 METHODS = ("planes", "inverse-camera", "both")
 """Projector models: the paper's light planes, an inverse camera, or both."""
-PLANE_PATTERNS = ("auto", "hybrid", "gray")
-"""Features whose light planes are measured (auto: hybrid lines when captured)."""
+PLANE_PATTERNS = ("auto", "phase", "hybrid", "gray")
+"""Features whose light planes are measured (auto: the first family captured of phase
+shifting, hybrid lines, Gray code; the pattern registry's "auto" order)."""
 CORRESPONDENCES = ("edges", "pixels")
 """Local homographies from Gray-code stripe edges or from decoded pixels."""
 BOARD_KINDS = ("chessboard", "charuco")

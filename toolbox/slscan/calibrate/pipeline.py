@@ -39,16 +39,16 @@ from slscan.calibrate.procam import (
     InverseCameraCalibration,
     ProjectorCorners,
     calibrate_inverse_camera,
-    decode_gray_axes,
     default_half_window,
     projector_corners,
     projector_corners_from_edges,
 )
 from slscan.calibrate.target import Board, CornerDetection, board_image_id, board_pose
 from slscan.capture.session import Session, load_session
-from slscan.decode.graycode import decode_gray, gray_pairs
-from slscan.decode.hybrid import decode_hybrid
+from slscan.decode.family import decoder_function
+from slscan.decode.pipeline import DecodeConfig
 from slscan.errors import SlscanError
+from slscan.patterns import Family, families_in, family
 
 log = logging.getLogger(__name__)
 
@@ -64,8 +64,9 @@ class CalibrationConfig:
     method: str = "both"
     """{"planes", "inverse-camera", "both"}: the projector's model(s)."""
     planes_pattern: str = "auto"
-    """{"auto", "hybrid", "gray"}: features whose planes are measured; "auto" takes the
-    hybrid green lines when the session has them, else the Gray-code edges."""
+    """{"auto", "phase", "hybrid", "gray"}: features whose planes are measured; "auto" takes
+    the first family the session has in the pattern registry's "auto" order (phase shifting,
+    hybrid green lines, Gray-code edges)."""
     camera_distortion: str = "radial-tangential"
     """Camera lens model: {"none", "radial", "radial-tangential", "full"}."""
     projector_distortion: str = "radial-tangential"
@@ -136,15 +137,38 @@ class CalibrationRun:
 
 
 def plane_pattern(session: Session, wanted: str = "auto") -> str:
-    """The features the planes method measures in ``session``: "hybrid" or "gray"."""
-    families = {p.family for p in session.patterns}
+    """The family whose features the planes method measures in ``session`` ("hybrid",
+    "gray", "phase"): the one asked, or with "auto" the first present in "auto" order."""
+    present = families_in(session.patterns)
     if wanted == "auto":
-        wanted = "hybrid" if "hybrid" in families else "gray"
-    if wanted == "gray" and not gray_pairs(session.patterns, "columns"):
-        raise SlscanError(f"{session.root}: the session has no Gray-code column patterns")
-    if wanted == "hybrid" and "hybrid" not in families:
-        raise SlscanError(f"{session.root}: the session has no hybrid patterns")
+        if not present:
+            raise SlscanError(f"{session.root}: the session has no coded patterns to measure light planes with")
+        return present[0].name
+    if wanted not in {f.name for f in present}:
+        raise SlscanError(f"{session.root}: the session has no {wanted} patterns")
     return wanted
+
+
+def row_family(session: Session) -> Family:
+    """The family that gives the projector rows the inverse-camera method needs (the first
+    present in "auto" order that codes rows and has them in this session)."""
+    for fam in families_in(session.patterns):
+        if fam.rows and any(p.family == fam.name and p.axis == "rows" for p in session.patterns):
+            return fam
+    raise SlscanError(
+        f"{session.root}: the inverse-camera method needs projector row patterns (Gray code or phase "
+        "shifting with rows), the session has none (capture with row codes, or use --method planes)"
+    )
+
+
+PLANE_DECODE = DecodeConfig(gray_smooth=False)
+"""The decode settings the planes method measures features with: the decode stage's
+defaults, but Gray-code edges as found in each row (not averaged along the edge), as the
+light planes were fitted before edge averaging existed."""
+
+
+def _plane_samples(session: Session, view, pattern: str):
+    return family(pattern).decode_module().decode(session, view, PLANE_DECODE).samples
 
 
 def calibration_steps(session: Session, config: CalibrationConfig) -> int:
@@ -200,11 +224,7 @@ def calibrate_session(
         if progress is not None:
             progress(done, total, label)
 
-    if "inverse-camera" in methods and not gray_pairs(session.patterns, "rows"):
-        raise SlscanError(
-            f"{session.root}: the inverse-camera method needs Gray-code row patterns, the session has "
-            "none (capture with row codes, or use --method planes)"
-        )
+    rows_from = row_family(session) if "inverse-camera" in methods else None
     pattern = plane_pattern(session, config.planes_pattern) if "planes" in methods else None
 
     # 1. corners and the camera
@@ -233,20 +253,18 @@ def calibrate_session(
         (i, v, d) for i, (v, d) in enumerate(zip(session.views, detections)) if d.source in used
     ]
 
-    # 2. decode each view once
-    gray = {}
-    axes = {}
+    # 2. decode each view
+    codes = {}
     samples = {}
     for _, view, _ in views:
-        if "inverse-camera" in methods and config.correspondences == "edges":
-            axes[view.name] = decode_gray_axes(session, view)
-            gray[view.name] = axes[view.name].columns
-        elif "inverse-camera" in methods or pattern == "gray":
-            gray[view.name] = decode_gray(session, view)
-        if pattern == "gray":
-            samples[view.name] = gray[view.name].edges
-        elif pattern == "hybrid":
-            samples[view.name] = decode_hybrid(session, view).samples
+        if rows_from is not None and config.correspondences == "edges":
+            find = decoder_function(rows_from, "projector_constraints", "projector constraints")
+            codes[view.name] = find(session, view)
+        elif rows_from is not None:
+            find = decoder_function(rows_from, "projector_codes", "per-pixel projector codes")
+            codes[view.name] = find(session, view)
+        if pattern is not None:
+            samples[view.name] = _plane_samples(session, view, pattern)
         step(f"decode {view.name}")
 
     # 3. the projector as an inverse camera
@@ -256,12 +274,12 @@ def calibrate_session(
     if "inverse-camera" in methods:
         entries = []
         for _, view, det in views:
-            g = gray[view.name]
+            found = codes[view.name]
             half = config.window or default_half_window(det, board)
             if config.correspondences == "edges":
-                pc = projector_corners_from_edges(axes[view.name], det.corners, half_window=half)
+                pc = projector_corners_from_edges(found, det.corners, half_window=half)
             else:
-                pc = projector_corners(g.column, g.row, g.mask, det.corners, half_window=half)
+                pc = projector_corners(found.column, found.row, found.mask, det.corners, half_window=half)
             pcs[view.name] = pc
             entries.append((view.name, det, pc))
         inverse = calibrate_inverse_camera(

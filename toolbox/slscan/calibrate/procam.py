@@ -46,7 +46,8 @@ import numpy as np
 from slscan.calibrate.camera import distortion_flags, lens_from_opencv
 from slscan.calibrate.target import MIN_CORNERS, Board, CornerDetection, pose_matrix
 from slscan.capture.session import Session, ViewRecord
-from slscan.decode.graycode import GrayResult, decode_gray_images
+from slscan.decode.family import ProjectorConstraints
+from slscan.decode.graycode import GrayAxes, decode_gray_axes  # noqa: F401 (moved there; imported from here)
 from slscan.errors import SlscanError
 from slscan.rig import PinholeModel, Projector, Rig
 
@@ -164,79 +165,6 @@ def projector_corners(
     return ProjectorCorners(points, ok, support, residual)
 
 
-@dataclass(frozen=True)
-class GrayAxes:
-    """One view's Gray code decoded along both camera axes.
-
-    columns : the usual decode: projector column and row per camera pixel, and the column
-        edges along camera rows
-    rows : edges of the projector rows, as (k,) arrays ``x``, ``y`` (camera px; one of the two
-        sub-pixel, whichever axis crossed the stripes) and ``value`` (projector row ``r + 0.5``)
-    """
-
-    columns: GrayResult
-    row_x: np.ndarray
-    row_y: np.ndarray
-    row_value: np.ndarray
-
-
-def decode_gray_axes(session: Session, view: ViewRecord) -> GrayAxes:
-    """Decode a view's Gray code (with row codes), and the row edges along camera columns.
-
-    The row edges come from decoding the transposed images with rows and columns swapped
-    in the pattern descriptions (:func:`slscan.decode.graycode.decode_gray_images`). The
-    captures are read in linear light (:meth:`Session.read_image` ``linear=True``: an sRGB
-    camera's curve undone), as :func:`~slscan.decode.graycode.decode_gray` reads them, so
-    the column decode is the decode stage's and the thresholds and the direct/global split
-    see light, not tone-curve codes.
-
-    Raises
-    ------
-    SlscanError
-        The session has no row codes, or an image is missing or does not match.
-    """
-    from dataclasses import replace
-
-    descs = [p for p in session.patterns if p.family == "gray"]
-    if not any(d.axis == "rows" for d in descs):
-        raise SlscanError(f"{session.root}: the session has no Gray-code row patterns")
-    where = str(session.root / view.name)
-    flat = {tuple(p.params.get("value", [])): p.id for p in session.patterns if p.family == "flat"}
-    if (255, 255, 255) not in flat or (0, 0, 0) not in flat:
-        raise SlscanError(f"{session.root}: the pattern set needs all-white and all-black frames")
-
-    def read(pid: str) -> np.ndarray:
-        return session.read_image(view, view.image_for(pid), linear=True)
-
-    images = {d.id: read(d.id) for d in descs}
-    white, black = read(flat[(255, 255, 255)]), read(flat[(0, 0, 0)])
-    # lossy (JPEG) RGB captures read as luma, as decode_gray reads them
-    columns = decode_gray_images(images, descs, white, black, where=where, luma=session.lossy)
-    swap = {"rows": "columns", "columns": "rows"}
-    descs_t = [replace(d, axis=swap[d.axis], width=d.height, height=d.width) for d in descs]
-
-    def t(image: np.ndarray) -> np.ndarray:
-        """The capture transposed (rows for columns), channels and values as they are, so
-        the decoder reads it as it read the capture."""
-        return np.ascontiguousarray(np.swapaxes(image, 0, 1))
-
-    rows = decode_gray_images(
-        {k: t(v) for k, v in images.items()},
-        descs_t,
-        t(white),
-        t(black),
-        where=where,
-        noise=columns.noise,
-        luma=session.lossy,
-    )
-    e = rows.edges
-    return GrayAxes(
-        # the transposed decode's (x, y) are the camera's (y, x); its samples may have been
-        # found along either axis, so take the sub-pixel position either way
-        columns, e.camera_y, e.x.astype(float), e.projector_column.astype(float)
-    )
-
-
 def _dlt_homography(
     px: np.ndarray, py: np.ndarray, value: np.ndarray, is_row: np.ndarray
 ) -> np.ndarray | None:
@@ -259,7 +187,7 @@ def _dlt_homography(
 
 
 def projector_corners_from_edges(
-    axes: GrayAxes,
+    constraints: ProjectorConstraints,
     corners: np.ndarray,
     *,
     half_window: int,
@@ -271,7 +199,9 @@ def projector_corners_from_edges(
 
     Parameters
     ----------
-    axes : the view's column edges (along camera rows) and row edges (along camera columns)
+    constraints : camera points with a known projector column or row: the Gray code's
+        column edges (along camera rows) and row edges (along camera columns), or phase
+        shifting's every decoded pixel (the family decoder's ``projector_constraints``)
     corners : (k, 2) float64 camera px
     half_window : camera px; edges within ``half_window`` of the corner (both axes) count
     min_support : fewest column edges and fewest row edges, each; default ``half_window``
@@ -289,11 +219,8 @@ def projector_corners_from_edges(
     D. Moreno, G. Taubin, "Simple, accurate, and robust projector-camera calibration",
     3DIMPVT 2012 (local homographies; here fitted to stripe edges instead of pixels).
     """
-    e = axes.columns.edges
-    cx_all = np.concatenate([e.x, axes.row_x.astype(float)])
-    cy_all = np.concatenate([e.camera_y, axes.row_y])  # edges found along rows or columns
-    val_all = np.concatenate([e.projector_column, axes.row_value])
-    is_row_all = np.concatenate([np.zeros(len(e), bool), np.ones(len(axes.row_x), bool)])
+    cx_all, cy_all = constraints.x, constraints.y
+    val_all, is_row_all = constraints.value, constraints.is_row
     corners = np.asarray(corners, float).reshape(-1, 2)
     k = len(corners)
     min_support = half_window if min_support is None else int(min_support)

@@ -67,11 +67,13 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
                           "default: virtual on the virtual rig, none on a real one")
     dev.add_argument("--light-count", type=int, default=6, help="manual lights: how many (default 6)")
     pat = p.add_argument_group("patterns")
-    pat.add_argument("--patterns", choices=("hybrid", "gray", "both", "xor"), default="hybrid",
-                     help="coded patterns after white and black (default: hybrid; xor: Gupta's XOR-04 Gray codes)")
+    from slscan.patterns import add_pattern_arguments
+
+    add_pattern_arguments(pat)
     pat.add_argument("--levels", type=int, default=None,
                      help="hybrid levels (default: as many as keep 2 projector px per line, 9 at 1024 px)")
-    pat.add_argument("--gray-rows", action="store_true", help="also project row Gray codes")
+    pat.add_argument("--gray-rows", action="store_true",
+                     help="also code the projector rows (Gray code, phase shifting)")
     p.add_argument("--views", type=int, default=1, help="views to capture (default 1); you are asked "
                    "to move the object between views")
     cam = p.add_argument_group("exposure and timing")
@@ -92,7 +94,8 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
                      help="the rig's calibration (slscan calibrate): recorded in the session, used by the quick decode")
     cal.add_argument("--board", metavar="COLSxROWS", default=None,
                      help="capture a calibration board instead (inner corners, e.g. 9x7): Gray code with rows "
-                          "and hybrid, no lit images, corners found live in each pose; then run slscan calibrate")
+                          "and hybrid (or the --patterns asked, with rows, e.g. phase), no lit images, corners "
+                          "found live in each pose; then run slscan calibrate")
     cal.add_argument("--square", type=float, default=50.0, help="board square side, mm (default 50)")
     cal.add_argument("--target", choices=("chessboard", "charuco"), default="chessboard", help="board kind")
     sim = p.add_argument_group("virtual rig (--camera virtual or loop)")
@@ -186,10 +189,13 @@ def _levels(args, width: int) -> int:
 
 
 def _pattern_set(args, width: int, height: int):
-    from slscan.patterns import standard_set
+    from slscan.patterns import pattern_options, standard_set
 
-    family, rows = ("both", True) if args.board else (args.patterns, args.gray_rows)
-    return standard_set(family, width=width, height=height, levels=_levels(args, width), rows=rows)
+    family, rows = args.patterns, args.gray_rows
+    if args.board:  # projector rows for the inverse camera; the hybrid's lines for the light planes
+        family, rows = ("both" if family == "hybrid" else family), True
+    return standard_set(family, width=width, height=height, levels=_levels(args, width), rows=rows,
+                        **pattern_options(args))
 
 
 def _board(args):
@@ -349,6 +355,7 @@ class AfterView:
     def _decode(self, index: int, record, session) -> ViewReport:
         from slscan.decode.pipeline import DecodeConfig, choose_method, decode_view
         from slscan.decode.rangemap import covered_pixels
+        from slscan.patterns import family
         from slscan.viewer import log_decode
         from slscan.viewer.log_scan import log_code_map, log_holes
 
@@ -360,17 +367,8 @@ class AfterView:
             session = apply_calibration(session, self.rig.measured)
             planes = calibration_planes(self.rig.measured)
         if session.calibration is None:
-            method = choose_method(session)
-            if method == "hybrid":
-                from slscan.decode.hybrid import decode_hybrid
-
-                res = decode_hybrid(session, view)
-                codes, code_max = res.codes, max(int(res.codes.max()), 1)
-            else:
-                from slscan.decode.graycode import decode_gray
-
-                res = decode_gray(session, view)
-                codes, code_max = res.column, session.projector_size[0]
+            res = family(choose_method(session)).decode_module().decode(session, view, DecodeConfig())
+            codes, code_max = res.codes, max(res.code_max, 1)
             log_code_map(self.rec, log_decode.colormap(codes.astype(np.float64), code_max), view_index=index)
             share = float(res.mask.mean())
             return ViewReport(record.name, decodable=share,

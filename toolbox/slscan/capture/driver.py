@@ -27,7 +27,7 @@ import numpy as np
 
 from slscan.capture.session import ImageRecord, Session, SessionWriter, ViewRecord
 from slscan.devices.base import Camera, DeviceError, Frame, Lights, Projector, Stage
-from slscan.patterns import PatternImage, file_name, render
+from slscan.patterns import PatternImage, families_in, file_name, render
 
 log = logging.getLogger(__name__)
 
@@ -467,9 +467,14 @@ class ExposureResult:
 
 
 def finest_pattern(patterns) -> PatternImage | None:
-    """The pattern with the most lines (the last hybrid level, else the last Gray bit)."""
-    coded = [p for p in patterns if p.family in ("hybrid", "gray") and p.axis == "columns"]
-    return coded[-1] if coded else None
+    """The pattern with the finest detail of the set's first family in "auto" order (the
+    last hybrid level, the last Gray bit, the shortest fringe period), which exposure and
+    focus checks look at."""
+    for fam in families_in(patterns):
+        found = fam.finest(patterns) if fam.finest is not None else None
+        if found is not None:
+            return found
+    return None
 
 
 def _exposure_stats(white: np.ndarray, lines: np.ndarray | None, dark: np.ndarray) -> tuple[float, float]:

@@ -35,6 +35,7 @@ from slscan.decode.budget import fit_workers, warn_if_lossy
 from slscan.decode.graycode import GrayResult, decode_gray, gray_pairs
 from slscan.decode.masks import full_scale
 from slscan.errors import SlscanError
+from slscan.patterns import families_in
 from slscan.executor import LOCAL, Executor
 from slscan.fsio import atomic_output_dir, read_json, read_png, write_json, write_png
 
@@ -49,7 +50,7 @@ INVALID = 65535
 MIN_CONTRAST = 0.03
 NOISE_SIGMAS = 3.0
 """The defaults of :func:`~slscan.decode.graycode.decode_gray_images` the estimate assumes."""
-GRAY_ONLY = "projector codes are written for Gray-code pattern sets only"
+GRAY_ONLY = "projector codes are written for Gray-code and phase-shifting pattern sets only"
 
 
 @dataclass(frozen=True)
@@ -214,18 +215,27 @@ def valid_share(result: GrayResult, *, scale: float | None = None) -> ValidShare
 # --- codes from a decode ---------------------------------------------------------------------
 
 
+def codes_family(session: Session):
+    """The family of ``session``'s patterns that gives per-pixel projector codes (the
+    highest "auto" priority among them: phase shifting, then Gray code), or None."""
+    for fam in families_in(session.patterns):
+        if fam.decoder is not None and hasattr(fam.decode_module(), "projector_codes"):
+            return fam
+    return None
+
+
 def has_gray_codes(session: Session) -> bool:
-    """Whether the session's patterns hold Gray-code column patterns."""
-    return any(p.family == "gray" and p.axis == "columns" for p in session.patterns)
+    """Whether the session's patterns give per-pixel projector codes (Gray code, phase shifting)."""
+    return codes_family(session) is not None
 
 
 def require_gray_codes(session: Session) -> None:
-    """Raise a clear error when ``session`` has no Gray-code patterns to write codes from."""
+    """Raise a clear error when ``session`` has no patterns to write codes from."""
     if not has_gray_codes(session):
-        families = sorted({p.family for p in session.patterns}) or ["none"]
+        found = sorted({p.family for p in session.patterns}) or ["none"]
         raise SlscanError(
             f"{session.root / SESSION_FILE}: {GRAY_ONLY}; this session's patterns are "
-            f"{', '.join(families)} (decode hybrid sets to range maps with a calibration)"
+            f"{', '.join(found)} (decode hybrid sets to range maps with a calibration)"
         )
 
 
@@ -246,14 +256,20 @@ def codes_from_gray(result: GrayResult, session: Session, view: str) -> Projecto
     )
 
 
-def decode_codes(session: Session, view: ViewRecord | str, **options) -> ProjectorCodes:
-    """Decode one view's Gray code into :class:`ProjectorCodes` (no calibration needed).
+def decode_codes(session: Session, view: ViewRecord | str, config=None, **options) -> ProjectorCodes:
+    """Decode one view's projector codes (no calibration needed), with the family that
+    gives them (:func:`codes_family`).
 
-    ``options`` go to :func:`~slscan.decode.graycode.decode_gray`.
+    config : the decode stage's :class:`~slscan.decode.pipeline.DecodeConfig` (thresholds),
+        or None for the defaults; ``options`` go to :func:`~slscan.decode.graycode.decode_gray`
+        (Gray code only, when no ``config`` is given)
     """
     require_gray_codes(session)
     view = session.view(view) if isinstance(view, str) else view
-    return codes_from_gray(decode_gray(session, view, **options), session, view.name)
+    fam = codes_family(session)
+    if options and fam.name == "gray":
+        return codes_from_gray(decode_gray(session, view, **options), session, view.name)
+    return fam.decode_module().projector_codes(session, view, config)
 
 
 # --- files -----------------------------------------------------------------------------------

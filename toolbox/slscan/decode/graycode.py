@@ -61,6 +61,7 @@ from slscan.decode.masks import (
     lit_bounds,
     uncrop,
 )
+from slscan.decode.family import FamilyDecode, ProjectorConstraints
 from slscan.decode.samples import StripeSamples
 from slscan.errors import SlscanError
 from slscan.patterns import PatternImage
@@ -1375,3 +1376,121 @@ def decode_gray(session: Session, view: ViewRecord | str, **options) -> GrayResu
     if session.response != "linear":  # colour downstream from the capture as the camera saved it
         white = session.read_image(view, records[white_id])
     return replace(result, white=white)
+
+
+# --- the Gray-code family's decoder (slscan.patterns.graycode.FAMILY) ---------------------------
+
+
+@dataclass(frozen=True)
+class GrayAxes:
+    """One view's Gray code decoded along both camera axes.
+
+    columns : the usual decode: projector column and row per camera pixel, and the column
+        edges along camera rows
+    rows : edges of the projector rows, as (k,) arrays ``x``, ``y`` (camera px; one of the two
+        sub-pixel, whichever axis crossed the stripes) and ``value`` (projector row ``r + 0.5``)
+    """
+
+    columns: GrayResult
+    row_x: np.ndarray
+    row_y: np.ndarray
+    row_value: np.ndarray
+
+
+def decode_gray_axes(session: Session, view: ViewRecord) -> GrayAxes:
+    """Decode a view's Gray code (with row codes), and the row edges along camera columns.
+
+    The row edges come from decoding the transposed images with rows and columns swapped
+    in the pattern descriptions (:func:`slscan.decode.graycode.decode_gray_images`). The
+    captures are read in linear light (:meth:`Session.read_image` ``linear=True``: an sRGB
+    camera's curve undone), as :func:`~slscan.decode.graycode.decode_gray` reads them, so
+    the column decode is the decode stage's and the thresholds and the direct/global split
+    see light, not tone-curve codes.
+
+    Raises
+    ------
+    SlscanError
+        The session has no row codes, or an image is missing or does not match.
+    """
+    descs = [p for p in session.patterns if p.family == "gray"]
+    if not any(d.axis == "rows" for d in descs):
+        raise SlscanError(f"{session.root}: the session has no Gray-code row patterns")
+    where = str(session.root / view.name)
+    flat = {tuple(p.params.get("value", [])): p.id for p in session.patterns if p.family == "flat"}
+    if (255, 255, 255) not in flat or (0, 0, 0) not in flat:
+        raise SlscanError(f"{session.root}: the pattern set needs all-white and all-black frames")
+
+    def read(pid: str) -> np.ndarray:
+        return session.read_image(view, view.image_for(pid), linear=True)
+
+    images = {d.id: read(d.id) for d in descs}
+    white, black = read(flat[(255, 255, 255)]), read(flat[(0, 0, 0)])
+    # lossy (JPEG) RGB captures read as luma, as decode_gray reads them
+    columns = decode_gray_images(images, descs, white, black, where=where, luma=session.lossy)
+    swap = {"rows": "columns", "columns": "rows"}
+    descs_t = [replace(d, axis=swap[d.axis], width=d.height, height=d.width) for d in descs]
+
+    def t(image: np.ndarray) -> np.ndarray:
+        """The capture transposed (rows for columns), channels and values as they are, so
+        the decoder reads it as it read the capture."""
+        return np.ascontiguousarray(np.swapaxes(image, 0, 1))
+
+    rows = decode_gray_images(
+        {k: t(v) for k, v in images.items()},
+        descs_t,
+        t(white),
+        t(black),
+        where=where,
+        noise=columns.noise,
+        luma=session.lossy,
+    )
+    e = rows.edges
+    return GrayAxes(
+        # the transposed decode's (x, y) are the camera's (y, x); its samples may have been
+        # found along either axis, so take the sub-pixel position either way
+        columns, e.camera_y, e.x.astype(float), e.projector_column.astype(float)
+    )
+
+
+def decode(session: Session, view: ViewRecord | str, config) -> FamilyDecode:
+    """The Gray-code family's decode for a range map (:mod:`slscan.decode.family`): the
+    sub-pixel stripe edges, averaged along their edge when ``config.gray_smooth``, with the
+    mesh's bridge widened for sets missing low bits or pixels dropping them."""
+    from slscan.decode.codes import codes_from_gray, valid_share
+
+    view = session.view(view) if isinstance(view, str) else view
+    res = decode_gray(session, view, threshold=config.gray_threshold, robust=config.gray_robust,
+                      drop_bits=config.gray_drop_bits)
+    samples = res.edges.smoothed() if config.gray_smooth else res.edges
+    used, bits = res.bits_used.get("columns", (0, 0))
+    # a set missing low bits has edges 2**missing columns apart, and pixels with dropped bits
+    # 2**dropped: bridge one such spacing and a half (the default 6 columns already span blocks of 4)
+    gap = max(config.max_gap_columns, 1.5 * 2**config.gray_drop_bits) * 2 ** (bits - used)
+    return FamilyDecode(
+        samples=samples, mask=res.mask, codes=res.column, code_max=session.projector_size[0],
+        saturated=res.saturated, white=res.white, max_gap_columns=gap,
+        projector_codes=codes_from_gray(res, session, view.name), valid_share=valid_share(res),
+    )
+
+
+def projector_codes(session: Session, view: ViewRecord | str, config=None):
+    """The projector column and row at every decoded pixel (:class:`~slscan.decode.codes.ProjectorCodes`)."""
+    from slscan.decode.codes import codes_from_gray
+
+    view = session.view(view) if isinstance(view, str) else view
+    options = {} if config is None else {"threshold": config.gray_threshold, "robust": config.gray_robust}
+    return codes_from_gray(decode_gray(session, view, **options), session, view.name)
+
+
+def projector_constraints(session: Session, view: ViewRecord | str) -> ProjectorConstraints:
+    """The column edges (along camera rows) and row edges (along camera columns) as
+    one-coordinate constraints, for mapping board corners into the projector."""
+    view = session.view(view) if isinstance(view, str) else view
+    axes = decode_gray_axes(session, view)
+    e = axes.columns.edges
+    return ProjectorConstraints(
+        x=np.concatenate([np.asarray(e.x, np.float64), axes.row_x.astype(np.float64)]),
+        y=np.concatenate([e.camera_y, axes.row_y.astype(np.float64)]),
+        value=np.concatenate([np.asarray(e.projector_column, np.float64), axes.row_value]),
+        is_row=np.concatenate([np.zeros(len(e), bool), np.ones(len(axes.row_x), bool)]),
+    )

@@ -108,6 +108,7 @@ from slscan.decode.masks import (
     warn_saturation,
 )
 from slscan.decode.options import DEFAULT_ESTIMATOR, ESTIMATORS
+from slscan.decode.family import FamilyDecode
 from slscan.decode.samples import StripeSamples
 from slscan.errors import SlscanError
 from slscan.patterns import PatternImage
@@ -1546,3 +1547,16 @@ def decode_hybrid(
     if linear:  # colour and clipping downstream from the capture as the camera saved it
         result = replace(result, white=session.read_image(view, flat[0]))
     return result
+
+
+def decode(session: Session, view: ViewRecord | str, config) -> FamilyDecode:
+    """The hybrid family's decode for a range map (:mod:`slscan.decode.family`): the green
+    lines' sub-pixel axes, with ``config``'s estimator, colour unmixing, global-light and
+    paint-edge settings."""
+    res = decode_hybrid(
+        session, view, estimator=config.estimator, mixing=config.mixing, global_light=config.global_light,
+        paint_edges=config.paint_edges, max_line_sigma=config.max_line_sigma,
+    )
+    levels = len(hybrid_pattern_ids(session)[2])
+    return FamilyDecode(samples=res.samples, mask=res.mask, codes=res.codes, code_max=2**levels,
+                        saturated=saturation(res.white), white=res.white)

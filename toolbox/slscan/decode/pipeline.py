@@ -25,24 +25,19 @@ from slscan.decode.budget import fit_workers, warn_if_lossy
 from slscan.decode.codes import (
     ProjectorCodes,
     ValidShare,
-    codes_from_gray,
     decode_codes,
     require_gray_codes,
-    valid_share,
     write_codes_manifest,
     write_view_codes,
 )
-from slscan.decode.graycode import THRESHOLD_MODES, decode_gray
+from slscan.decode.graycode import THRESHOLD_MODES
 from slscan.decode.hybrid import (
     DEFAULT_ESTIMATOR,
     DEFAULT_MAX_LINE_SIGMA,
     DEFAULT_MIXING,
     ESTIMATORS,
     MIXING_MODES,
-    decode_hybrid,
-    hybrid_pattern_ids,
 )
-from slscan.decode.masks import saturation
 from slscan.decode.rangemap import (
     MAX_EDGE_FACTOR,
     MAX_GAP_COLUMNS,
@@ -56,10 +51,11 @@ from slscan.decode.triangulate import RigPlanes, triangulate
 from slscan.errors import SlscanError
 from slscan.executor import LOCAL, Executor
 from slscan.fsio import atomic_output_dir, write_json
+from slscan.patterns import decodable, families_in, family
 
 log = logging.getLogger(__name__)
 
-METHODS = ("auto", "hybrid", "gray")
+METHODS = ("auto", *decodable())
 RANGE_MAPS_FORMAT = "slscan.range-maps"
 RANGE_MAPS_VERSION = 1
 
@@ -69,9 +65,10 @@ class DecodeConfig:
     """How the decode stage turns captures into range maps."""
 
     method: str = "auto"
-    """{"auto", "hybrid", "gray"}: which patterns to decode; "auto" takes the hybrid
-    pattern when the session has it, else Gray code, and Gray code for lossy (JPEG)
-    sessions that have both (:func:`choose_method`)."""
+    """{"auto", "phase", "hybrid", "gray"} (:func:`slscan.patterns.decodable`): which
+    patterns to decode; "auto" takes phase shifting when the session has it, else the
+    hybrid pattern, else Gray code, and passes over the hybrid for lossy (JPEG) sessions
+    that have another family (:func:`choose_method`)."""
     estimator: str = DEFAULT_ESTIMATOR
     """Sub-pixel medial-axis estimator of the hybrid green lines (see ``decode.hybrid``)."""
     max_edge_factor: float = MAX_EDGE_FACTOR
@@ -121,6 +118,10 @@ class DecodeConfig:
     washes out the finest stripes) keeps the coarser code of its leading run of good bits
     when at most this many are dropped (``decode.graycode``, ``drop_bits``); its edges come
     only between blocks of ``2**dropped`` columns, which the mesh bridges. 0: every bit or none."""
+    phase_min_modulation: float = 0.15
+    """Phase shifting: a pixel's fringe amplitude ``2 B`` must exceed this share of its white
+    minus black (defocus, subsurface scattering and global light lower it; below, the phase
+    is mostly noise); ``decode.phase``, ``MIN_MODULATION``."""
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -146,6 +147,10 @@ class DecodeConfig:
         for name in ("max_edge_factor", "max_gap_columns"):
             if not getattr(self, name) > 0:
                 raise SlscanError(f"{name} must be positive, got {getattr(self, name)!r}")
+        if not (isinstance(self.phase_min_modulation, (int, float)) and 0 <= self.phase_min_modulation < 2):
+            raise SlscanError(
+                f"phase_min_modulation must be in [0, 2) (share of white - black), got {self.phase_min_modulation!r}"
+            )
         if not (isinstance(self.max_line_sigma, (int, float)) and self.max_line_sigma >= 0):
             raise SlscanError(
                 f"max_line_sigma must be >= 0 camera px (0: off), got {self.max_line_sigma!r}"
@@ -172,6 +177,8 @@ class ViewDecode:
     white : the white-frame capture the range map's colours come from
     projector_codes : the projector column/row maps, when asked for (Gray-code sets)
     valid_share : what limited the decoded share (Gray-code decoding)
+    maps : further per-pixel maps of the family's decoder, by name (streamed to the viewer)
+    stats : further per-view numbers of the family's decoder (in ``metrics``)
     """
 
     view: str
@@ -187,11 +194,14 @@ class ViewDecode:
     seconds: dict[str, float] = field(default_factory=dict)
     projector_codes: ProjectorCodes | None = None
     valid_share: ValidShare | None = None
+    maps: dict[str, np.ndarray] = field(default_factory=dict)
+    stats: dict[str, float] = field(default_factory=dict)
 
     @property
     def metrics(self) -> dict[str, float]:
         n = len(self.samples)
         return {
+            **self.stats,
             "samples": float(n),
             "vertices": float(len(self.range_map.vertices)),
             "faces": float(len(self.range_map.faces)),
@@ -220,27 +230,40 @@ def _once(session: Session, kind: str) -> bool:
 
 
 def choose_method(session: Session, method: str = "auto") -> str:
-    """The decode method for ``session``: the one asked, or with "auto" the hybrid pattern
-    when present, except for a lossy (JPEG) session that also has Gray-code patterns: its
-    4:2:0 chroma smears the hybrid's one-pixel green lines and thin bands, so Gray code is
-    taken (logged once per session). A lossy session with only the hybrid pattern is
-    decoded with it, with one warning naming the measured cost (:data:`LOSSY_HYBRID_ERROR`)."""
-    families = {p.family for p in session.patterns}
+    """The pattern family to decode ``session`` with: the one asked, or with "auto" the
+    family present with the highest priority (:func:`slscan.patterns.families`: phase
+    shifting, then the hybrid pattern, then Gray code), except that a lossy (JPEG) session
+    passes over a family that does not survive lossy compression (the hybrid pattern: its
+    one-pixel green lines and thin bands smear in 4:2:0 chroma) when another one is present
+    (logged once per session). A lossy session with only the hybrid pattern is decoded with
+    it, with one warning naming the measured cost (:data:`LOSSY_HYBRID_ERROR`)."""
+    present = families_in(session.patterns)
+    if not present:
+        found = sorted({p.family for p in session.patterns}) or ["none"]
+        raise SlscanError(f"{session.root}: the session has no coded patterns to decode (families: {', '.join(found)})")
     if method == "auto":
-        method = "hybrid" if "hybrid" in families else "gray"
-        if method == "hybrid" and session.lossy and "gray" in families:
-            method = "gray"
-            if _once(session, "auto"):
-                log.info("%s: decoding the Gray-code patterns, not the hybrid: the captures are lossy "
-                         "(JPEG), and %s", session.root, LOSSY_HYBRID_ERROR)
-    if method == "hybrid" and session.lossy and "gray" not in families and _once(session, "lossy hybrid"):
-        log.warning("%s: decoding the hybrid pattern from lossy (JPEG) captures: expect large errors; %s. "
+        chosen = present[0]
+        if session.lossy and not chosen.lossy:
+            fallback = next((f for f in present if f.lossy), None)
+            if fallback is not None:
+                if _once(session, "auto"):
+                    log.info("%s: decoding the %s patterns, not the %s: the captures are lossy (JPEG), and %s",
+                             session.root, _name(fallback.name), _name(chosen.name), LOSSY_HYBRID_ERROR)
+                chosen = fallback
+        method = chosen.name
+    if method not in {f.name for f in present}:
+        raise SlscanError(f"{session.root}: the session has no {method} patterns to decode")
+    if session.lossy and not family(method).lossy and all(not f.lossy for f in present) \
+            and _once(session, "lossy " + method):
+        log.warning("%s: decoding the %s pattern from lossy (JPEG) captures: expect large errors; %s. "
                     "Capture PNG, or add Gray-code patterns (auto then decodes those)",
-                    session.root, LOSSY_HYBRID_ERROR)
-    wanted = {"hybrid": "hybrid", "gray": "gray"}[method]
-    if wanted not in families:
-        raise SlscanError(f"{session.root}: the session has no {wanted} patterns to decode")
+                    session.root, method, LOSSY_HYBRID_ERROR)
     return method
+
+
+def _name(family_name: str) -> str:
+    """A family's name in a sentence."""
+    return {"gray": "Gray-code", "phase": "phase-shifting"}.get(family_name, family_name)
 
 
 def decode_view(
@@ -255,7 +278,8 @@ def decode_view(
 
     planes : the projector's light planes; default: from the session's calibration
     with_codes : also keep the projector column/row maps (``projector_codes``); the session
-        needs Gray-code patterns (decoded apart when the range map comes from the hybrid)
+        needs patterns that give them (Gray code, phase shifting; decoded apart when the
+        range map comes from another family)
     """
     view = session.view(view) if isinstance(view, str) else view
     rig = session.calibration
@@ -268,38 +292,16 @@ def decode_view(
     planes = planes or RigPlanes(rig.projector)
     method = choose_method(session, config.method)
     seconds = {}
-    edge_spacing = 1
     t = time.perf_counter()
-    if method == "hybrid":
-        _, _, descs = hybrid_pattern_ids(session)
-        res = decode_hybrid(
-            session,
-            view,
-            estimator=config.estimator,
-            mixing=config.mixing,
-            global_light=config.global_light,
-            paint_edges=config.paint_edges,
-            max_line_sigma=config.max_line_sigma,
-        )
-        samples, mask, codes = res.samples, res.mask, res.codes
-        code_max = 2 ** len(descs)
-    else:
-        res = decode_gray(session, view, threshold=config.gray_threshold, robust=config.gray_robust,
-                          drop_bits=config.gray_drop_bits)
-        samples, mask, codes, saturated = res.edges, res.mask, res.column, res.saturated
-        if config.gray_smooth:
-            samples = samples.smoothed()
-        code_max = session.projector_size[0]
-        used, bits = res.bits_used.get("columns", (0, 0))
-        edge_spacing = 2 ** (bits - used)  # a set missing low bits has edges this many columns apart
-    white = res.white
-    if method == "hybrid":
-        saturated = saturation(white)
+    res = family(method).decode_module().decode(session, view, config)
+    samples = res.samples
     if config.trim_line_ends:
         samples = samples.trim_line_ends(config.trim_line_ends)
     seconds["decode"] = time.perf_counter() - t
-    projector_codes, share = _codes_of_view(session, view, res if method == "gray" else None, with_codes,
-                                           config.gray_threshold, config.gray_robust)
+    projector_codes, share = res.projector_codes if with_codes else None, res.valid_share
+    if with_codes and projector_codes is None:
+        projector_codes = decode_codes(session, view, config)
+        share = projector_codes.valid_share
     t = time.perf_counter()
     points = triangulate(samples, rig.camera, planes)
     seconds["triangulate"] = time.perf_counter() - t
@@ -307,39 +309,22 @@ def decode_view(
     range_map = build_range_map(
         samples,
         points,
-        white_image=white,
+        white_image=res.white,
         camera=rig.camera,
         view=view.name,
         max_edge_factor=config.max_edge_factor,
         max_view_angle_deg=config.max_view_angle_deg,
-        # pixels with dropped bits have edges 2**dropped columns apart: bridge one such
-        # spacing and a half (the default 6 columns already span blocks of 4)
-        max_gap_columns=max(config.max_gap_columns, 1.5 * 2**config.gray_drop_bits) * edge_spacing
-        if method == "gray" else config.max_gap_columns,
+        max_gap_columns=res.max_gap_columns or config.max_gap_columns,
     )
     seconds["mesh"] = time.perf_counter() - t
     if len(range_map.faces) == 0:
         log.info("%s: the range map has no faces (%d samples)", view.name, len(samples))
     return ViewDecode(
         view=view.name, method=method, samples=samples, points=points, range_map=range_map,
-        mask=mask, codes=codes, code_max=code_max, saturated=saturated, white=white, seconds=seconds,
-        projector_codes=projector_codes, valid_share=share,
+        mask=res.mask, codes=res.codes, code_max=res.code_max, saturated=res.saturated, white=res.white,
+        seconds=seconds, projector_codes=projector_codes, valid_share=share, maps=dict(res.maps),
+        stats=dict(res.stats),
     )
-
-
-def _codes_of_view(
-    session: Session, view: ViewRecord, gray, codes: bool, threshold: str = "adaptive",
-    robust: bool = True,
-) -> tuple[ProjectorCodes | None, ValidShare | None]:
-    """The view's projector codes (when asked for) and the Gray-code decode's valid share:
-    from ``gray`` (the view's :class:`GrayResult`) when the range map came from it, else
-    decoded apart."""
-    if gray is not None:
-        return (codes_from_gray(gray, session, view.name) if codes else None), valid_share(gray)
-    if not codes:
-        return None, None
-    found = decode_codes(session, view, threshold=threshold, robust=robust)
-    return found, found.valid_share
 
 
 def _why_unusable(result: ViewDecode) -> str:

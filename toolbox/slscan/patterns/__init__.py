@@ -1,10 +1,14 @@
 """Projected patterns: descriptions that decoding can use alone, and their images.
 
 A pattern set is a list of :class:`PatternImage` descriptions. Each family module
-(:mod:`.hybrid`, :mod:`.graycode`, :mod:`.flat`) has a ``generate`` that returns
-descriptions, and a ``profile`` that turns one description back into its pixels. A
-description carries everything decoding needs (line positions and indices, band
-colours, code bits), so decoding never depends on state kept from generation.
+(:mod:`.hybrid`, :mod:`.graycode`, :mod:`.phase`, :mod:`.flat`) has a ``generate`` that
+returns descriptions, and a ``profile`` that turns one description back into its pixels,
+and registers itself with a ``FAMILY`` (:class:`Family`): the CLI, the capture driver, the
+importers, calibration, decoding and the virtual rig ask the registry (:func:`family`,
+:func:`families_in`, :func:`standard_set`) instead of switching on family names. A
+description carries everything decoding needs (line positions and indices, band colours,
+code bits, fringe periods and phase shifts), so decoding never depends on state kept from
+generation.
 
 All patterns here vary along one projector axis (``"columns"``, ``"rows"``) or not at all
 (``"none"``); :func:`profile` returns the (n, 3) RGB values along that axis.
@@ -12,9 +16,15 @@ All patterns here vary along one projector axis (``"columns"``, ``"rows"``) or n
 
 from __future__ import annotations
 
+import functools
+import importlib
+import inspect
 import os
+import pkgutil
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -22,10 +32,7 @@ import numpy as np
 from slscan.errors import SlscanError
 from slscan.fsio import atomic_output_dir, read_json, write_json, write_png
 
-FAMILIES = ("flat", "hybrid", "gray")
 AXES = ("columns", "rows", "none")
-SET_FAMILIES = ("hybrid", "gray", "both", "xor")
-"""What :func:`standard_set` projects after white and black."""
 PATTERN_SET_FORMAT = "slscan.pattern-set"
 PATTERN_SET_VERSION = 1
 
@@ -35,7 +42,7 @@ class PatternImage:
     """Description of one projected image.
 
     id : unique name within a set, e.g. ``"hybrid-03"``
-    family : {"flat", "hybrid", "gray"}
+    family : a registered family (:func:`families`): "flat", "hybrid", "gray", "phase"
     width, height : projector pixels
     axis : {"columns", "rows", "none"}, the coordinate the image varies along
     params : family-specific fields, JSON types only (documented in each family module)
@@ -49,8 +56,10 @@ class PatternImage:
     params: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        if self.family not in FAMILIES:
-            raise SlscanError(f"pattern {self.id!r}: unknown family {self.family!r}, expected one of {FAMILIES}")
+        if self.family not in _registry():
+            raise SlscanError(
+                f"pattern {self.id!r}: unknown family {self.family!r}, expected one of {', '.join(sorted(_registry()))}"
+            )
         if self.axis not in AXES:
             raise SlscanError(f"pattern {self.id!r}: unknown axis {self.axis!r}, expected one of {AXES}")
 
@@ -72,10 +81,7 @@ class PatternImage:
 
 def profile(desc: PatternImage) -> np.ndarray:
     """RGB values (n, 3) uint8 along ``desc.axis`` (n = width, height, or 1 for "none")."""
-    from slscan.patterns import flat, graycode, hybrid
-
-    module = {"flat": flat, "hybrid": hybrid, "gray": graycode}[desc.family]
-    return module.profile(desc)
+    return family(desc.family).profile(desc)
 
 
 def render(desc: PatternImage) -> np.ndarray:
@@ -95,26 +101,33 @@ def standard_set(
     height: int = 768,
     levels: int = 9,
     rows: bool = False,
+    **options: Any,
 ) -> list[PatternImage]:
     """White, black, then the family's patterns: the sequence projected for one range map.
 
-    family : {"hybrid", "gray", "both", "xor"}; ``"xor"``: Gupta's XOR-04 codes, Gray
-        code XOR-ed with its 4-px bit so every image is high-frequency
-        (:mod:`.graycode`; described as family ``"gray"`` with ``code: "xor"``)
+    family : a set name of :func:`set_names`: "hybrid", "gray", "xor" (Gupta's XOR-04
+        codes, Gray code XOR-ed with its 4-px bit so every image is high-frequency;
+        described as family "gray" with ``code: "xor"``), "phase", or several joined by
+        "+" ("hybrid+phase"); "both" is "hybrid+gray"
     levels : hybrid subdivision levels (``2**levels - 1`` green lines)
-    rows : Gray (XOR) code only: also project row codes
+    rows : Gray code and phase shifting: also code the projector rows
+    options : other keyword options of the families' ``generate`` (e.g. phase shifting's
+        ``periods``, ``steps``, ``unwrap``); each goes to the families that take it, and one
+        that no selected family takes is an error
     """
-    from slscan.patterns import flat, graycode, hybrid
+    from slscan.patterns import flat
 
-    if family not in SET_FAMILIES:
-        raise SlscanError(f"unknown pattern family {family!r}: expected one of {', '.join(SET_FAMILIES)}")
     images = flat.generate(width, height)
-    if family in ("hybrid", "both"):
-        images += hybrid.generate(width, height, levels=levels)
-    if family in ("gray", "both"):
-        images += graycode.generate(width, height, rows=rows)
-    if family == "xor":
-        images += graycode.generate(width, height, rows=rows, code="xor")
+    given = {"levels": levels, "rows": rows, **options}
+    used = set()
+    for fam, preset in _selected(family):
+        takes = inspect.signature(fam.generate).parameters
+        chosen = {k: v for k, v in given.items() if k in takes and k not in preset}
+        used |= chosen.keys()
+        images += fam.generate(width, height, **preset, **chosen)
+    unused = sorted(set(options) - used)
+    if unused:
+        raise SlscanError(f"pattern option(s) {', '.join(unused)} do not apply to the {family!r} patterns")
     return images
 
 
@@ -154,3 +167,178 @@ def read_pattern_set(path: str | os.PathLike) -> list[PatternImage]:
     if data.get("version") != PATTERN_SET_VERSION:
         raise SlscanError(f"{meta_path}: pattern-set version {data.get('version')} is not supported")
     return [PatternImage.from_dict(e) for e in data["images"]]
+
+
+# --- the family registry -------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Option:
+    """A pattern-set option a family's ``generate`` takes, as the CLI offers it.
+
+    name : the keyword of ``generate`` (and of :func:`standard_set`)
+    parse : turns the command-line text into the value (e.g. ``int``)
+    default : the value when not given
+    help : one line for ``--help``
+    flag : the command-line flag, default ``--FAMILY-NAME`` (``--phase-periods``)
+    """
+
+    name: str
+    parse: Callable[[str], Any]
+    default: Any
+    help: str
+    flag: str = ""
+
+
+@dataclass(frozen=True)
+class Family:
+    """One pattern family: what it projects, and which module decodes it.
+
+    Each family is a pair of modules: ``slscan.patterns.<module>`` (``generate`` the
+    descriptions, ``profile`` one of them) holding a ``FAMILY`` of this type, and the
+    decoder named by ``decoder`` (``slscan.decode.<module>``). Everything else (the CLI's
+    choices, the capture driver, the importers, calibration, the virtual rig) asks the
+    registry (:func:`family`, :func:`families`, :func:`standard_set`), so a new family is
+    one new pair of modules.
+
+    name : the ``PatternImage.family`` of its images
+    summary : one line for ``--help``
+    generate : ``generate(width, height, **options) -> list[PatternImage]``
+    profile : ``profile(desc) -> (n, 3) uint8`` values along ``desc.axis``
+    decoder : the decoding module's dotted name, or None (flat frames decode nothing);
+        it provides the functions of :class:`FamilyDecoder`
+    sets : the set names that select the family (``--patterns``), each with the keyword
+        arguments its ``generate`` gets: Gray code's ``{"gray": {}, "xor": {"code": "xor"}}``
+    options : the keyword options of ``generate`` the CLI offers (see :class:`Option`)
+    priority : "auto" decoding takes the family present with the highest priority
+    lossy : decodes lossy (JPEG, 4:2:0 chroma) captures well; "auto" passes over a family
+        that does not when another one is present
+    rows : can code projector rows as well as columns (the inverse-camera calibration and
+        two-camera matching need both)
+    finest : ``finest(patterns) -> PatternImage | None``, the image with the finest detail
+        of this family in a set (exposure and focus checks look at it)
+    """
+
+    name: str
+    summary: str
+    generate: Callable[..., list[PatternImage]]
+    profile: Callable[[PatternImage], np.ndarray]
+    decoder: str | None = None
+    sets: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    options: tuple[Option, ...] = ()
+    priority: int = 0
+    lossy: bool = True
+    rows: bool = False
+    finest: Callable[[Sequence[PatternImage]], PatternImage | None] | None = None
+
+    def decode_module(self) -> ModuleType:
+        """The decoder module (imported on first use: it loads OpenCV)."""
+        if self.decoder is None:
+            raise SlscanError(f"pattern family {self.name!r} has no decoder")
+        return importlib.import_module(self.decoder)
+
+
+SET_ALIASES = {"both": ("hybrid", "gray")}
+"""Set names that stand for several families' sets: "both" is the hybrid pattern and Gray code."""
+
+
+@functools.cache
+def _registry() -> dict[str, Family]:
+    """Every family, found as the ``FAMILY`` of the modules of this package."""
+    found = {}
+    for info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
+        module = importlib.import_module(f"{__name__}.{info.name}")
+        fam = getattr(module, "FAMILY", None)
+        if isinstance(fam, Family):
+            if fam.name in found:
+                raise SlscanError(f"two pattern families named {fam.name!r}")
+            found[fam.name] = fam
+    return found
+
+
+def families() -> tuple[Family, ...]:
+    """Every registered family, the highest "auto" priority first."""
+    return tuple(sorted(_registry().values(), key=lambda f: (-f.priority, f.name)))
+
+
+def family(name: str) -> Family:
+    """The family named ``name``; an error listing the known ones otherwise."""
+    reg = _registry()
+    if name not in reg:
+        raise SlscanError(f"unknown pattern family {name!r}: expected one of {', '.join(sorted(reg))}")
+    return reg[name]
+
+
+def decodable() -> tuple[str, ...]:
+    """Names of the families with a decoder, the highest "auto" priority first."""
+    return tuple(f.name for f in families() if f.decoder is not None)
+
+
+def set_names() -> tuple[str, ...]:
+    """Every name :func:`standard_set` (and ``--patterns``) accepts."""
+    names = [s for f in families() for s in f.sets]
+    return tuple(sorted(names)) + tuple(SET_ALIASES)
+
+
+def set_families(name: str) -> tuple[str, ...]:
+    """Names of the families a set name (:func:`standard_set`'s ``family``) selects."""
+    return tuple(dict.fromkeys(f.name for f, _ in _selected(name)))
+
+
+def families_in(patterns: Sequence[PatternImage]) -> tuple[Family, ...]:
+    """The decodable families a pattern set holds, the highest "auto" priority first."""
+    present = {p.family for p in patterns}
+    return tuple(f for f in families() if f.name in present and f.decoder is not None)
+
+
+def _selected(name: str) -> list[tuple[Family, dict]]:
+    """(family, generate keywords) of every set a set name selects (``"a+b"`` for several)."""
+    parts = [p.strip() for p in name.split("+")]
+    parts = [q for p in parts for q in SET_ALIASES.get(p, (p,))]
+    out = []
+    for part in parts:
+        fam = next((f for f in families() if part in f.sets), None)
+        if fam is None:
+            raise SlscanError(f"unknown pattern family {part!r}: expected one of {', '.join(set_names())}")
+        out.append((fam, dict(fam.sets[part])))
+    return out
+
+
+# --- the command line -----------------------------------------------------------------------
+
+
+def pattern_set_name(text: str) -> str:
+    """``argparse`` type of a set name: one of :func:`set_names`, or several joined by "+"."""
+    import argparse
+
+    try:
+        _selected(text)
+    except SlscanError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
+def _flag(fam: Family, opt: Option) -> str:
+    return opt.flag or f"--{fam.name}-{opt.name.replace('_', '-')}"
+
+
+def add_pattern_arguments(parser, *, flag: str = "--patterns", default: str = "hybrid") -> None:
+    """Add the pattern-set choice (``flag``) and every family's options (:class:`Option`)
+    to an ``argparse`` parser; :func:`pattern_options` reads the options back."""
+    summaries = "; ".join(f"{name}: {fam.summary}" for fam in families() for name in fam.sets
+                          if name == fam.name or name == "xor")
+    parser.add_argument(
+        flag, type=pattern_set_name, default=default, metavar="SET",
+        help=f"coded patterns after white and black (default: {default}): {', '.join(set_names())}, or "
+             f"several joined by + ({summaries}; both: hybrid+gray)",
+    )
+    for fam in families():
+        for opt in fam.options:
+            parser.add_argument(_flag(fam, opt), dest=f"pattern_option_{opt.name}", type=opt.parse,
+                                default=None, help=f"{fam.name} patterns: {opt.help} (default {opt.default})")
+
+
+def pattern_options(args) -> dict[str, Any]:
+    """The family options given on the command line (those left out take their defaults)."""
+    return {opt.name: value for fam in families() for opt in fam.options
+            if (value := getattr(args, f"pattern_option_{opt.name}", None)) is not None}

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from slscan.patterns import PatternImage
+from slscan.patterns import Family, PatternImage
 
 
 def generate(width: int, height: int) -> list[PatternImage]:
@@ -20,3 +20,13 @@ def generate(width: int, height: int) -> list[PatternImage]:
 
 def profile(desc: PatternImage) -> np.ndarray:
     return np.asarray([desc.params["value"]], dtype=np.uint8)
+
+
+FAMILY = Family(
+    name="flat",
+    summary="uniform frames (white, black)",
+    generate=lambda width, height: generate(width, height),
+    profile=profile,
+)
+"""Flat frames are in every set (:func:`slscan.patterns.standard_set` puts them first);
+they select no set and decode nothing by themselves."""

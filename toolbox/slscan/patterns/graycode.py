@@ -32,7 +32,7 @@ import math
 import numpy as np
 
 from slscan.errors import SlscanError
-from slscan.patterns import PatternImage
+from slscan.patterns import Family, PatternImage
 
 
 def n_bits(size: int) -> int:
@@ -108,3 +108,22 @@ def profile(desc: PatternImage) -> np.ndarray:
     if p["inverse"]:
         on = 1 - on
     return np.repeat((on * 255).astype(np.uint8)[:, None], 3, axis=1)
+
+
+def finest(patterns) -> PatternImage | None:
+    """The column pattern with the narrowest stripes (the last bit)."""
+    coded = [p for p in patterns if p.family == "gray" and p.axis == "columns"]
+    return max(coded, key=lambda p: p.params["bit"], default=None)
+
+
+FAMILY = Family(
+    name="gray",
+    summary="black/white Gray-code stripes with inverses (xor: Gupta's XOR-04 codes)",
+    generate=generate,
+    profile=profile,
+    decoder="slscan.decode.graycode",
+    sets={"gray": {}, "xor": {"code": "xor"}},
+    priority=1,
+    rows=True,
+    finest=finest,
+)

@@ -29,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 
 from slscan.errors import SlscanError
-from slscan.patterns import PatternImage
+from slscan.patterns import Family, PatternImage
 
 RED = [255, 0, 0]
 GREEN = [0, 255, 0]
@@ -119,3 +119,22 @@ def column_codes(images: list[PatternImage]) -> np.ndarray:
         for i, col in desc.params["lines"]:
             line_of[col] = -(i + 1)
     return np.where(line_of < 0, line_of, code)
+
+
+def finest(patterns) -> PatternImage | None:
+    """The level with the most lines (the last)."""
+    coded = [p for p in patterns if p.family == "hybrid"]
+    return max(coded, key=lambda p: p.params["level"], default=None)
+
+
+FAMILY = Family(
+    name="hybrid",
+    summary="the paper's pattern: one-pixel green lines between red and blue bands",
+    generate=generate,
+    profile=profile,
+    decoder="slscan.decode.hybrid",
+    sets={"hybrid": {}},
+    priority=2,
+    lossy=False,
+    finest=finest,
+)

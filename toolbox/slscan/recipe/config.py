@@ -51,6 +51,10 @@ def _convert(tp: Any, value: Any, where: str) -> Any:
         if not isinstance(value, str):
             raise SlscanError(f"{where}: expected a string, got {value!r}")
         return value
+    if tp is dict or origin is dict:
+        if not isinstance(value, Mapping):
+            raise SlscanError(f"{where}: expected a table, got {value!r}")
+        return dict(value)
     if origin is tuple:
         args = typing.get_args(tp)
         if not isinstance(value, (list, tuple)):

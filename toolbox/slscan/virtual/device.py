@@ -64,10 +64,13 @@ class VirtualCaptureConfig:
     scene : "object" (the built-in figurine), "tile", "concave", "marble", "bronze" (the
         light-transport scenes, :mod:`slscan.virtual.scenes`), or a mesh file (PLY/OBJ/glTF)
     views : turntable positions, evenly spread over 360° about the object's vertical axis
-    patterns : {"hybrid", "gray", "both", "xor"}: which coded patterns follow white and black
-        ("xor": Gupta's XOR-04 Gray codes, every image high-frequency)
+    patterns : which coded patterns follow white and black: a set name of
+        :func:`slscan.patterns.set_names` ("hybrid", "gray", "xor": Gupta's XOR-04 Gray
+        codes, "phase", "both": hybrid and Gray code) or several joined by "+"
     levels : hybrid subdivision levels (9 at 1024 px gives 511 lines)
-    gray_rows : also project row Gray codes
+    pattern_options : further options of the families' ``generate`` (phase shifting's
+        ``periods``, ``steps``, ``unwrap``, ...; :func:`slscan.patterns.standard_set`)
+    gray_rows : also code the projector rows (Gray code, phase shifting)
     lit_images : capture one image per ring light (for albedo)
     camera_scale, projector_scale : sensor size relative to the paper's 1440×960 and
         1024×768 (same field of view); below 1 for quick runs
@@ -88,6 +91,7 @@ class VirtualCaptureConfig:
     views: int = 1
     patterns: str = "hybrid"
     levels: int = 9
+    pattern_options: dict = field(default_factory=dict)
     gray_rows: bool = False
     lit_images: bool = True
     camera_scale: float = 1.0
@@ -127,12 +131,13 @@ class VirtualCaptureConfig:
 
     def pattern_set(self, rig: Rig) -> list[PatternImage]:
         lens = rig.projector.lens
-        return standard_set(self.patterns, width=lens.width, height=lens.height, levels=self.levels, rows=self.gray_rows)
+        return standard_set(self.patterns, width=lens.width, height=lens.height, levels=self.levels,
+                            rows=self.gray_rows, **self.pattern_options)
 
     def to_dict(self) -> dict:
         return {
             "scene": self.scene, "views": self.views, "patterns": self.patterns, "levels": self.levels,
-            "gray_rows": self.gray_rows, "lit_images": self.lit_images, "camera_scale": self.camera_scale,
+            "pattern_options": dict(self.pattern_options), "gray_rows": self.gray_rows, "lit_images": self.lit_images, "camera_scale": self.camera_scale,
             "projector_scale": self.projector_scale, "sensor": self.sensor.to_dict(),
             "optics": self.optics.to_dict(), "lit_exposure": self.lit_exposure, "seed": self.seed,
             "scene_units": self.scene_units, "scene_pose": self.scene_pose,
