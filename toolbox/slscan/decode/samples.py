@@ -31,6 +31,9 @@ class StripeSamples:
     along_columns : (k,) bool, or None (all False): the sample was found along camera
         column ``x`` (a whole number) at sub-pixel row ``y`` (``row`` is ``y`` rounded),
         where the stripes cross camera columns more steeply than rows
+    projector_row : (k,) float64 continuous projector row ``v`` at the sample as well, or
+        None: only the column is known (phase shifting with row fringes knows both, and
+        triangulates ray to ray)
 
     Use :attr:`camera_y` (or :meth:`pixels`) for the sample's camera position, which
     works either way.
@@ -44,9 +47,10 @@ class StripeSamples:
     saturated: np.ndarray
     y: np.ndarray | None = None
     along_columns: np.ndarray | None = None
+    projector_row: np.ndarray | None = None
 
     FIELDS = ("row", "x", "projector_column", "stripe", "contrast", "saturated", "y",
-              "along_columns")
+              "along_columns", "projector_row")
 
     def __len__(self) -> int:
         return len(self.row)
@@ -96,6 +100,8 @@ class StripeSamples:
         full = any(p.y is not None or p.along_columns is not None for p in parts)
         if full:
             parts = [p.with_y() for p in parts]
+        if any(p.projector_row is None for p in parts):  # rows known only where every part knows them
+            parts = [replace(p, projector_row=None) for p in parts]
         return StripeSamples(*(None if getattr(parts[0], f) is None
                                else np.concatenate([getattr(p, f) for p in parts])
                                for f in StripeSamples.FIELDS))
