@@ -47,6 +47,7 @@ from slscan.rig import PinholeModel, Projector
 if TYPE_CHECKING:
     from slscan.calibrate.io import Calibration
     from slscan.capture.multicam import CameraEntry
+    from slscan.capture.session import Session
 
 FORMATS = ("auto", "opencv", "bouguet", "text", "3dunderworld")
 SECOND_KINDS = ("projector", "camera")
@@ -105,57 +106,101 @@ class KeyMap:
 
 
 KAMINO410 = KeyMap(
-    name="kamino410", camera="cam_int", camera_dist="cam_dist", camera_shape="img_shape?",
-    second="proj_int", second_dist="proj_dist", second_kind="projector",
-    rotation="roration|rotation", translation="translation", rms="rms?",
+    name="kamino410",
+    camera="cam_int",
+    camera_dist="cam_dist",
+    camera_shape="img_shape?",
+    second="proj_int",
+    second_dist="proj_dist",
+    second_kind="projector",
+    rotation="roration|rotation",
+    translation="translation",
+    rms="rms?",
 )
 OPENCV_STEREO = KeyMap(
-    name="opencv-stereo", camera="M1|K1|cameraMatrix1", camera_dist="D1|distCoeffs1",
+    name="opencv-stereo",
+    camera="M1|K1|cameraMatrix1",
+    camera_dist="D1|distCoeffs1",
     camera_size="imageSize|image_size|image_width+image_height?",
-    second="M2|K2|cameraMatrix2", second_dist="D2|distCoeffs2",
-    second_size="imageSize|image_size|image_width+image_height?", second_kind="camera",
-    rotation="R", translation="T", rms="rms|stereo_rms?",
+    second="M2|K2|cameraMatrix2",
+    second_dist="D2|distCoeffs2",
+    second_size="imageSize|image_size|image_width+image_height?",
+    second_kind="camera",
+    rotation="R",
+    translation="T",
+    rms="rms|stereo_rms?",
 )
 THREEDUNDERWORLD = KeyMap(
-    name="3dunderworld", camera="Camera/Matrix", camera_dist="Camera/Distortion",
-    camera_size="Camera/Width+Camera/Height?", rotation="Camera/Rotation",
-    translation="Camera/Translation", direction="world-to-camera",
+    name="3dunderworld",
+    camera="Camera/Matrix",
+    camera_dist="Camera/Distortion",
+    camera_size="Camera/Width+Camera/Height?",
+    rotation="Camera/Rotation",
+    translation="Camera/Translation",
+    direction="world-to-camera",
 )
 THREEDUNDERWORLD_TEXT = KeyMap(
-    name="3dunderworld (text files)", camera="cam_matrix.txt", camera_dist="cam_distortion.txt",
-    rotation="cam_rotation_matrix.txt", translation="cam_trans_vectror.txt|cam_trans_vector.txt",
+    name="3dunderworld (text files)",
+    camera="cam_matrix.txt",
+    camera_dist="cam_distortion.txt",
+    rotation="cam_rotation_matrix.txt",
+    translation="cam_trans_vectror.txt|cam_trans_vector.txt",
     direction="world-to-camera",
 )
 OPENCV_SINGLE = KeyMap(
-    name="opencv-single", camera="camera_matrix|cameraMatrix|K|M|intrinsic|intrinsics",
+    name="opencv-single",
+    camera="camera_matrix|cameraMatrix|K|M|intrinsic|intrinsics",
     camera_dist="distortion_coefficients|dist_coeffs|distCoeffs|distortion|D|dist?",
     camera_size="image_width+image_height|imageSize|image_size?",
-    rotation="R|rotation|rvec?", translation="T|translation|tvec?", direction="world-to-camera",
+    rotation="R|rotation|rvec?",
+    translation="T|translation|tvec?",
+    direction="world-to-camera",
 )
 OPENCV_LAYOUTS = (KAMINO410, OPENCV_STEREO, THREEDUNDERWORLD, OPENCV_SINGLE)
 
 TEXT_PROCAM = KeyMap(
-    name="text camera+projector", camera="k_cam|k_camera", camera_dist="d_cam|dist_cam|dist_camera?",
-    camera_size="size_cam|size_camera?", second="k_proj|k_projector",
-    second_dist="d_proj|dist_proj|dist_projector?", second_size="size_proj|size_projector?",
-    second_kind="projector", rotation="r|rotation|om", translation="t|translation",
+    name="text camera+projector",
+    camera="k_cam|k_camera",
+    camera_dist="d_cam|dist_cam|dist_camera?",
+    camera_size="size_cam|size_camera?",
+    second="k_proj|k_projector",
+    second_dist="d_proj|dist_proj|dist_projector?",
+    second_size="size_proj|size_projector?",
+    second_kind="projector",
+    rotation="r|rotation|om",
+    translation="t|translation",
 )
 TEXT_STEREO = KeyMap(
-    name="text stereo", camera="k1|m1", camera_dist="d1|dist1?", camera_size="size1?",
-    second="k2|m2", second_dist="d2|dist2?", second_size="size2?", second_kind="camera",
-    rotation="r|rotation|om", translation="t|translation",
+    name="text stereo",
+    camera="k1|m1",
+    camera_dist="d1|dist1?",
+    camera_size="size1?",
+    second="k2|m2",
+    second_dist="d2|dist2?",
+    second_size="size2?",
+    second_kind="camera",
+    rotation="r|rotation|om",
+    translation="t|translation",
 )
 TEXT_SINGLE = KeyMap(
-    name="text single device", camera="k|camera_matrix|intrinsics|a|m",
-    camera_dist="dist|d|distortion|distortion_coefficients|kc?", camera_size="size|image_size?",
-    rotation="r|rotation|om|rvec?", translation="t|translation|tvec?", direction="world-to-camera",
+    name="text single device",
+    camera="k|camera_matrix|intrinsics|a|m",
+    camera_dist="dist|d|distortion|distortion_coefficients|kc?",
+    camera_size="size|image_size?",
+    rotation="r|rotation|om|rvec?",
+    translation="t|translation|tvec?",
+    direction="world-to-camera",
 )
 TEXT_LAYOUTS = (TEXT_PROCAM, TEXT_STEREO, TEXT_SINGLE)
 
 _ROLES = {  # --keys word -> (KeyMap field, second device kind or None)
-    "camera": ("camera", None), "camera_dist": ("camera_dist", None),
-    "camera_size": ("camera_size", None), "camera_shape": ("camera_shape", None),
-    "rotation": ("rotation", None), "translation": ("translation", None), "rms": ("rms", None),
+    "camera": ("camera", None),
+    "camera_dist": ("camera_dist", None),
+    "camera_size": ("camera_size", None),
+    "camera_shape": ("camera_shape", None),
+    "rotation": ("rotation", None),
+    "translation": ("translation", None),
+    "rms": ("rms", None),
     **{
         f"{kind}{suffix}": (f"second{suffix}", word)
         for kind, word in (("projector", "projector"), ("camera2", "camera"))
@@ -182,7 +227,9 @@ def parse_keys(text: str) -> KeyMap:
             raise SlscanError(f"--keys: {item!r} is not ROLE=KEY (e.g. camera=cam_int)")
         if role == "direction":
             if key not in DIRECTIONS:
-                raise SlscanError(f"--keys: direction {key!r} is not one of {', '.join(DIRECTIONS)}")
+                raise SlscanError(
+                    f"--keys: direction {key!r} is not one of {', '.join(DIRECTIONS)}"
+                )
             direction = key
             continue
         if role not in _ROLES:
@@ -190,21 +237,23 @@ def parse_keys(text: str) -> KeyMap:
                 f"--keys: unknown role {role!r}; expected direction or one of {', '.join(_ROLES)}"
             )
         name, kind = _ROLES[role]
+        if kind is not None:
+            kinds.add(kind)
+        if len(kinds) > 1:
+            raise SlscanError("--keys: name a projector or a second camera (camera2), not both")
         if name in fields:
             raise SlscanError(f"--keys: {role!r} is named twice")
         fields[name] = key
-        if kind is not None:
-            kinds.add(kind)
     if "camera" not in fields:
         raise SlscanError("--keys: name the camera's matrix (camera=KEY)")
-    if len(kinds) > 1:
-        raise SlscanError("--keys: name a projector or a second camera (camera2), not both")
     kind = kinds.pop() if kinds else None
     if kind is None:
         if direction is None:
             direction = "world-to-camera"
         elif DIRECTIONS[direction] in ("camera-to-second", "second-to-camera"):
-            raise SlscanError(f"--keys: direction {direction} names a second device the key map does not")
+            raise SlscanError(
+                f"--keys: direction {direction} names a second device the key map does not"
+            )
     else:
         role = "projector" if kind == "projector" else "camera2"
         if "second" not in fields:
@@ -244,8 +293,13 @@ class ImportedLens:
         lengths and principal point multiplied by ``scale``."""
         k = self.K
         return PinholeModel(
-            int(size[0]), int(size[1]), float(k[0, 0] * scale), float(k[1, 1] * scale),
-            float(k[0, 2] * scale), float(k[1, 2] * scale), self.dist,
+            int(size[0]),
+            int(size[1]),
+            float(k[0, 0] * scale),
+            float(k[1, 1] * scale),
+            float(k[0, 2] * scale),
+            float(k[1, 2] * scale),
+            self.dist,
         )
 
 
@@ -291,8 +345,11 @@ class ImportedCalibration:
     def source(self, **extra) -> dict:
         """JSON-ready record of where the calibration came from."""
         return {
-            "imported_from": self.where, "format": self.format, "layout": self.layout,
-            "units_mm": self.units_mm, **extra,
+            "imported_from": self.where,
+            "format": self.format,
+            "layout": self.layout,
+            "units_mm": self.units_mm,
+            **extra,
         }
 
     def to_calibration(
@@ -301,25 +358,40 @@ class ImportedCalibration:
         camera_size: tuple[int, int] | None = None,
         projector_size: tuple[int, int] | None = None,
         projector_scale: float = 1.0,
-        given_from: str = "the size given",
+        session: Session | None = None,
     ) -> Calibration:
         """slscan's :class:`~slscan.calibrate.io.Calibration`, the second device as the
         projector (an inverse camera).
 
-        camera_size, projector_size : (width, height) px where the file does not say; when
-            both do, they must agree (``given_from`` names the given one in the message)
+        camera_size, projector_size : (width, height) px (``--camera-size``,
+            ``--projector-size``); needed where the file does not say, and where it does
+            they must agree, as must a ``session``'s camera and projector sizes
         projector_scale : pattern pixels per projector pixel of the file (0.5 for
             procam-calibration's ``graycode_step`` 2)
+
+        Raises SlscanError naming the file and key, and both sizes, at a mismatch.
         """
         from slscan.calibrate.io import Calibration
 
         second, pose = self._require_pair("a camera + projector calibration")
-        cam_size = agree_size("camera", self.camera, (given_from, camera_size))
+        meta = None if session is None else session.root / "session.json"
+        cam_size = agree_size(
+            "camera",
+            self.camera,
+            ("--camera-size", camera_size),
+            (f"{meta}: key 'camera'", None if session is None else session.camera_size),
+        )
         file_size = second.size
         if file_size is not None and projector_scale != 1.0:
-            file_size = (round(file_size[0] * projector_scale), round(file_size[1] * projector_scale))
+            file_size = (
+                round(file_size[0] * projector_scale),
+                round(file_size[1] * projector_scale),
+            )
         proj_size = agree_size(
-            "projector", dataclasses.replace(second, size=file_size), (given_from, projector_size)
+            "projector",
+            dataclasses.replace(second, size=file_size),
+            ("--projector-size", projector_size),
+            (f"{meta}: key 'projector'", None if session is None else session.projector_size),
         )
         projector = Projector(second.lens(proj_size, scale=projector_scale), pose)
         return Calibration(
@@ -334,25 +406,36 @@ class ImportedCalibration:
         self,
         *,
         sizes: Sequence[tuple[int, int] | None] = (None, None),
+        sessions: Sequence[Session] | None = None,
         names: Sequence[str] = ("cam0", "cam1"),
         folders: Sequence[str] | None = None,
-        given_from: str = "the size given",
     ) -> tuple[CameraEntry, CameraEntry]:
         """The two :class:`~slscan.capture.multicam.CameraEntry` of a ``cameras.json``,
         camera 0's frame the common one (its pose the identity).
 
-        sizes : each camera's (width, height) px where the file does not say (must agree
-            where it does); names, folders : the entries' names and session folders
+        sizes : each camera's (width, height) px (``--camera-size``), needed where the file
+            does not say; where it does they must agree, as must each camera's session
+        names, folders : the entries' names and session folders (default: the names)
         """
         from slscan.capture.multicam import CameraEntry
 
         second, pose = self._require_pair("a stereo pair")
         folders = tuple(names) if folders is None else tuple(folders)
-        size0 = agree_size("camera", self.camera, (given_from, sizes[0]))
-        size1 = agree_size("camera", second, (given_from, sizes[1]))
+        lenses = []
+        for i, lens in enumerate((self.camera, second)):
+            session = None if sessions is None else sessions[i]
+            size = agree_size(
+                "camera",
+                lens,
+                ("--camera-size", sizes[i]),
+                (f"{session.root / 'session.json'}: key 'camera'", session.camera_size)
+                if session is not None
+                else ("", None),
+            )
+            lenses.append(lens.lens(size))
         return (
-            CameraEntry(names[0], folders[0], self.camera.lens(size0), np.eye(4)),
-            CameraEntry(names[1], folders[1], second.lens(size1), pose.copy()),
+            CameraEntry(names[0], folders[0], lenses[0], np.eye(4)),
+            CameraEntry(names[1], folders[1], lenses[1], pose.copy()),
         )
 
 
@@ -401,7 +484,9 @@ def numbers(value: object, file: Path, key: str, counts: Sequence[int]) -> np.nd
         raise SlscanError(f"{file}: key {key!r} is not a list of numbers{shown}")
     arr = np.asarray(value, float).reshape(-1)
     if arr.size not in counts:
-        raise SlscanError(f"{file}: key {key!r} has the wrong size: expected {_count(arr.size, counts)}")
+        raise SlscanError(
+            f"{file}: key {key!r} has the wrong size: expected {_count(arr.size, counts)}"
+        )
     if not np.isfinite(arr).all():
         raise SlscanError(f"{file}: key {key!r} holds non-finite numbers (NaN or inf)")
     return arr
@@ -416,7 +501,9 @@ def camera_matrix(value: object, file: Path, key: str) -> np.ndarray:
         )
     k = k / k[2, 2]
     if not (k[0, 0] > 0 and k[1, 1] > 0):
-        raise SlscanError(f"{file}: key {key!r}: focal lengths must be positive (fx {k[0, 0]}, fy {k[1, 1]})")
+        raise SlscanError(
+            f"{file}: key {key!r}: focal lengths must be positive (fx {k[0, 0]}, fy {k[1, 1]})"
+        )
     if abs(k[0, 1]) > 1e-9 * k[0, 0]:
         raise SlscanError(
             f"{file}: key {key!r} has a skew of {k[0, 1]:g} px; slscan's lens model has none"
@@ -480,7 +567,9 @@ def _pose(r: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 def _check_units(units_mm: float) -> float:
     if not (np.isfinite(units_mm) and units_mm > 0):
-        raise SlscanError(f"--units-mm: expected a positive number of mm per file unit, got {units_mm}")
+        raise SlscanError(
+            f"--units-mm: expected a positive number of mm per file unit, got {units_mm}"
+        )
     return float(units_mm)
 
 
@@ -543,7 +632,9 @@ class _Values:
         raise SlscanError(f"{self.where}: missing key {alts[0]!r}{others}")
 
 
-def _lens(values: _Values, matrix: str, dist: str | None, size: str | None, shape: str | None) -> ImportedLens:
+def _lens(
+    values: _Values, matrix: str, dist: str | None, size: str | None, shape: str | None
+) -> ImportedLens:
     key, file, value = values.find(matrix)
     k = camera_matrix(value, file, key)
     d = (0.0,) * 5
@@ -558,7 +649,9 @@ def _lens(values: _Values, matrix: str, dist: str | None, size: str | None, shap
     return ImportedLens(k, d, found, file, key, size_key)
 
 
-def _from_keys(values: _Values, keys: KeyMap, *, format: str, units_mm: float) -> ImportedCalibration:
+def _from_keys(
+    values: _Values, keys: KeyMap, *, format: str, units_mm: float
+) -> ImportedCalibration:
     """Build an :class:`ImportedCalibration` from ``values`` as ``keys`` says."""
     camera = _lens(values, keys.camera, keys.camera_dist, keys.camera_size, keys.camera_shape)
     second = None
@@ -566,12 +659,16 @@ def _from_keys(values: _Values, keys: KeyMap, *, format: str, units_mm: float) -
         second = _lens(values, keys.second, keys.second_dist, keys.second_size, keys.second_shape)
     pose = None
     if second is not None and (keys.rotation is None or keys.translation is None):
-        raise SlscanError(f"{values.where}: the key map names no rotation and translation for the second device")
+        raise SlscanError(
+            f"{values.where}: the key map names no rotation and translation for the second device"
+        )
     r_hit, t_hit = values.find(keys.rotation), values.find(keys.translation)
     if (r_hit is None) != (t_hit is None):
         missing = keys.rotation if r_hit is None else keys.translation
-        raise SlscanError(f"{values.where}: missing key {missing.rstrip('?').split('|')[0]!r} "
-                          "(a pose needs both rotation and translation)")
+        raise SlscanError(
+            f"{values.where}: missing key {missing.rstrip('?').split('|')[0]!r} "
+            "(a pose needs both rotation and translation)"
+        )
     if r_hit is not None:
         r = rotation(r_hit[2], r_hit[1], r_hit[0])
         t = numbers(t_hit[2], t_hit[1], t_hit[0], (3,)) * units_mm
@@ -587,18 +684,28 @@ def _from_keys(values: _Values, keys: KeyMap, *, format: str, units_mm: float) -
         else:
             camera_from_world = rigid_inverse(pose)
         if second is None and camera_from_second is not None:
-            raise SlscanError(f"{values.where}: direction {keys.direction} needs a second device in the key map")
+            raise SlscanError(
+                f"{values.where}: direction {keys.direction} needs a second device in the key map"
+            )
         if second is not None and camera_from_second is None:
-            raise SlscanError(f"{values.where}: direction {keys.direction} is for one device; the key map names two")
+            raise SlscanError(
+                f"{values.where}: direction {keys.direction} is for one device; the key map names two"
+            )
     rms = None
     hit = values.find(keys.rms)
     if hit is not None:
         rms = float(numbers(hit[2], hit[1], hit[0], (1,))[0])
     return ImportedCalibration(
-        files=values.files, format=format, layout=keys.name, camera=camera, second=second,
+        files=values.files,
+        format=format,
+        layout=keys.name,
+        camera=camera,
+        second=second,
         second_kind=keys.second_kind if second is not None else None,
-        camera_from_second=camera_from_second, camera_from_world=camera_from_world,
-        units_mm=units_mm, rms_px=rms,
+        camera_from_second=camera_from_second,
+        camera_from_world=camera_from_world,
+        units_mm=units_mm,
+        rms_px=rms,
     )
 
 
@@ -639,15 +746,24 @@ def pair_devices(
         files=first.files + second.files,
         format=first.format if first.format == second.format else f"{first.format}+{second.format}",
         layout=first.layout if first.layout == second.layout else f"{first.layout}+{second.layout}",
-        camera=first.camera, second=second.camera, second_kind=second_kind,
+        camera=first.camera,
+        second=second.camera,
+        second_kind=second_kind,
         camera_from_second=world @ rigid_inverse(second.camera_from_world),
         units_mm=first.units_mm,
     )
 
 
 def _read_keyed(
-    paths: Sequence[Path], read, layouts: Sequence[KeyMap], *, keys: KeyMap | None,
-    format: str, units_mm: float, fold_case: bool, single_kind: str | None = None,
+    paths: Sequence[Path],
+    read,
+    layouts: Sequence[KeyMap],
+    *,
+    keys: KeyMap | None,
+    format: str,
+    units_mm: float,
+    fold_case: bool,
+    single_kind: str | None = None,
 ) -> ImportedCalibration:
     """The engine of :func:`read_opencv` and :func:`read_text`: one file (or two files'
     keys together) with both devices, else one device per file, paired."""
@@ -657,7 +773,10 @@ def _read_keyed(
     if keys is not None:
         if keys.second is not None or len(paths) == 1:
             return _from_keys(merged, keys, format=format, units_mm=units_mm)
-        parts = [_from_keys(_Values.of([pf], fold_case), keys, format=format, units_mm=units_mm) for pf in per_file]
+        parts = [
+            _from_keys(_Values.of([pf], fold_case), keys, format=format, units_mm=units_mm)
+            for pf in per_file
+        ]
         return pair_devices(*parts, second_kind=single_kind)
     found = _detect(merged, layouts, two=True)
     if found is not None:
@@ -705,8 +824,9 @@ def _opencv_values(path: Path) -> dict[str, object]:
 def _collect(node: cv2.FileNode, prefix: str, out: dict[str, object]) -> None:
     for key in node.keys():  # noqa: SIM118 (a FileNode, not a dict)
         child, name = node.getNode(key), prefix + key
+        fields = set(child.keys()) if child.isMap() else set()
         if child.isMap():
-            if {"rows", "cols", "data"} <= set(child.keys()):
+            if "data" in fields and fields & {"rows", "sizes"}:
                 try:
                     mat = child.mat()
                 except cv2.error:
@@ -750,14 +870,23 @@ def read_opencv(
         distortion terms slscan cannot model; or the layouts tried.
     """
     paths = [Path(p) for p in (path, path2) if p is not None]
-    result = _read_keyed(paths, _opencv_values, OPENCV_LAYOUTS, keys=keys, format="opencv",
-                         units_mm=units_mm, fold_case=False)
+    result = _read_keyed(
+        paths,
+        _opencv_values,
+        OPENCV_LAYOUTS,
+        keys=keys,
+        format="opencv",
+        units_mm=units_mm,
+        fold_case=False,
+    )
     if result.layout == OPENCV_STEREO.name:
         _check_rectification(paths, result, units_mm)
     return result
 
 
-def _check_rectification(paths: Sequence[Path], result: ImportedCalibration, units_mm: float) -> None:
+def _check_rectification(
+    paths: Sequence[Path], result: ImportedCalibration, units_mm: float
+) -> None:
     """Where a stereo file has ``R1 R2 P2`` too, they must agree with ``R, T`` (rectified
     frames share one orientation; ``P2``'s baseline is ``|T|``): else one was edited."""
     values = _Values.of([(p, _opencv_values(p)) for p in paths])
@@ -770,7 +899,9 @@ def _check_rectification(paths: Sequence[Path], result: ImportedCalibration, uni
     second_from_camera = rigid_inverse(result.camera_from_second)
     r, t = second_from_camera[:3, :3], second_from_camera[:3, 3] / units_mm
     if np.abs(r2 @ r - r1).max() > 1e-4:
-        raise SlscanError(f"{hits['R1'][1]}: keys 'R1', 'R2' disagree with 'R' (R2·R ≠ R1); was one of them edited?")
+        raise SlscanError(
+            f"{hits['R1'][1]}: keys 'R1', 'R2' disagree with 'R' (R2·R ≠ R1); was one of them edited?"
+        )
     baseline = max(abs(p2[0, 3] / p2[0, 0]), abs(p2[1, 3] / p2[1, 1]))
     if abs(baseline - np.linalg.norm(t)) > 1e-3 * np.linalg.norm(t):
         raise SlscanError(
@@ -808,7 +939,7 @@ def _text_blocks(path: Path) -> dict[str, list[float]]:
             m = _TOKEN.match(line, pos)
             if m is None:
                 raise SlscanError(
-                    f"{path}: line {number}: cannot read {line[pos:pos + 12]!r} "
+                    f"{path}: line {number}: cannot read {line[pos : pos + 12]!r} "
                     "(expected labels and numbers)"
                 )
             pos = m.end()
@@ -829,6 +960,8 @@ def _text_values(path: Path) -> dict[str, object]:
     """:func:`_text_blocks` as arrays; a file of bare numbers is split by count: K (9),
     K + distortion (13, 14, 17, 21, 23), K + distortion + R + T (25, 26, 29, 33, 35)."""
     blocks = _text_blocks(path)
+    if not blocks:
+        raise SlscanError(f"{path}: no numbers (expected labelled matrices: K:, dist:, R:, T:)")
     if list(blocks) == [""]:
         bare = blocks.pop("")
         n = len(bare)
@@ -837,7 +970,12 @@ def _text_values(path: Path) -> dict[str, object]:
         elif n - 9 in _DIST_COUNTS:
             blocks = {"k": bare[:9], "dist": bare[9:]}
         elif n - 21 in _DIST_COUNTS:
-            blocks = {"k": bare[:9], "dist": bare[9:n - 12], "r": bare[n - 12:n - 3], "t": bare[n - 3:]}
+            blocks = {
+                "k": bare[:9],
+                "dist": bare[9 : n - 12],
+                "r": bare[n - 12 : n - 3],
+                "t": bare[n - 3 :],
+            }
         else:
             raise SlscanError(
                 f"{path}: {n} unlabelled numbers: expected K (9), K + distortion (13, 14, 17, "
@@ -870,8 +1008,15 @@ def read_text(
     Raises SlscanError naming the file and the label it could not use.
     """
     paths = [Path(p) for p in (path, path2) if p is not None]
-    return _read_keyed(paths, _text_values, TEXT_LAYOUTS, keys=keys, format="text",
-                       units_mm=units_mm, fold_case=True)
+    return _read_keyed(
+        paths,
+        _text_values,
+        TEXT_LAYOUTS,
+        keys=keys,
+        format="text",
+        units_mm=units_mm,
+        fold_case=True,
+    )
 
 
 # --- 3DUNDERWORLD -----------------------------------------------------------------------
@@ -880,8 +1025,13 @@ def read_text(
 def _underworld_values(path: Path) -> dict[str, object]:
     if path.is_dir():
         out: dict[str, object] = {}
-        for name in ("cam_matrix.txt", "cam_distortion.txt", "cam_rotation_matrix.txt",
-                     "cam_trans_vectror.txt", "cam_trans_vector.txt"):
+        for name in (
+            "cam_matrix.txt",
+            "cam_distortion.txt",
+            "cam_rotation_matrix.txt",
+            "cam_trans_vectror.txt",
+            "cam_trans_vector.txt",
+        ):
             if (path / name).is_file():
                 blocks = _text_blocks(path / name)
                 if set(blocks) - {""}:
@@ -891,7 +1041,9 @@ def _underworld_values(path: Path) -> dict[str, object]:
     values = _opencv_values(path)
     flag = values.get("Camera/Calibrated")
     if isinstance(flag, np.ndarray) and flag.size == 1 and flag[0] == 0:
-        raise SlscanError(f"{path}: key 'Camera/Calibrated' is 0: the tool did not calibrate this camera")
+        raise SlscanError(
+            f"{path}: key 'Camera/Calibrated' is 0: the tool did not calibrate this camera"
+        )
     return values
 
 
@@ -942,8 +1094,13 @@ def _matlab_assignments(text: str) -> dict[str, tuple[np.ndarray | None, str]]:
             end = src.find("]", start)
             end = len(src) if end < 0 else end + 1
             transposed = src.startswith("'", end)
-            raw = src[start:end + transposed]
-            rows = [r.split() for r in re.split(r"[;\n]", src[start + 1:end - 1].replace("...", " ").replace(",", " "))]
+            raw = src[start : end + transposed]
+            rows = [
+                r.split()
+                for r in re.split(
+                    r"[;\n]", src[start + 1 : end - 1].replace("...", " ").replace(",", " ")
+                )
+            ]
             rows = [r for r in rows if r]
             try:
                 if len({len(r) for r in rows}) == 1:
@@ -995,7 +1152,9 @@ def read_bouguet(path: str | os.PathLike, *, units_mm: float = 1.0) -> ImportedC
     def get(name: str, counts: Sequence[int], required: bool = True) -> np.ndarray | None:
         if name not in assigned:
             if required:
-                raise SlscanError(f"{path}: missing key {name!r} (Bouguet's Calib_Results_stereo.m)")
+                raise SlscanError(
+                    f"{path}: missing key {name!r} (Bouguet's Calib_Results_stereo.m)"
+                )
             return None
         value, raw = assigned[name]
         return numbers(raw if value is None else value, path, name, counts)
@@ -1014,8 +1173,14 @@ def read_bouguet(path: str | os.PathLike, *, units_mm: float = 1.0) -> ImportedC
             )
         kc = get(f"kc_{side}", _DIST_COUNTS)
         k = np.array([[fc[0], 0.0, cc[0]], [0.0, fc[1], cc[1]], [0.0, 0.0, 1.0]])
-        return ImportedLens(camera_matrix(k, path, f"fc_{side}"), distortion(kc, path, f"kc_{side}"),
-                            size, path, f"fc_{side}", None if size is None else "nx, ny")
+        return ImportedLens(
+            camera_matrix(k, path, f"fc_{side}"),
+            distortion(kc, path, f"kc_{side}"),
+            size,
+            path,
+            f"fc_{side}",
+            None if size is None else "nx, ny",
+        )
 
     projector = re.search(r"parameters of (?:the )?projector", text, re.IGNORECASE) is not None
     left, right = lens("left", size), lens("right", None if projector else size)
@@ -1025,9 +1190,14 @@ def read_bouguet(path: str | os.PathLike, *, units_mm: float = 1.0) -> ImportedC
         r = rotation(get("R", (9,)), path, "R")
     right_from_left = _pose(r, get("T", (3,)) * units_mm)
     return ImportedCalibration(
-        files=(path,), format="bouguet", layout="bouguet-stereo", camera=left, second=right,
+        files=(path,),
+        format="bouguet",
+        layout="bouguet-stereo",
+        camera=left,
+        second=right,
         second_kind="projector" if projector else "camera",
-        camera_from_second=rigid_inverse(right_from_left), units_mm=units_mm,
+        camera_from_second=rigid_inverse(right_from_left),
+        units_mm=units_mm,
     )
 
 
@@ -1080,14 +1250,18 @@ def read_calibration(
     if not 1 <= len(paths) <= 2:
         raise SlscanError(f"--import takes one or two files, got {len(paths)}")
     if format not in FORMATS:
-        raise SlscanError(f"unknown calibration format {format!r}: expected one of {', '.join(FORMATS)}")
+        raise SlscanError(
+            f"unknown calibration format {format!r}: expected one of {', '.join(FORMATS)}"
+        )
     if format == "auto":
         format = guess_format(paths[0])
     if keys is not None and format not in ("opencv", "text"):
         raise SlscanError(f"--keys is for OpenCV and text files; {paths[0]} is read as {format}")
     if format == "bouguet":
         if len(paths) > 1:
-            raise SlscanError(f"{paths[1]}: Bouguet's Calib_Results_stereo.m holds both cameras; give it alone")
+            raise SlscanError(
+                f"{paths[1]}: Bouguet's Calib_Results_stereo.m holds both cameras; give it alone"
+            )
         return read_bouguet(paths[0], units_mm=units_mm)
     reader = {"opencv": read_opencv, "text": read_text, "3dunderworld": read_3dunderworld}[format]
     kwargs = {"keys": keys} if format in ("opencv", "text") else {}
