@@ -615,3 +615,9 @@ def test_parse_keys_refuses_what_it_cannot_use():
         with pytest.raises(SlscanError, match=message):
             parse_keys(text)
     assert parse_keys("camera=K").direction == "world-to-camera"
+
+
+def test_a_recognised_layout_names_its_missing_key(tmp_path, rig):
+    path = write_kamino(tmp_path / "result.xml", rig, proj_dist=None)
+    with pytest.raises(SlscanError, match=r"result.xml: missing key 'proj_dist'"):
+        read_calibration([path])

@@ -710,11 +710,12 @@ def _from_keys(
 
 
 def _detect(values: _Values, layouts: Sequence[KeyMap], two: bool) -> KeyMap | None:
+    """The first layout (with two devices or one) whose matrices are all in ``values``;
+    its other keys are then read by name, so a missing one is reported by name."""
     for keys in layouts:
-        if (keys.second is not None) != two:
-            continue
-        specs = [keys.camera, keys.camera_dist, keys.second, keys.second_dist]
-        if all(s is None or s.endswith("?") or values.has(s) for s in specs):
+        if (keys.second is not None) == two and all(
+            values.has(s) for s in (keys.camera, keys.second) if s is not None
+        ):
             return keys
     return None
 
