@@ -48,8 +48,10 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
         CORRESPONDENCES,
         DEFAULT_DICTIONARY,
         DISTORTION_MODELS,
+        IMPORT_FORMATS,
         METHODS,
         PLANE_PATTERNS,
+        SECOND_KINDS,
     )
     from slscan.viewer.recording import add_recording_arguments
 
@@ -144,7 +146,6 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
         metavar="PX",
         help="half-size of the local-homography windows, camera px (default: 0.3 squares)",
     )
-    from slscan.calibrate.importers import FORMATS, SECOND_KINDS
 
     imp = p.add_argument_group("import another tool's calibration (docs/calibration.md)")
     imp.add_argument(
@@ -159,7 +160,7 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
     )
     imp.add_argument(
         "--format",
-        choices=FORMATS,
+        choices=IMPORT_FORMATS,
         default="auto",
         help="default auto: .xml/.yml/.yaml/.json OpenCV (3DUNDERWORLD if its top key is "
         "Camera), .m Bouguet, .txt text, a folder 3DUNDERWORLD's text files",

@@ -41,6 +41,7 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
+from slscan.calibrate.options import IMPORT_FORMATS as FORMATS
 from slscan.errors import SlscanError
 from slscan.rig import PinholeModel, Projector
 
@@ -49,8 +50,6 @@ if TYPE_CHECKING:
     from slscan.capture.multicam import CameraEntry
     from slscan.capture.session import Session
 
-FORMATS = ("auto", "opencv", "bouguet", "text", "3dunderworld")
-SECOND_KINDS = ("projector", "camera")
 ROTATION_TOLERANCE = 1e-3
 """Largest |R·Rᵀ − I| entry orthonormalised away; a matrix further off is refused."""
 
@@ -927,7 +926,7 @@ def _text_blocks(path: Path) -> dict[str, list[float]]:
     if not path.is_file():
         raise SlscanError(f"{path}: calibration file not found")
     try:
-        text = path.read_text(encoding="utf-8", errors="strict")
+        text = path.read_text(encoding="utf-8-sig", errors="strict")
     except (OSError, UnicodeDecodeError) as exc:
         raise SlscanError(f"{path}: not a readable text file ({exc})") from None
     blocks: dict[str, list[float]] = {}
@@ -1256,6 +1255,14 @@ def read_calibration(
         )
     if format == "auto":
         format = guess_format(paths[0])
+    for p in paths:
+        if p.is_dir() and format != "3dunderworld":
+            hint = (
+                " (a capture session: give it as --session)"
+                if (p / "session.json").is_file()
+                else ""
+            )
+            raise SlscanError(f"{p}: is a folder; expected a calibration file ({format}){hint}")
     if keys is not None and format not in ("opencv", "text"):
         raise SlscanError(f"--keys is for OpenCV and text files; {paths[0]} is read as {format}")
     if format == "bouguet":
