@@ -112,7 +112,7 @@ def test_opencv_xml_round_trip(tmp_path, calibration):
         export_opencv_xml(planes_only, tmp_path / "x.xml")
     text = text.replace("proj_dist", "projector_distortion")
     (tmp_path / "bad.xml").write_text(text)
-    with pytest.raises(SlscanError, match="missing field 'proj_dist'"):
+    with pytest.raises(SlscanError, match="missing key 'proj_dist'"):
         import_opencv_xml(tmp_path / "bad.xml", projector_size=(1024, 768))
 
 

@@ -2,9 +2,11 @@
 
 The JSON file holds the camera, the projector as an inverse camera and/or as a light-plane
 model, and each method's residuals. It is written atomically; reading it checks the format,
-the version and every required field, naming the one missing. The XML is the layout of
-kamino410/procam-calibration's ``calibration_result.xml`` (``cam_int``, ``cam_dist``,
-``proj_int``, ``proj_dist``, ``roration`` [sic], ``translation``, ``img_shape``, ``rms``).
+the version and every required field, naming the one missing. The XML written is the
+layout of kamino410/procam-calibration's ``calibration_result.xml`` (``cam_int``,
+``cam_dist``, ``proj_int``, ``proj_dist``, ``roration`` [sic], ``translation``,
+``img_shape``, ``rms``); reading it, and other tools' formats, is
+:mod:`slscan.calibrate.importers` (``import_opencv_xml`` is re-exported here).
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ import cv2
 import numpy as np
 
 from slscan import __version__
-from slscan.calibrate.camera import lens_from_opencv
+from slscan.calibrate.importers import import_opencv_xml  # noqa: F401 (re-exported for callers)
 from slscan.calibrate.planes import LightPlaneModel, MeasuredPlanes
 from slscan.calibrate.target import Board
 from slscan.capture.session import Session
@@ -291,103 +293,6 @@ def apply_calibration(
 
 
 # --- OpenCV FileStorage XML ------------------------------------------------------------------
-
-
-def _read_matrix(
-    fs: cv2.FileStorage, path: Path, names: tuple[str, ...], shape: tuple[int, ...]
-) -> np.ndarray:
-    for name in names:
-        node = fs.getNode(name)
-        if node.isNone() or node.empty():
-            continue
-        try:
-            mat = node.mat()
-        except cv2.error:
-            mat = None
-        if mat is None:
-            raise SlscanError(f"{path}: field {name!r} is not a matrix")
-        mat = np.asarray(mat, float)
-        if mat.size != int(np.prod(shape)):
-            raise SlscanError(
-                f"{path}: field {name!r} has {mat.size} values, expected {int(np.prod(shape))}"
-            )
-        if not np.isfinite(mat).all():
-            raise SlscanError(f"{path}: field {name!r} holds non-finite numbers (NaN or inf)")
-        return mat.reshape(shape)
-    raise SlscanError(f"{path}: missing field {names[0]!r}")
-
-
-def import_opencv_xml(
-    path: str | os.PathLike,
-    *,
-    projector_size: tuple[int, int],
-    camera_size: tuple[int, int] | None = None,
-    units_mm: float = 1.0,
-    projector_scale: float = 1.0,
-) -> Calibration:
-    """Read a procam calibration in OpenCV FileStorage XML (kamino410/procam-calibration).
-
-    Parameters
-    ----------
-    path : the ``.xml`` file: ``cam_int``, ``cam_dist``, ``proj_int``, ``proj_dist`` (3x3 and
-        5 values), ``roration`` (sic; ``rotation`` also read) and ``translation``, which take
-        camera points to projector points; optional ``img_shape`` (rows, cols) and ``rms``
-    projector_size : (width, height) px of the pattern images (the file does not say)
-    camera_size : (width, height) px; default from ``img_shape``
-    units_mm : millimetres per unit of the file's translation (the board square's unit)
-    projector_scale : pattern pixels per projector pixel of the file: the file's projector
-        intrinsics are multiplied by it (0.5 for a file whose projector coordinates are
-        twice the patterns', as with procam-calibration's ``graycode_step`` 2)
-
-    Raises
-    ------
-    SlscanError
-        Missing file or field (named), or a field of the wrong size.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise SlscanError(f"{path}: calibration XML not found")
-    try:
-        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except (cv2.error, SystemError) as exc:  # OpenCV's parser raises on malformed XML
-        reason = str(exc.__cause__ or exc).strip().splitlines()[-1][:200]
-        raise SlscanError(f"{path}: not a readable OpenCV FileStorage XML ({reason})") from None
-    if not fs.isOpened():
-        raise SlscanError(f"{path}: not an OpenCV FileStorage file")
-    try:
-        kc = _read_matrix(fs, path, ("cam_int",), (3, 3))
-        dc = _read_matrix(fs, path, ("cam_dist",), (5,))
-        kp = _read_matrix(fs, path, ("proj_int",), (3, 3))
-        dp = _read_matrix(fs, path, ("proj_dist",), (5,))
-        r = _read_matrix(fs, path, ("roration", "rotation"), (3, 3))
-        t = _read_matrix(fs, path, ("translation",), (3,))
-        if camera_size is None:
-            rows_cols = _read_matrix(fs, path, ("img_shape",), (2,))
-            camera_size = (int(rows_cols[1]), int(rows_cols[0]))
-        rms_node = fs.getNode("rms")
-        rms = None if rms_node.isNone() or rms_node.empty() else float(rms_node.real())
-    finally:
-        fs.release()
-    kp = kp.copy()
-    kp[:2] *= float(projector_scale)
-    projector_from_camera = np.eye(4)
-    u, _, vt = np.linalg.svd(r)
-    projector_from_camera[:3, :3] = u @ vt
-    projector_from_camera[:3, 3] = t * float(units_mm)
-    camera = lens_from_opencv(kc, dc, camera_size)
-    projector = Projector(lens_from_opencv(kp, dp, projector_size), np.linalg.inv(projector_from_camera))
-    residuals = {"imported": {"stereo_rms_px": rms}} if rms is not None else {}
-    return Calibration(
-        camera=camera,
-        projector_size=tuple(projector_size),
-        projector=projector,
-        residuals=residuals,
-        source={
-            "imported_from": str(path),
-            "units_mm": units_mm,
-            "projector_scale": projector_scale,
-        },
-    )
 
 
 def export_opencv_xml(calibration: Calibration, path: str | os.PathLike) -> Path:

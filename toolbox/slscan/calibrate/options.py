@@ -18,3 +18,7 @@ CORRESPONDENCES = ("edges", "pixels")
 BOARD_KINDS = ("chessboard", "charuco")
 DEFAULT_DICTIONARY = "DICT_4X4_100"
 """ChArUco marker dictionary, an OpenCV ``cv2.aruco`` name."""
+IMPORT_FORMATS = ("auto", "opencv", "bouguet", "text", "3dunderworld")
+"""Formats ``slscan calibrate --import`` reads (``slscan.calibrate.importers``)."""
+SECOND_KINDS = ("projector", "camera")
+"""What the second device of an imported calibration is."""
