@@ -2,7 +2,7 @@
 exercise them, decoded with and without the robust decoding, side by side in one run.
 
     .venv/bin/python benchmarks/light_transport.py [--scale 1.0] [--scenes object,concave,marble,bronze]
-        [--effects none,EACH,all] [--families hybrid,gray,xor] [--against REV]
+        [--effects none,EACH,all] [--families hybrid,gray,xor,phase,phase-hf] [--against REV]
 
 For every scene and set of effects one capture is rendered (view 0 faces the camera; the
 pattern families are rendered into the same session where they can share it) and decoded
@@ -47,13 +47,20 @@ sys.path.insert(0, str(Path(__file__).parent))
 from measure import export_toolbox, run_json
 from reconstruction import coverage, true_surface_distance
 
-PLAIN: dict[str, dict] = {"hybrid": {"mixing": "global"}, "gray": {"gray_robust": False}, "xor": {"gray_robust": False}}
-"""DecodeConfig options that switch the robust decoding off, per pattern family."""
+PLAIN: dict[str, dict] = {"hybrid": {"mixing": "global"}, "gray": {"gray_robust": False},
+                          "xor": {"gray_robust": False}, "phase": {}, "phase-hf": {}}
+"""DecodeConfig options that switch the robust decoding off, per pattern family (phase
+shifting has no robust steps to switch off: "plain" is its default decoder)."""
 
-CAPTURE_FAMILY = {"hybrid": "both", "gray": "both", "xor": "xor"}
-"""The capture's ``patterns`` setting that holds each decoded family."""
+CAPTURE_FAMILY = {"hybrid": "both", "gray": "both", "xor": "xor", "phase": "phase", "phase-hf": "phase-hf"}
+"""The capture's ``patterns`` setting that holds each decoded family (its key in ``CAPTURES``)."""
 
-METHOD = {"hybrid": "hybrid", "gray": "gray", "xor": "gray"}
+CAPTURES = {"phase-hf": ("phase", {"unwrap": "heterodyne", "periods": (16.0, 17.0, 18.0)})}
+"""Captures whose set takes options: (``patterns``, ``pattern_options``). "phase-hf": phase
+shifting with high-frequency fringes only (16, 17, 18 px) and temporal unwrapping, no Gray
+code: every image is high-frequency, so global light falls evenly on its shifts."""
+
+METHOD = {"hybrid": "hybrid", "gray": "gray", "xor": "gray", "phase": "phase", "phase-hf": "phase"}
 """The decode method of each family."""
 
 
@@ -140,7 +147,7 @@ def main() -> None:
         f"{optics.interreflection_samples} inter-reflection rays per receiver; effects: "
           + ", ".join(f"{e.name} ({e.summary})" for e in EFFECTS.values()))
     ew = max(17, max(len(label) for label, _ in groups) + 1)
-    header = (f"{'scene':<9}{'effects':<{ew}}{'family':<8}{'decoder':<{dw}}{'vertices':>9}{'mean mm':>9}"
+    header = (f"{'scene':<9}{'effects':<{ew}}{'family':<9}{'decoder':<{dw}}{'vertices':>9}{'mean mm':>9}"
               f"{'p95 mm':>8}{'gross %':>9}{'coverage':>9}{'x direct':>9}{'render s':>9}{'decode s':>9}")
     say(header)
     direct: dict[tuple, float] = {}
@@ -154,8 +161,9 @@ def main() -> None:
                     capture = CAPTURE_FAMILY[family]
                     if capture in sessions:
                         continue
-                    config = VirtualCaptureConfig(scene=scene_name, views=1, patterns=capture, levels=levels,
-                                                  gray_rows=False, lit_images=False, camera_scale=args.scale,
+                    patterns, pattern_options = CAPTURES.get(capture, (capture, {}))
+                    config = VirtualCaptureConfig(scene=scene_name, views=1, patterns=patterns, levels=levels,
+                                                  pattern_options=pattern_options, gray_rows=False, lit_images=False, camera_scale=args.scale,
                                                   projector_scale=args.scale, effects=names, optics=optics)
                     out = Path(tmp) / f"{scene_name}-{label.replace(' ', '_')}-{capture}"
                     t = time.process_time()
@@ -183,7 +191,7 @@ def main() -> None:
                                 worst.setdefault((family, lines[-1][0]), []).append(
                                     (scene_name, other["ratio"], other["m"]["gross"]))
                         for name, r, q in lines:
-                            say(f"{scene_name:<9}{label:<{ew}}{family:<8}{name:<{dw}}{r['vertices']:>9d}"
+                            say(f"{scene_name:<9}{label:<{ew}}{family:<9}{name:<{dw}}{r['vertices']:>9d}"
                                 f"{r['mean']:>9.4f}{r['p95']:>8.3f}{r['gross']:>9.3f}{r['coverage']:>9.3f}"
                                 f"{q:>9.2f}{r['render']:>9.1f}{r['cpu']:>9.2f}", flush=True)
     if args.json:
@@ -191,11 +199,11 @@ def main() -> None:
         return
     if worst:
         print("\nall effects on, against the targets (mean <= 1.5x direct, gross <= 0.1 %):")
-        print(f"{'family':<8}{'decoder':<{dw}}{'worst x direct':>16}{'worst gross %':>15}{'meets':>7}")
+        print(f"{'family':<9}{'decoder':<{dw}}{'worst x direct':>16}{'worst gross %':>15}{'meets':>7}")
         for (family, decoder), rows in worst.items():
             r = max(x[1] for x in rows)
             g = max(x[2] for x in rows)
-            print(f"{family:<8}{decoder:<{dw}}{r:>16.2f}{g:>15.3f}{'yes' if r <= 1.5 and g <= 0.1 else 'no':>7}")
+            print(f"{family:<9}{decoder:<{dw}}{r:>16.2f}{g:>15.3f}{'yes' if r <= 1.5 and g <= 0.1 else 'no':>7}")
 
 
 if __name__ == "__main__":

@@ -210,6 +210,11 @@ def _add_demo_options(p: argparse.ArgumentParser) -> None:
                    help="camera and projector resolution factor (default: the recipe's, 0.5; 1: the paper's "
                         "1440x960 camera and 1024x768 projector)")
     p.add_argument("--reduced", action="store_true", help="the recipe's quick reduced-size version (quarter size)")
+    from slscan.patterns import pattern_set_name
+
+    p.add_argument("--patterns", type=pattern_set_name, metavar="SET",
+                   help="the coded patterns (default: the recipe's, hybrid); phase: 4-step phase shifting "
+                        "with complementary Gray code, columns and rows (the phase recipe's set)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="override a setting of the recipe, e.g. capture.seed=3 (repeatable)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -217,9 +222,16 @@ def _add_demo_options(p: argparse.ArgumentParser) -> None:
     add_executor_arguments(p)
 
 
-def demo_overrides(*, views: int | None = None, scale: float | None = None) -> list[str]:
-    """``--set`` overrides of the demo recipe for ``slscan demo --views N --scale S``."""
+def demo_overrides(*, views: int | None = None, scale: float | None = None,
+                   patterns: str | None = None) -> list[str]:
+    """``--set`` overrides of the demo recipe for ``slscan demo --views N --scale S --patterns P``."""
     overrides = []
+    if patterns is not None:  # the family decoded is the one captured ("auto")
+        from slscan.patterns import family, set_families
+
+        overrides += [f"capture.patterns={patterns}", "decode.method=auto"]
+        if any(family(name).rows_triangulate for name in set_families(patterns)):
+            overrides.append("capture.gray_rows=true")
     if views is not None:
         overrides.append(f"capture.views={views}")
     if scale is not None:
@@ -239,7 +251,7 @@ def _check_demo_folder(out: Path, overwrite: bool) -> None:
 def _cmd_demo(args: argparse.Namespace) -> int:
     from slscan.recipe.runner import load_recipe, shipped_recipe
 
-    overrides = demo_overrides(views=args.views, scale=args.scale) + (args.set or [])
+    overrides = demo_overrides(views=args.views, scale=args.scale, patterns=args.patterns) + (args.set or [])
     recipe = load_recipe(shipped_recipe("demo"), overrides=overrides, reduced=args.reduced)
     _check_demo_folder(args.out, args.overwrite)
     _run(args, recipe, args.out, force=args.overwrite)

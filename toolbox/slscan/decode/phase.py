@@ -40,7 +40,7 @@ import numpy as np
 
 from slscan.capture.session import Session, ViewRecord
 from slscan.decode.family import FamilyDecode, ProjectorConstraints
-from slscan.decode.masks import channel_max, channel_mean, full_scale, noise_sigma
+from slscan.decode.masks import channel_max, channel_mean, full_scale, lit_bounds, noise_sigma, uncrop
 from slscan.decode.samples import StripeSamples
 from slscan.errors import SlscanError
 from slscan.patterns import PatternImage
@@ -57,6 +57,9 @@ subsurface scattering and global light lower it; below, the phase is mostly nois
 NOISE_SIGMAS = 4.0
 """``B`` must exceed this many standard deviations of its own estimate (the image noise
 times ``sqrt(2 / N)``): a phase error of at most about 1 / 4 radian."""
+MIN_ORDER_MARGIN = 9.0
+"""Temporal unwrapping: the best fringe order's chi-square must beat the runner-up's by
+this much (three standard deviations), or the pixel is left out as ambiguous."""
 CONSISTENCY_RADIUS = 2
 """Half-size (px) of the window whose unwrapped coordinates each pixel is checked against."""
 CONSISTENCY_SLOPE = 1.5
@@ -260,18 +263,16 @@ def fit_phase(images: Iterable[np.ndarray], shifts: Sequence[float]) -> PhaseFit
     gram = m.T @ m
     if np.linalg.cond(gram) > 1e8:
         raise SlscanError(f"phase shifts {np.round(shifts, 3).tolist()} do not determine a phase")
-    sums = None
+    sums: list = [None, None, None]
     square = None
     n = 0
     for k, image in enumerate(images):
         image = np.asarray(image, np.float32)
-        if sums is None:
-            sums = [np.zeros_like(image) for _ in range(3)]
-            square = np.zeros_like(image)
         for j in range(3):
-            if m[k, j] != 0:
-                sums[j] += np.float32(m[k, j]) * image
-        square += image * image
+            term = image if m[k, j] == 1 else np.float32(m[k, j]) * image
+            sums[j] = term.copy() if sums[j] is None and term is image else term if sums[j] is None \
+                else np.add(sums[j], term, out=sums[j])
+        square = image * image if square is None else np.add(square, image * image, out=square)
         n += 1
     if n != len(shifts):
         raise SlscanError(f"phase fit: {n} images for {len(shifts)} shifts")
@@ -328,25 +329,26 @@ def unwrap_from(estimate: np.ndarray, phase: np.ndarray, fringes: Fringes) -> np
     return fringes.origin + fringes.period * (k + frac)
 
 
-def unwrap_temporal(phases: Sequence[np.ndarray], fringes: Sequence[Fringes], weights: Sequence[np.ndarray],
+def unwrap_temporal(phases: Sequence[np.ndarray], fringes: Sequence[Fringes], sigmas: Sequence[np.ndarray],
                     size: int, *, chunk: int = 1 << 16) -> tuple[np.ndarray, np.ndarray]:
     """Coordinates from several periods' wrapped phases, without Gray code.
 
     Every period of the finest fringes across ``[0, size)`` is a candidate; each other
     period's phase says how far (px, wrapped to half its period) the candidate is from
     its nearest fringe of the same phase, and the candidate with the least
-    ``sum(weight * distance**2)`` wins.
+    ``sum(distance**2 / (sigma_finest**2 + sigma**2))`` (a chi-square) wins.
 
-    phases : per period (n,) wrapped phases; weights : per period (n,) inverse variances
-    (1 / px**2) of its coordinate. Returns the (n,) coordinates of the finest period at
-    the chosen order and the (n,) winning cost over the runner-up's (1: ambiguous).
+    phases : per period (n,) wrapped phases; sigmas : per period (n,) standard deviation
+    (px) of its coordinate. Returns the (n,) coordinates of the finest period at the chosen
+    order and the (n,) margin: the runner-up's chi-square minus the winner's (small:
+    ambiguous; infinite when there is one candidate).
     """
     ref = int(np.argmin([f.period for f in fringes]))
     fr = fringes[ref]
     n = len(phases[ref])
     orders = np.arange(-1, math.ceil(size / fr.period) + 1, dtype=np.float64)
     best = np.empty(n)
-    ratio = np.empty(n)
+    margin = np.empty(n)
     for start in range(0, n, chunk):
         sl = slice(start, min(n, start + chunk))
         cand = fr.origin + fr.period * (orders[None, :] + phases[ref][sl, None] / (2 * np.pi))  # (c, m)
@@ -356,7 +358,7 @@ def unwrap_temporal(phases: Sequence[np.ndarray], fringes: Sequence[Fringes], we
                 continue
             there = (cand - f.origin) / f.period - phases[i][sl, None] / (2 * np.pi)
             dist = (there - np.rint(there)) * f.period
-            cost += weights[i][sl, None] * dist * dist
+            cost += dist * dist / (sigmas[ref][sl, None] ** 2 + sigmas[i][sl, None] ** 2)
         inside = (cand >= -0.5) & (cand <= size - 0.5)
         cost = np.where(inside, cost, np.inf)
         two = np.argpartition(cost, 1, axis=1)[:, :2]
@@ -364,10 +366,9 @@ def unwrap_temporal(phases: Sequence[np.ndarray], fringes: Sequence[Fringes], we
         first = np.where(c2[:, 0] <= c2[:, 1], 0, 1)
         win = np.take_along_axis(two, first[:, None], axis=1)[:, 0]
         best[sl] = cand[np.arange(len(win)), win]
-        lo, hi = np.minimum(c2[:, 0], c2[:, 1]), np.maximum(c2[:, 0], c2[:, 1])
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ratio[sl] = np.where(np.isfinite(hi), lo / hi, 0.0)
-    return best, ratio
+        with np.errstate(invalid="ignore"):
+            margin[sl] = np.abs(c2[:, 1] - c2[:, 0])
+    return best, margin
 
 
 def _shift(a: np.ndarray, dy: int, dx: int) -> tuple[tuple[slice, slice], tuple[slice, slice]]:
@@ -483,28 +484,48 @@ class PhaseResult:
 
 
 class _Grey:
-    """Captures as grey float32 fractions of full scale (channel mean, or luma for lossy RGB)."""
+    """Captures as grey float32 fractions of full scale (channel mean, or luma for lossy RGB),
+    cropped to ``box`` once it is set; clipping is collected from the images asked."""
 
     def __init__(self, luma: bool) -> None:
         self.luma = luma
         self.scale: float | None = None
         self.saturated: np.ndarray | None = None
+        self.box: tuple[slice, slice] | None = None
 
-    def __call__(self, image: np.ndarray, name: str = "image") -> np.ndarray:
+    def _check(self, image: np.ndarray, name: str) -> np.ndarray:
         image = np.asarray(image)
         top = full_scale(image, name)
         if self.scale is None:
             self.scale = top
         elif top != self.scale:
             raise SlscanError(f"{name}: pixels are {image.dtype}, unlike the white frame's")
-        clipped = channel_max(image) >= top
+        return image if self.box is None else image[self.box]
+
+    def __call__(self, image: np.ndarray, name: str = "image") -> np.ndarray:
+        image = self._check(image, name)
+        clipped = channel_max(image) >= self.scale
         self.saturated = clipped if self.saturated is None else self.saturated | clipped
         if image.ndim == 3 and image.shape[2] == 3 and self.luma:
             grey = np.tensordot(image.astype(np.float32), LUMA_WEIGHTS, axes=([2], [0]))
         else:
             grey = channel_mean(image)
-        grey *= np.float32(1.0 / top)
+        grey *= np.float32(1.0 / self.scale)
         return grey
+
+    def raw(self, image: np.ndarray, name: str = "image") -> np.ndarray:
+        """A grey level in the captures' own units, only to compare two captures (a Gray
+        bit against its inverse): the channel sum (or the luma), no clipping collected."""
+        image = self._check(image, name)
+        if image.ndim == 2:
+            return image
+        if self.luma and image.shape[2] == 3:
+            return np.tensordot(image.astype(np.float32), LUMA_WEIGHTS, axes=([2], [0]))
+        wide = np.uint32 if image.dtype == np.uint16 else np.uint16 if image.dtype == np.uint8 else np.float32
+        out = image[..., 0].astype(wide)
+        for c in range(1, image.shape[2]):
+            out += image[..., c]
+        return out
 
 
 def decode_phase_images(
@@ -547,21 +568,25 @@ def decode_phase_images(
     if "columns" not in sets:
         raise SlscanError(f"{where + ': ' if where else ''}the pattern set has no phase-shifting column fringes")
     read = _Grey(luma)
-    w_img = read(white, "white")
-    b_img = read(black, "black")
-    shape = w_img.shape
-    contrast = w_img - b_img
-    lit = contrast > min_contrast
+    w_full = read(white, "white")
+    b_full = read(black, "black")
+    shape = w_full.shape
+    contrast_full = w_full - b_full
     noise = max(noise_sigma(np.asarray(black)) / (read.scale or 1.0), 1.0 / (read.scale or 255.0) / math.sqrt(12))
+    # work on the lit region's bounding box only (windows around a lit pixel stay inside)
+    box = lit_bounds(contrast_full > min_contrast, consistency_radius + edge + 2)
+    read.box, read.saturated = box, read.saturated[box]
+    w_img, b_img, contrast = w_full[box], b_full[box], contrast_full[box]
+    lit = contrast > min_contrast
 
-    def get(pid: str) -> np.ndarray:
+    def get(pid: str, raw: bool = False) -> np.ndarray:
         if pid not in images:
             raise SlscanError(f"{where + ': ' if where else ''}no captured image of phase pattern {pid!r}")
-        grey = read(images[pid], pid)
-        if grey.shape != shape:
-            raise SlscanError(f"{where + ': ' if where else ''}{pid}: {grey.shape[1]}x{grey.shape[0]} px, "
+        image = np.asarray(images[pid])
+        if image.shape[:2] != shape:
+            raise SlscanError(f"{where + ': ' if where else ''}{pid}: {image.shape[1]}x{image.shape[0]} px, "
                               f"unlike the white frame's {shape[1]}x{shape[0]}")
-        return grey
+        return read.raw(image, pid) if raw else read(image, pid)
 
     fits = {axis: [fit_phase((get(i) for i in f.ids), f.shifts) for f in s.fringes] for axis, s in sets.items()}
     steps = min(fit.steps for fl in fits.values() for fit in fl)
@@ -575,6 +600,7 @@ def decode_phase_images(
     for axis, s in sets.items():
         axes[axis] = _decode_axis(s, fits[axis], get, w_img, b_img, contrast, lit, noise, min_modulation,
                                   noise_sigmas, consistency_radius)
+    axes = {axis: _uncrop_axis(a, box, shape) for axis, a in axes.items()}
     mask = np.isfinite(axes["columns"].coordinate)
     if "rows" in axes:
         mask &= np.isfinite(axes["rows"].coordinate)
@@ -584,8 +610,18 @@ def decode_phase_images(
     if "rows" in axes:
         row = np.where(mask, axes["rows"].coordinate, np.nan)
     column = np.where(mask, axes["columns"].coordinate, np.nan)
-    return PhaseResult(column, row, mask, contrast, read.saturated, float(noise), axes,
-                       dn=255.0 if read.scale == 1.0 else float(read.scale))
+    return PhaseResult(column, row, mask, contrast_full, uncrop(read.saturated, box, shape, False), float(noise),
+                       axes, dn=255.0 if read.scale == 1.0 else float(read.scale))
+
+
+def _uncrop_axis(a: AxisDecode, box: tuple[slice, slice], shape: tuple[int, int]) -> AxisDecode:
+    """An axis decoded on ``box`` as whole-image maps."""
+    return replace(
+        a, coordinate=uncrop(a.coordinate, box, shape, np.nan),
+        periods=tuple(uncrop(p, box, shape, np.nan) for p in a.periods),
+        wrapped=tuple(uncrop(w, box, shape, np.float32(np.nan)) for w in a.wrapped),
+        modulation=uncrop(a.modulation, box, shape, np.float32(0)),
+    )
 
 
 def _chi2_median_ratio(dof: int) -> float:
@@ -609,8 +645,10 @@ def _decode_axis(s: AxisSet, fits: list[PhaseFit], get, w_img, b_img, contrast, 
         counts["noisy"] = counts.get("noisy", 0) + int((ok & strong & ~clear).sum())
         ok &= strong & clear
         mods.append(mod)
-    # precision of each period's coordinate: px sigma ~ period * noise / (2 pi B sqrt(N / 2))
-    weights = [(2 * np.pi * fit.amplitude / f.period) ** 2 * (fit.steps / 2) for fit, f in zip(fits, s.fringes)]
+    # each period's coordinate's standard deviation (px): period * noise / (2 pi B sqrt(N / 2))
+    sigmas = [f.period * noise / (2 * np.pi * np.maximum(fit.amplitude, 1e-9) * math.sqrt(fit.steps / 2))
+              for fit, f in zip(fits, s.fringes)]
+    weights = [1.0 / (sg * sg) for sg in sigmas]
     idx = np.flatnonzero(ok.ravel())
     phases = [fit.phase.ravel()[idx] for fit in fits]
     per = []
@@ -619,8 +657,9 @@ def _decode_axis(s: AxisSet, fits: list[PhaseFit], get, w_img, b_img, contrast, 
         threshold = None if s.gray.bits[0][1] is not None else 0.5 * (w_img + b_img).ravel()[idx]
 
         def bit(pair) -> np.ndarray:
-            pat = get(pair[0]).ravel()[idx]
-            return pat > (get(pair[1]).ravel()[idx] if pair[1] is not None else threshold)
+            if pair[1] is not None:  # against the inverse: in the captures' own units
+                return get(pair[0], raw=True).ravel()[idx] > get(pair[1], raw=True).ravel()[idx]
+            return get(pair[0]).ravel()[idx] > threshold
 
         main = [bit(pair) for pair in s.gray.bits]
         order = gray_order(main)
@@ -631,9 +670,8 @@ def _decode_axis(s: AxisSet, fits: list[PhaseFit], get, w_img, b_img, contrast, 
             per.append(unwrap_from(per[-1], ph, f))
         unwrap_period = s.fringes[0].period
     else:
-        w = [wt.ravel()[idx] for wt in weights]
-        finest, ratio = unwrap_temporal(phases, s.fringes, w, s.size)
-        ambiguous = ratio > 0.5
+        finest, margin = unwrap_temporal(phases, s.fringes, [sg.ravel()[idx] for sg in sigmas], s.size)
+        ambiguous = margin < MIN_ORDER_MARGIN
         counts["ambiguous"] = int(ambiguous.sum())
         ref = int(np.argmin([f.period for f in s.fringes]))
         for i, (ph, f) in enumerate(zip(phases, s.fringes)):
