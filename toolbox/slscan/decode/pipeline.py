@@ -101,13 +101,20 @@ class DecodeConfig:
     the green line on saturated red or blue paint); 0 keeps all (``decode.hybrid``,
     ``line_axis_sigma``)."""
     gray_threshold: str = "adaptive"
-    """{"adaptive", "opencv"}: Gray-code bit thresholds from the images' noise and contrast,
-    or OpenCV ``GrayCodePattern``'s fixed ones (40 DN white - black, 5 DN per bit); see
-    ``decode.graycode``."""
+    """{"adaptive", "opencv"}: Gray-code bit thresholds from the images' noise and contrast
+    (in linear light), or OpenCV ``GrayCodePattern``'s fixed rule (40 DN white - black, 5 DN
+    per bit, on the grey captures as stored; its mask is OpenCV's, so ``gray_robust`` does
+    not apply); see ``decode.graycode``."""
     gray_robust: bool = True
     """Gray-code pixels whose code global light may have corrupted (a bit failing Gupta's
     direct/global rule) or that disagree with their neighbours are left out instead of
-    giving wrong 3D points (``decode.graycode``, ``robust``); False: the decoder as before."""
+    giving wrong 3D points (``decode.graycode``, ``robust``); False: the decoder as before.
+    Adaptive thresholds only."""
+
+    @property
+    def gray_robust_applied(self) -> bool:
+        """``gray_robust`` as the Gray-code decoder gets it: off under OpenCV's rule."""
+        return self.gray_robust and self.gray_threshold == "adaptive"
     gray_smooth: bool = True
     """Gray code: average each edge position with the same edge on the rows (columns)
     either side, ``[1, 2, 1] / 4`` (:meth:`StripeSamples.smoothed`), as the hybrid decoder
@@ -284,7 +291,7 @@ def decode_view(
         samples, mask, codes = res.samples, res.mask, res.codes
         code_max = 2 ** len(descs)
     else:
-        res = decode_gray(session, view, threshold=config.gray_threshold, robust=config.gray_robust,
+        res = decode_gray(session, view, threshold=config.gray_threshold, robust=config.gray_robust_applied,
                           drop_bits=config.gray_drop_bits)
         samples, mask, codes, saturated = res.edges, res.mask, res.column, res.saturated
         if config.gray_smooth:
@@ -299,7 +306,7 @@ def decode_view(
         samples = samples.trim_line_ends(config.trim_line_ends)
     seconds["decode"] = time.perf_counter() - t
     projector_codes, share = _codes_of_view(session, view, res if method == "gray" else None, with_codes,
-                                           config.gray_threshold, config.gray_robust)
+                                           config.gray_threshold, config.gray_robust_applied)
     t = time.perf_counter()
     points = triangulate(samples, rig.camera, planes)
     seconds["triangulate"] = time.perf_counter() - t
