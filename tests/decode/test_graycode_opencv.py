@@ -124,21 +124,24 @@ def test_the_opencv_threshold_is_opencvs_rule_on_every_session_kind(sessions, ki
 
 
 def test_sixteen_bit_thresholds_are_the_same_share_of_full_scale(sessions):
-    """On 16 bits the rule is OpenCV's on the captures scaled to 8 bit (v / 257, rounded),
-    but for pixels within half an 8-bit DN of a threshold: counted here."""
+    """On 16 bits the rule is OpenCV's on the captures rounded to 8 bit (v / 257), but for
+    pixels where rounding decides: some |pattern - inverse| or |white - black| within one
+    8-bit DN of its threshold. Every pixel that differs is such a pixel (counted)."""
     session = sessions[KINDS[1]]
     view = session.views[0]
     res = decode_gray(session, view.name, threshold="opencv")
-    eight = {}
-    for p in session.patterns:
-        image = cv2.imread(str(session.root / view.name / view.image_for(p.id).file), cv2.IMREAD_UNCHANGED)
-        eight[p.id] = np.round(image / 257.0).astype(np.int64)
+    raw = {p.id: cv2.imread(str(session.root / view.name / view.image_for(p.id).file),
+                            cv2.IMREAD_UNCHANGED).astype(np.int64) for p in session.patterns}
+    eight = {k: np.round(v / 257.0).astype(np.int64) for k, v in raw.items()}
     valid = np.abs(eight["white"] - eight["black"]) > 40
+    near = np.abs(np.abs(raw["white"] - raw["black"]) - 40.5 * 257) <= 257
     for p in session.patterns:
         if p.family == "gray" and not p.params["inverse"]:
             valid &= np.abs(eight[p.id] - eight[p.id + "-inv"]) >= 5
-    differ = int((valid != res.mask).sum())
-    assert differ <= 0.002 * valid.size, differ
+            near |= np.abs(np.abs(raw[p.id] - raw[p.id + "-inv"]) - 5 * 257) <= 257
+    differ = valid != res.mask
+    assert not (differ & ~near).any()
+    assert differ.sum() <= 0.06 * valid.sum(), (differ.sum(), valid.sum())  # measured: 159 of 4,223
 
 
 def test_the_opencv_rule_does_not_depend_on_the_recorded_response(sessions):

@@ -335,8 +335,10 @@ def measure_response(
     return fit_samples(stored[:, ::step], top=top, views=used)
 
 
-def measure_session_response(session: Session, *, max_views: int = 3) -> ResponseFit:
-    """:func:`measure_response` on a session's Gray-code captures (as stored).
+def measure_session_response(session: Session, *, views: Sequence[str] | None = None,
+                             max_views: int = 3) -> ResponseFit:
+    """:func:`measure_response` on a session's Gray-code captures (as stored): of ``views``
+    (default: the session's, in order), up to ``max_views``.
 
     Raises
     ------
@@ -357,8 +359,8 @@ def measure_session_response(session: Session, *, max_views: int = 3) -> Respons
         v = session.view(view)
         return session.read_image(v, v.image_for(pid))
 
-    return measure_response(read, [v.name for v in session.views], white_id, black_id,
-                            response_pairs(pairs), max_views=max_views)
+    names = [v.name for v in session.views] if views is None else list(views)
+    return measure_response(read, names, white_id, black_id, response_pairs(pairs), max_views=max_views)
 
 
 def describe_response(response: str, fit: dict | None) -> str:

@@ -90,8 +90,9 @@ OPENCV_DN = 255.0
 """Full scale of the DN OpenCV's thresholds are in: ``GrayCodePattern`` reads pixels as
 8-bit (``at<uchar>``). On 16-bit captures the ``"opencv"`` rule applies them as the same
 share of full scale, ``* 65535 / 255 = * 257`` (40 DN -> 10280, 5 DN -> 1285), to the
-16-bit grey: what OpenCV gives on the captures scaled to 8 bit (``v / 257``) but for
-pixels within half an 8-bit DN of a threshold."""
+16-bit grey at its full precision: what OpenCV gives on the captures rounded to 8 bit
+(``v / 257``) but for pixels where the rounding decides (a difference within an 8-bit DN
+of its threshold: 3.8 % of the decoded pixels of the virtual figurine)."""
 
 EDGE_BAND = 256
 """Camera rows (columns) per band of the edge search: bounds its index arrays' memory."""
