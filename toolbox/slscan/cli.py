@@ -727,7 +727,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "sets only; automatic, without range maps, when the session has no calibration)")
     p.add_argument("--gray-threshold", choices=("adaptive", "opencv"), default="adaptive",
                    help="Gray-code bit thresholds: adaptive (default: from the images' noise and "
-                        "contrast) or opencv (OpenCV GrayCodePattern's fixed 40 DN white-black, 5 DN per bit)")
+                        "contrast, in linear light) or opencv (OpenCV GrayCodePattern's rule: 40 DN "
+                        "white-black, 5 DN per bit, on the grey captures as stored; x257 at 16 bit)")
     p.add_argument("--response", choices=("measure", "linear", "srgb"),
                    help="read the captures through this camera tone curve instead of the session's "
                         "camera.response (nothing is written to the session); measure: measure it "

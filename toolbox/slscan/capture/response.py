@@ -115,17 +115,18 @@ class ResponseFit:
     views: tuple[str, ...] = ()
 
     def describe(self) -> str:
-        """E.g. ``linear (measured on capture_0, 311,000 samples: residual linear 0.033,
-        srgb 0.380; nearest power law gamma 0.90: 0.015)``."""
-        where = f" on {', '.join(self.views)}" if self.views else ""
-        head = "measured" if self.measured else "not measured, linear by default"
-        text = f"{self.response} ({head}{where}, {self.samples:,} samples"
+        """One line, e.g. ``linear (measured on capture_0, 184,910 samples: residual linear
+        0.024, srgb 0.403; nearest power law gamma 0.95: 0.004)``, or ``linear (by default,
+        not measured: <reason>; on ...)``."""
+        where = f" on {', '.join(self.views)}," if self.views else ""
+        evidence = f"{self.samples:,} samples"
         if self.residuals:
-            text += ": residual " + ", ".join(f"{k} {v:.3f}" for k, v in self.residuals.items())
+            evidence += ": residual " + ", ".join(f"{k} {v:.3f}" for k, v in self.residuals.items())
         if self.gamma is not None:
-            text += f"; nearest power law gamma {self.gamma:.2f}: {self.gamma_residual:.3f}"
-        text += ")"
-        return text if self.measured else f"{text}: {self.reason}"
+            evidence += f"; nearest power law gamma {self.gamma:.2f}: {self.gamma_residual:.3f}"
+        if self.measured:
+            return f"{self.response} (measured{where or ','} {evidence})"
+        return f"{self.response} (by default, not measured: {self.reason};{where or ' with'} {evidence})"
 
     def to_dict(self) -> dict:
         return {
@@ -397,5 +398,8 @@ def with_response(session: Session, response: str) -> Session:
 
 
 def describe_session_response(session: Session) -> str:
-    """:func:`describe_response` of a session."""
-    return describe_response(session.response, session.response_fit)
+    """:func:`describe_response` of a session (an error names its ``session.json``)."""
+    try:
+        return describe_response(session.response, session.response_fit)
+    except SlscanError as exc:
+        raise SlscanError(f"{session.root / 'session.json'}: {exc}") from None
