@@ -217,6 +217,48 @@ def test_missing_bits_dropped_are_recorded(tmp_path: Path):
     assert len(res.edges) > 0 and np.all((res.edges.projector_column - 0.5) % 2 == 1)
 
 
+def _camera_folder(tmp_path: Path, ext: str = ".jpg") -> Path:
+    """``cam/dataset1/`` (a view, 3dunderworld layout), ``cam/calib/`` (12 chessboard
+    photographs numbered like the captures), ``cam/notes/`` (no images)."""
+    cam = tmp_path / "cam"
+    _preset_folder(cam, "3dunderworld", ext, True)
+    (cam / "calib").mkdir()
+    rng = np.random.default_rng(5)
+    for i in range(12):
+        board = np.kron((np.indices((15, 20)).sum(axis=0) % 2) * 200 + 20, np.ones((10, 10))).astype(np.uint8)
+        assert cv2.imwrite(str(cam / "calib" / f"{i:04d}{ext}"), np.roll(board, rng.integers(0, 9), axis=1))
+    (cam / "notes").mkdir()
+    (cam / "notes" / "readme.txt").write_text("board 9x7, 20 mm")
+    return cam
+
+
+@pytest.mark.parametrize("missing_bits", ["error", "drop"])
+def test_sub_folders_that_are_not_views_are_skipped(tmp_path: Path, caplog: pytest.LogCaptureFixture,
+                                                    missing_bits: str):
+    cam = _camera_folder(tmp_path)
+    with caplog.at_level(logging.WARNING, logger="slscan.capture.graycode_import"):
+        session = import_graycode(cam, tmp_path / "session", preset="3dunderworld", projector_size=PROJECTOR,
+                                  missing_bits=missing_bits)
+    assert [v.name for v in session.views] == ["dataset1"]
+    assert "missing_bits" not in session.device  # the board images took nothing from the view
+    skipped = [r.getMessage() for r in caplog.records if "skipped" in r.getMessage()]
+    assert len(skipped) == 1 and "1 sub-folder(s) skipped" in skipped[0] and "calib/ (12 images" in skipped[0]
+    assert "dataset1" not in skipped[0] and "notes" not in skipped[0]
+    _check_decoded(load_session(session.root), True, exact=0.97, valid=0.6)
+    # a second real view is kept
+    _write_view(cam / "dataset2", SEQUENCES["3dunderworld"], [f"{i:04d}" for i in range(24)], True, ".jpg", 3)
+    session = import_graycode(cam, tmp_path / "two", preset="3dunderworld", projector_size=PROJECTOR)
+    assert [v.name for v in session.views] == ["dataset1", "dataset2"]
+
+
+def test_no_sub_folder_that_fits_is_an_error_naming_one(tmp_path: Path):
+    cam = _camera_folder(tmp_path)
+    shutil.rmtree(cam / "dataset1")
+    with pytest.raises(SlscanError, match=r"calib.*0012\.jpg: image not found \(12 missing"):
+        import_graycode(cam, tmp_path / "session", preset="3dunderworld", projector_size=PROJECTOR)
+    assert not (tmp_path / "session").exists()
+
+
 def test_missing_white_cannot_be_dropped(tmp_path: Path):
     src = _underworld(tmp_path)
     (src / "0001.png").unlink()
@@ -323,20 +365,47 @@ def test_old_sessions_load_as_lossless_and_upright(tmp_path: Path):
     assert session.lossy is False and session.projector_rotation == 0 and session.response == "linear"
 
 
-@pytest.mark.parametrize(("ext", "given", "expected"), [
-    (".jpg", None, "srgb"), (".png", None, "linear"), (".jpg", "linear", "linear"), (".png", "srgb", "srgb"),
+def _through_srgb(folder: Path) -> None:
+    """Re-save every capture of ``folder`` as a camera applying the sRGB curve would have
+    (the synthetic photographs are linear in light)."""
+    v = np.arange(256) / 255
+    lut = np.round(255 * np.where(v <= 0.0031308, 12.92 * v, 1.055 * v ** (1 / 2.4) - 0.055)).astype(np.uint8)
+    for path in folder.iterdir():
+        params = [cv2.IMWRITE_JPEG_QUALITY, 95] if path.suffix == ".jpg" else []
+        assert cv2.imwrite(str(path), lut[cv2.imread(str(path), cv2.IMREAD_UNCHANGED)], params)
+
+
+@pytest.mark.parametrize(("ext", "tone", "given", "expected"), [
+    (".jpg", "linear", None, "linear"), (".jpg", "srgb", None, "srgb"), (".png", "linear", None, "linear"),
+    (".png", "srgb", None, "srgb"), (".jpg", "linear", "srgb", "srgb"), (".png", "srgb", "linear", "linear"),
 ])
-def test_the_camera_response_defaults_to_srgb_for_jpeg(tmp_path: Path, ext: str, given, expected: str):
+def test_the_camera_response_is_measured_not_assumed(tmp_path: Path, ext: str, tone: str, given, expected: str,
+                                                     capsys: pytest.CaptureFixture):
+    """A JPEG of grey stripes from a linear camera is linear; an sRGB camera's PNG is sRGB;
+    ``--response`` overrides, recorded as given beside what was measured."""
     from slscan.cli import main
 
     src = _underworld(tmp_path, ext)
+    if tone == "srgb":
+        _through_srgb(src)
     out = tmp_path / "session"
     args = ["import", str(src), "--format", "graycode", "--preset", "3dunderworld", "--projector",
             f"{PROJECTOR[0]}x{PROJECTOR[1]}", "--out", str(out), "--quiet"]
     assert main(args + (["--response", given] if given else [])) == 0
+    printed = " ".join("".join(capsys.readouterr()).split())
     session = load_session(out)
     assert session.response == expected
-    assert json.loads((out / "session.json").read_text())["camera"]["response"] == expected
+    camera = json.loads((out / "session.json").read_text())["camera"]
+    assert camera["response"] == expected
+    fit = camera["response_fit"]
+    assert fit["response"] == tone and fit["measured"] and fit["views"] == ["dataset1"]
+    assert fit["source"] == ("given" if given else "measured")
+    assert fit["residuals"][tone] < 0.02 and fit["residuals"]["srgb" if tone == "linear" else "linear"] > 0.2
+    said = f"camera response: {expected} (given; the captures measure {tone}" if given else \
+        f"camera response: {tone} (measured on dataset1"
+    assert said in printed
+    assert main(["info", str(out)]) == 0
+    assert said in " ".join("".join(capsys.readouterr()).split())
     # what decoding reads: the stored values, or their inverse sRGB as fractions of full scale
     view = session.views[0]
     stored = session.read_image(view, view.images[0])
@@ -346,11 +415,31 @@ def test_the_camera_response_defaults_to_srgb_for_jpeg(tmp_path: Path, ext: str,
     else:
         assert linear.dtype == np.float32 and linear.max() <= 1.0
         assert linear[stored == 128].min() == pytest.approx(0.2158605, abs=1e-6)
+    _check_decoded(session, True, exact=0.97, valid=0.6)
+
+
+def test_decode_reads_through_the_response_it_is_given(tmp_path: Path, capsys: pytest.CaptureFixture):
+    """``slscan decode --response``: the session read through another curve, said in the
+    summary; ``measure`` measures it now (a session imported with the old JPEG default)."""
+    from slscan.cli import main
+
+    src = _underworld(tmp_path, ".jpg")
+    out = tmp_path / "session"
+    import_graycode(src, out, preset="3dunderworld", projector_size=PROJECTOR, response="srgb")
+    capsys.readouterr()
+    assert main(["decode", str(out), "--out", str(tmp_path / "codes"), "--quiet"]) == 0
+    text = " ".join("".join(capsys.readouterr()).split())
+    assert "camera response: srgb (given; the captures measure linear" in text and "decoded in linear light" in text
+    assert main(["decode", str(out), "--out", str(tmp_path / "codes2"), "--quiet", "--response", "measure"]) == 0
+    text = " ".join("".join(capsys.readouterr()).split())
+    assert "camera response: linear (measured on dataset1" in text and "decoded as stored" in text
+    assert main(["decode", str(out), "--out", str(tmp_path / "codes3"), "--quiet", "--gray-threshold", "opencv"]) == 0
+    assert "on the captures as stored (OpenCV's rule)" in " ".join("".join(capsys.readouterr()).split())
 
 
 def test_a_bad_camera_response_is_named(tmp_path: Path):
     src = _underworld(tmp_path)
-    with pytest.raises(SlscanError, match="camera response must be one of linear, srgb, got 'gamma'"):
+    with pytest.raises(SlscanError, match="camera response must be auto or one of linear, srgb, got 'gamma'"):
         import_graycode(src, tmp_path / "s", preset="3dunderworld", projector_size=PROJECTOR, response="gamma")
     import_graycode(src, tmp_path / "ok", preset="3dunderworld", projector_size=PROJECTOR)
     meta = json.loads((tmp_path / "ok" / "session.json").read_text())

@@ -108,7 +108,8 @@ def test_gray_threshold_reaches_the_decoder(figurine, monkeypatch):
 
     monkeypatch.setattr(graycode, "decode_gray", spy)
     res = decode_view(figurine, figurine.views[0], DecodeConfig(method="gray", gray_threshold="opencv"))
-    assert seen == [{"threshold": "opencv", "robust": True, "drop_bits": 0}] and len(res.samples) > 1000
+    # OpenCV's rule alone: the robust rejection is not added to it
+    assert seen == [{"threshold": "opencv", "robust": False, "drop_bits": 0}] and len(res.samples) > 1000
     decode_view(figurine, figurine.views[0], DecodeConfig(method="gray", gray_robust=False, gray_drop_bits=2))
     assert seen[-1] == {"threshold": "adaptive", "robust": False, "drop_bits": 2}
     with pytest.raises(SlscanError, match="gray_drop_bits must be an integer >= 0"):

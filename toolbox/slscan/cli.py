@@ -275,6 +275,7 @@ def _decode(session, out: Path, config, overwrite: bool, rec, quiet: bool, plane
         results = decode_session(session, out, config, overwrite=overwrite, rec=rec, progress=bar.step,
                                  planes=planes, executor=executor or LOCAL, codes=codes)
     elapsed = time.perf_counter() - t0
+    _print_response(session, config.gray_threshold if results[0].method == "gray" else "adaptive")
     _print_valid_shares([(r.view, r.valid_share) for r in results])
     vertices = sum(len(r.range_map.vertices) for r in results)
     faces = sum(len(r.range_map.faces) for r in results)
@@ -296,11 +297,21 @@ def _decode_codes(session, out: Path, overwrite: bool, rec, quiet: bool, executo
         results = decode_codes_session(session, out, overwrite=overwrite, rec=rec, progress=bar.step,
                                        executor=executor or LOCAL, threshold=threshold)
     elapsed = time.perf_counter() - t0
+    _print_response(session, threshold)
     _print_valid_shares([(r.view, r.valid_share) for r in results])
     _console().print(
         f"[green]wrote[/] {out}: projector codes of {len(results)} view(s) (VIEW/columns.png, rows.png, "
         f"mask.png; 65535 = not decoded; projector_codes.json), no range maps, {elapsed:.1f} s"
     )
+
+
+def _print_response(session, threshold: str) -> None:
+    """The decode summary's line on the camera response the captures were read through."""
+    from slscan.capture.response import describe_session_response
+
+    read = ("Gray-code thresholds on the captures as stored (OpenCV's rule)" if threshold == "opencv"
+            else "decoded in linear light" if session.response != "linear" else "decoded as stored")
+    _console().print(f"  camera response: {describe_session_response(session)}; {read}", highlight=False)
 
 
 def _print_valid_shares(shares: list) -> None:
@@ -323,6 +334,10 @@ def _cmd_decode(args: argparse.Namespace) -> int:
 
     config = _decode_config(args)
     session = load_session(args.session)
+    if args.response is not None:
+        from slscan.capture.response import with_response
+
+        session = with_response(session, args.response)
     codes = args.codes
     planes = None
     if args.calibration is not None:
@@ -375,8 +390,9 @@ def _decode_multicam(args: argparse.Namespace) -> int:
     from slscan.viewer.layouts import decode_blueprint
     from slscan.viewer.recording import recording_from_args
 
-    if args.calibration is not None:
-        raise SlscanError("--calibration is for one camera's session; decode each camera folder on its own")
+    for name, value in (("--calibration", args.calibration), ("--response", args.response)):
+        if value is not None:
+            raise SlscanError(f"{name} is for one camera's session; decode each camera folder on its own")
     multi = load_multicam(args.session)
     if args.stereo != "off":
         multi.require_calibrated()
@@ -556,9 +572,11 @@ def _cmd_import(args: argparse.Namespace) -> int:
                 rotation=args.rotation, pattern=args.pattern, missing_bits=args.missing_bits or "error",
                 overwrite=args.overwrite, progress=bar.set, response=args.response,
             )
+    from slscan.capture.response import describe_session_response
+
     lossy = ", lossy (JPEG) captures" if session.lossy else ""
-    lossy += ", sRGB camera response (decoding linearises)" if session.response == "srgb" else ""
     _console().print(f"[green]wrote[/] {args.out}: {len(session.views)} view(s) from {args.src}{lossy}")
+    _console().print(f"camera response: {describe_session_response(session)}", highlight=False)
     return 0
 
 
@@ -587,6 +605,9 @@ def _cmd_info(args: argparse.Namespace) -> int:
         f"{session.bit_depth}-bit; projector {session.projector_size[0]}x{session.projector_size[1]}; "
         f"calibration: {session.calibration_source or 'none'}"
     )
+    from slscan.capture.response import describe_session_response
+
+    console.print(f"camera response: {describe_session_response(session)}", highlight=False)
     if session.lossy or session.projector_rotation:
         console.print(
             ("captures are lossy (JPEG): decoding warns, and valid shares may drop; " if session.lossy else "")
@@ -721,7 +742,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "sets only; automatic, without range maps, when the session has no calibration)")
     p.add_argument("--gray-threshold", choices=("adaptive", "opencv"), default="adaptive",
                    help="Gray-code bit thresholds: adaptive (default: from the images' noise and "
-                        "contrast) or opencv (OpenCV GrayCodePattern's fixed 40 DN white-black, 5 DN per bit)")
+                        "contrast, in linear light) or opencv (OpenCV GrayCodePattern's rule: 40 DN "
+                        "white-black, 5 DN per bit, on the grey captures as stored; x257 at 16 bit)")
+    p.add_argument("--response", choices=("measure", "linear", "srgb"),
+                   help="read the captures through this camera tone curve instead of the session's "
+                        "camera.response (nothing is written to the session); measure: measure it "
+                        "from the captures now (pattern + inverse = white + black in linear light)")
     p.add_argument("--no-gray-smooth", action="store_true",
                    help="Gray code: keep each row's edge position as found instead of averaging it with the "
                         "same edge on the rows either side ([1, 2, 1] / 4; the default: mean error in the "
@@ -884,10 +910,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--missing-bits", choices=MISSING_BITS,
                    help="graycode: images missing from a numbered set are an error (default), or drop: "
                         "import the most significant bits that are complete")
-    p.add_argument("--response", choices=RESPONSES,
+    p.add_argument("--response", choices=("auto", *RESPONSES), default="auto",
                    help="the camera's tone curve, recorded as camera.response (decoding undoes srgb); "
-                        "default: srgb for JPEG captures (cameras apply it before saving JPEG), linear "
-                        "for PNG and TIFF")
+                        "default auto: measured from the captures (pattern + inverse = white + black "
+                        "holds in linear light only), linear when they do not tell; the import "
+                        "prints what was chosen and why")
     p.add_argument("--out", required=True, type=Path, help="capture-session folder to create")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -23,7 +23,9 @@ needs one ``white``, one ``black`` and a ``cols`` block; ``rows`` is optional. T
 projector size and how the projector is mounted (rotated by 0, 90, 180 or 270 degrees)
 are given beside the order. Named presets (:data:`PRESETS`) hold the layouts of known
 tools. Images are copied byte for byte, PNG, JPEG or TIFF as they are; JPEG (and
-JPEG-compressed TIFF) sessions are marked lossy.
+JPEG-compressed TIFF) sessions are marked lossy. The camera's tone curve (linear or sRGB)
+is measured from the captures themselves (:mod:`slscan.capture.response`), not assumed
+from the file format.
 
 References
 ----------
@@ -49,6 +51,14 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
+from slscan.capture.response import (
+    ResponseFit,
+    describe_response,
+    measure_response,
+    response_pairs,
+)
 from slscan.capture.session import (
     IMAGE_FORMATS,
     RESPONSES,
@@ -58,6 +68,7 @@ from slscan.capture.session import (
     SessionWriter,
     ViewRecord,
     image_header,
+    read_capture,
 )
 from slscan.errors import SlscanError
 from slscan.patterns import PatternImage, flat
@@ -277,8 +288,9 @@ def _images(folder: Path, pattern: str) -> list[Path]:
 
 
 def find_views(src: Path, *, pattern: str = "*", views: str = "*") -> dict[Path, list[Path]]:
-    """The capture files of each view: ``src`` itself when it holds images matching
-    ``pattern``, else each of its sub-folders matching ``views`` that does."""
+    """The capture files of each candidate view: ``src`` itself when it holds images
+    matching ``pattern``, else each of its sub-folders matching ``views`` that does (the
+    import then keeps those whose images fit the order: :func:`place_views`)."""
     if not src.is_dir():
         raise SlscanError(f"{src}: folder not found (expected a folder of Gray-code captures)")
     own = _images(src, pattern)
@@ -362,6 +374,58 @@ def _place(
     return {k - start: path for k, path in by_number.items()}
 
 
+def place_views(
+    src: Path, found: dict[Path, list[Path]], n: int, first: int | None, order_text: str, needs: str,
+    drop: bool,
+) -> dict[Path, dict[int, Path]]:
+    """Each view's files by position in the order (:func:`_place`). ``src`` itself as the
+    one view must fit the order (else the error names what is wrong); of its sub-folders,
+    those whose images do not fit (a ``calib/`` folder of board images, notes, another
+    capture) are not views: they are skipped, named with the reason in one log line. With
+    ``drop`` a sub-folder must still hold at least three quarters of the images the order
+    needs (a folder of a dozen board images numbered from 0 fits an order with gaps).
+
+    Raises
+    ------
+    SlscanError
+        ``src`` does not fit, or no sub-folder does (the first one's reason).
+    """
+    if list(found) == [src]:
+        return {src: _place(src, found[src], n, first, order_text, needs, drop)}
+    placed: dict[Path, dict[int, Path]] = {}
+    skipped: list[tuple[Path, int, SlscanError]] = []
+    for folder, files in found.items():
+        try:
+            if drop and 4 * len(files) < 3 * n:
+                raise SlscanError(
+                    f"{folder}: found {len(files)} images, fewer than three quarters of the {n} "
+                    f"the order {order_text!r} needs ({needs})"
+                )
+            placed[folder] = _place(folder, files, n, first, order_text, needs, drop)
+        except SlscanError as exc:
+            skipped.append((folder, len(files), exc))
+    if not placed:
+        raise skipped[0][2]
+    if skipped:
+        logger.warning(
+            "%s: %d sub-folder(s) skipped, not views of the order %r (%d images a view): %s", src,
+            len(skipped), order_text, n,
+            "; ".join(f"{folder.name}/ ({k} images{'' if k != n else ': ' + _short(exc, folder)})"
+                      for folder, k, exc in skipped),
+        )
+    return placed
+
+
+def _short(exc: SlscanError, folder: Path) -> str:
+    """An error's message about ``folder`` without the path and the order's description."""
+    text = str(exc)
+    if text.startswith(str(folder)):
+        text = text[len(str(folder)):].lstrip("/: ")
+    for cut in ("; expected", ", the order", "; the order", "; pass --missing-bits"):
+        text = text.split(cut)[0]
+    return text
+
+
 # --- the import -------------------------------------------------------------------------------
 
 
@@ -415,17 +479,21 @@ def import_graycode(
         Called after each image is copied.
     tool : str, optional
         What ``device.tool`` says (default: the preset's, else "graycode").
-    response : {"linear", "srgb"}, optional
-        The camera's tone curve (``camera.response``; decoding undoes "srgb"). Default:
-        "srgb" for JPEG captures (cameras apply the sRGB curve before saving JPEG),
-        "linear" for PNG and TIFF (RAW-derived or machine-vision frames).
+    response : {"auto", "linear", "srgb"}, optional
+        The camera's tone curve (``camera.response``; decoding undoes "srgb"). Default
+        ("auto" or None): measured from the captures (:mod:`slscan.capture.response`: the
+        finest column pairs of the first views, against white and black), linear when
+        they do not tell; a curve given here is recorded as given, beside what the
+        captures measure (``camera.response_fit``).
 
     Returns
     -------
     Session
         The written session: ``calibration`` None, no poses, one pattern image per file
         named ``NN_<pattern id>.<ext>`` (NN its position in the order), ``lossy`` True for
-        JPEG captures, ``response`` as above, ``projector_rotation`` as given.
+        JPEG captures, ``response`` and ``response_fit`` as above, ``projector_rotation``
+        as given. Sub-folders of ``src`` whose images do not fit the order (a ``calib/``
+        folder) are not views: skipped, and named in a log line (:func:`place_views`).
 
     Raises
     ------
@@ -444,8 +512,10 @@ def import_graycode(
     rotation = chosen.rotation if rotation is None else int(rotation)
     if rotation not in ROTATIONS:
         raise SlscanError(f"projector rotation {rotation} is not one of {ROTATIONS} (degrees)")
+    if response == "auto":
+        response = None
     if response is not None and response not in RESPONSES:
-        raise SlscanError(f"camera response must be one of {', '.join(RESPONSES)}, got {response!r}")
+        raise SlscanError(f"camera response must be auto or one of {', '.join(RESPONSES)}, got {response!r}")
     if missing_bits not in MISSING_BITS:
         raise SlscanError(f"missing_bits must be one of {MISSING_BITS}, got {missing_bits!r}")
     pattern = pattern or chosen.pattern
@@ -456,14 +526,15 @@ def import_graycode(
     _refuse_overlap(out_path.resolve(), src, list(found))
     slots = spec.slots((pw, ph))
     needs = spec.summary((pw, ph))
-    placed = {
-        folder: _place(folder, files, len(slots), chosen.first, spec.text, needs, missing_bits == "drop")
-        for folder, files in found.items()
-    }
+    placed = place_views(src, found, len(slots), chosen.first, spec.text, needs, missing_bits == "drop")
     keep, dropped = _bits_kept(placed, slots)
     fmt, (cw, ch, channels, depth), lossy = _image_format(placed)
+    fit = _measure_response(placed, slots, keep)
+    response_fit = {**fit.to_dict(), "source": "measured" if response is None else "given"}
     if response is None:
-        response = "srgb" if fmt == "jpeg" else "linear"
+        response = fit.response
+    level = logging.WARNING if not fit.measured and response_fit["source"] == "measured" else logging.INFO
+    logger.log(level, "%s: camera response %s", src, describe_response(response, response_fit))
 
     patterns = flat.generate(pw, ph) + [
         PatternImage(s.pattern_id, "gray", pw, ph, s.axis,
@@ -476,7 +547,7 @@ def import_graycode(
     if dropped:
         device["missing_bits"] = dropped
     logger.info(
-        "importing %d view(s) of Gray-code captures from %s: order %r, %s (%s response), camera %dx%d, "
+        "importing %d view(s) of Gray-code captures from %s: order %r, %s (%s camera response), camera %dx%d, "
         "projector %dx%d turned %d degrees", len(placed), src, spec.text, fmt.upper(), response, cw, ch, pw, ph,
         rotation,
     )
@@ -495,6 +566,7 @@ def import_graycode(
         lossy=lossy,
         projector_rotation=rotation,
         response=response,
+        response_fit=response_fit,
     ) as writer:
         for folder, files in placed.items():
             view_dir = writer.view_folder(folder.name)
@@ -515,6 +587,24 @@ def import_graycode(
         session = writer.session()
     logger.info("wrote capture session %s (%d views)", out_path, len(placed))
     return session
+
+
+def _measure_response(placed: dict[Path, dict[int, Path]], slots: list[Slot],
+                      keep: dict[str, int]) -> ResponseFit:
+    """The camera's tone curve measured on the captures as they are (:mod:`slscan.capture.response`):
+    the finest column pairs kept, against white and black, of the first views."""
+    at = {slot.pattern_id: i for i, slot in enumerate(slots) if slot.pattern_id is not None}
+    bits = sorted({s.bit for s in slots if s.kind == "gray" and s.axis == "columns" and s.bit < keep["columns"]})
+    pairs = [(at[f"gray-col-{b:02d}"], at[f"gray-col-{b:02d}-inv"]) for b in bits]
+    views = {folder.name: files for folder, files in placed.items()}
+    usable = [name for name, files in views.items()
+              if all(i in files for pair in response_pairs(pairs) for i in pair)]
+
+    def read(view: str, index: int) -> np.ndarray:
+        image = read_capture(views[view][index])
+        return image[..., :3] if image.ndim == 3 else image
+
+    return measure_response(read, usable, at["white"], at["black"], response_pairs(pairs))
 
 
 def _kept(slot: Slot, keep: dict[str, int]) -> bool:

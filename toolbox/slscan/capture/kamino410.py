@@ -82,8 +82,8 @@ def import_kamino410(
         Replace an existing non-empty ``out``.
     progress : callable ``(done, total)``, optional
         Called after each image is copied.
-    response : {"linear", "srgb"}, optional
-        The camera's tone curve (default: "srgb" for JPEG captures, else "linear"; see
+    response : {"auto", "linear", "srgb"}, optional
+        The camera's tone curve (default: measured from the captures, see
         :func:`~slscan.capture.graycode_import.import_graycode`).
 
     Returns

@@ -129,6 +129,9 @@ class Session:
         light) or ``"srgb"`` (the sRGB curve most cameras apply before saving JPEG);
         decoders read captures through :meth:`Session.read_image` ``(linear=True)``, which
         undoes it
+    response_fit : how ``response`` was found when it was measured from the captures
+        (``slscan import``: :class:`slscan.capture.response.ResponseFit` as a dict, plus
+        ``source``: "measured" or "given"); empty when the capture recorded it
     projector_rotation : {0, 90, 180, 270} degrees the projector is turned about its axis
         relative to the camera; with 90 or 270 its column stripes appear horizontal in the
         captures (see :meth:`camera_axis`)
@@ -147,6 +150,7 @@ class Session:
     lossy: bool = False
     projector_rotation: int = 0
     response: str = "linear"
+    response_fit: dict = field(default_factory=dict)
 
     def camera_axis(self, axis: str) -> str:
         """The camera image axis, ``"x"`` (along rows) or ``"y"`` (along columns), that
@@ -222,6 +226,7 @@ class Session:
                 "width": self.camera_size[0], "height": self.camera_size[1],
                 "channels": self.channels, "bit_depth": self.bit_depth, "lossy": self.lossy,
                 "response": self.response,
+                **({"response_fit": self.response_fit} if self.response_fit else {}),
             },
             "projector": {
                 "width": self.projector_size[0], "height": self.projector_size[1],
@@ -585,6 +590,7 @@ def load_session(path: str | os.PathLike, *, validate: bool = True) -> Session:
             lossy=bool(cam.get("lossy", False)),
             projector_rotation=int(proj.get("rotation", 0)),
             response=str(cam.get("response", "linear")),  # sessions older than the field: linear
+            response_fit=dict(cam.get("response_fit") or {}),
         )
     except KeyError as exc:
         raise SlscanError(f"{meta_path}: missing field {exc.args[0]!r}") from None
@@ -638,7 +644,8 @@ class SessionWriter:
 
     ``jpeg_quality`` (1–100) saves captures named ``.jpg`` as JPEG at that quality (a
     camera that shoots JPEG) and marks the session lossy; ``response`` records the
-    camera's tone curve (``camera.response``: "linear" or "srgb").
+    camera's tone curve (``camera.response``: "linear" or "srgb"), ``response_fit`` how
+    it was measured (``camera.response_fit``, see :class:`Session`).
     """
 
     def __init__(
@@ -660,6 +667,7 @@ class SessionWriter:
         projector_rotation: int = 0,
         jpeg_quality: int | None = None,
         response: str = "linear",
+        response_fit: dict | None = None,
     ) -> None:
         if response not in RESPONSES:
             raise SlscanError(f"camera response must be one of {', '.join(RESPONSES)}, got {response!r}")
@@ -671,6 +679,7 @@ class SessionWriter:
             "bit_depth": bit_depth, "patterns": tuple(patterns), "calibration": calibration,
             "calibration_source": calibration_source, "device": device or {},
             "lossy": bool(lossy), "projector_rotation": int(projector_rotation), "response": response,
+            "response_fit": dict(response_fit or {}),
         }
         self._overwrite = overwrite
         self._incremental = incremental or resume

@@ -24,7 +24,10 @@ many edges as an upright one.
 Two threshold rules are offered: ``"adaptive"`` (the default, above) and ``"opencv"``,
 the fixed rule of OpenCV's ``structured_light::GrayCodePattern`` [3]_: a pixel is lit
 when ``|white - black| > black_threshold`` and every bit reads when
-``|pattern - inverse| >= white_threshold`` (DN; OpenCV's defaults 40 and 5).
+``|pattern - inverse| >= white_threshold`` (DN; OpenCV's defaults 40 and 5), on the grey
+images as an OpenCV user loads them (RGB through ``cv2.cvtColor``; never linearised) and
+with nothing else rejecting pixels, so the mask is OpenCV's; 16-bit captures: the same
+share of full scale (thresholds times 257).
 
 Memory: a view keeps, per column bit, only ``pattern - inverse`` (int16 for 8-bit
 captures); row bits are folded into the row code as they are read, the noise is
@@ -83,6 +86,14 @@ OPENCV_BLACK_THRESHOLD = 40.0
 OPENCV_WHITE_THRESHOLD = 5.0
 """DN: OpenCV ``GrayCodePattern``'s default ``whiteThreshold`` (a bit whose
 ``|pattern - inverse|`` is below it makes the pixel invalid)."""
+
+OPENCV_DN = 255.0
+"""Full scale of the DN OpenCV's thresholds are in: ``GrayCodePattern`` reads pixels as
+8-bit (``at<uchar>``). On 16-bit captures the ``"opencv"`` rule applies them as the same
+share of full scale, ``* 65535 / 255 = * 257`` (40 DN -> 10280, 5 DN -> 1285), to the
+16-bit grey at its full precision: what OpenCV gives on the captures rounded to 8 bit
+(``v / 257``) but for pixels where the rounding decides (a difference within an 8-bit DN
+of its threshold: 3.8 % of the decoded pixels of the virtual figurine)."""
 
 EDGE_BAND = 256
 """Camera rows (columns) per band of the edge search: bounds its index arrays' memory."""
@@ -326,13 +337,17 @@ class _Reader:
 
     luma : RGB captures are read as their luma (:data:`LUMA_WEIGHTS`) instead of the mean
         of their channels: for lossy (JPEG) captures, whose 4:2:0 chroma is half resolution
-        and whose colour errors the channel mean would add to the stripes."""
+        and whose colour errors the channel mean would add to the stripes.
+    opencv : read as OpenCV ``GrayCodePattern`` users do (:func:`opencv_grey`): RGB
+        captures through ``cv2.cvtColor`` to grey of the same depth, rounded; grey ones as
+        they are. The levels are then the grey DN themselves."""
 
-    def __init__(self, white: np.ndarray, where: str, luma: bool = False) -> None:
+    def __init__(self, white: np.ndarray, where: str, luma: bool = False, opencv: bool = False) -> None:
         self.white, self.where = white, where
         self.scale = full_scale(np.empty(0, white.dtype), where)
         self.channels = 1 if white.ndim == 2 else white.shape[2]
-        self.weights = LUMA_WEIGHTS if luma and self.channels == 3 else None
+        self.opencv = opencv and self.channels == 3
+        self.weights = LUMA_WEIGHTS if luma and self.channels == 3 and not opencv else None
         self.saturated = np.zeros(white.shape[:2], bool)
         self.box = (slice(None), slice(None))  # the part of each image returned
         # integer captures are kept as levels (the channel sum, or the weighted sum for
@@ -343,7 +358,8 @@ class _Reader:
         self.level_dtype = np.float32
         self.dn = self.scale if white.dtype != np.float32 and white.dtype != np.float64 else 255.0
         if white.dtype in (np.uint8, np.uint16):
-            per_level = sum(self.weights) if self.weights else self.channels
+            per_level = sum(self.weights) if self.weights else 1 if self.opencv else self.channels
+            self.per_level = per_level
             top = int(self.scale) * per_level
             self.level_dtype = next(t for t in (np.uint8, np.uint16, np.uint32) if top <= np.iinfo(t).max)
             lut = np.arange(top + 1, dtype=np.float32)
@@ -353,7 +369,9 @@ class _Reader:
             self.lut = lut
 
     def _grey(self, image: np.ndarray) -> np.ndarray:
-        """float32 channel mean (or luma) of a checked capture."""
+        """float32 channel mean (or luma, or OpenCV's grey) of a checked capture."""
+        if self.opencv and image.ndim == 3:
+            return opencv_grey(image).astype(np.float32)
         if self.weights is None or image.ndim == 2:
             return channel_mean(image)
         total = float(sum(self.weights))
@@ -385,6 +403,8 @@ class _Reader:
             return grey
         if image.ndim == 2:
             return np.array(image, self.level_dtype)
+        if self.opencv:
+            return opencv_grey(image)
         if self.weights is not None:
             out = image[..., 0].astype(self.level_dtype) * self.level_dtype(self.weights[0])
             for c in (1, 2):
@@ -400,8 +420,27 @@ class _Reader:
         return levels if self.lut is None else self.lut[levels]
 
     def level_threshold(self, dn: float) -> float:
-        """A threshold in DN of the grey captures, in level units."""
-        return dn * self.channels if self.lut is not None else dn / self.dn
+        """A threshold in 8-bit DN of the grey captures (:data:`OPENCV_DN`), in level units:
+        for 16-bit captures the same share of full scale (``dn * 257``); for float ones a
+        fraction (``dn / 255``)."""
+        if self.lut is None:
+            return dn / OPENCV_DN
+        return dn * (self.scale / OPENCV_DN) * self.per_level
+
+
+def opencv_grey(image: np.ndarray) -> np.ndarray:
+    """(h, w) grey of an (h, w, 3) RGB capture as OpenCV users read it:
+    ``cv2.cvtColor(..., COLOR_RGB2GRAY)`` (BT.601 luma 0.299 R + 0.587 G + 0.114 B in
+    OpenCV's own fixed point, rounded to the capture's depth), which equals
+    ``cvtColor(cv2.imread(file), COLOR_BGR2GRAY)`` on the BGR image ``cv2.imread`` gives. A
+    grey (h, w) capture is returned as it is."""
+    image = np.asarray(image)
+    if image.ndim == 2:
+        return image
+    import cv2
+
+    image = np.ascontiguousarray(image[..., :3], np.float32 if image.dtype == np.float64 else None)
+    return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
 
 
 class _BitDiffs:
@@ -867,7 +906,7 @@ def decode_gray_images(
     white_threshold: float = OPENCV_WHITE_THRESHOLD,
     max_edge_gap: int = MAX_EDGE_GAP,
     edge_axes: str = "both",
-    robust: bool = True,
+    robust: bool | None = None,
     separation_bits: int = SEPARATION_BITS,
     consistency_radius: int = CONSISTENCY_RADIUS,
     drop_bits: int = 0,
@@ -882,7 +921,8 @@ def decode_gray_images(
         At least every Gray-code pattern of ``descs`` that is used; other entries are
         ignored, and each is read once, in the order column bits then row bits (pattern,
         inverse), so a mapping that reads on demand and forgets keeps memory bounded.
-        RGB captures are read as the mean of their channels (or their luma: ``luma``).
+        RGB captures are read as the mean of their channels (or their luma: ``luma``;
+        with ``threshold="opencv"`` as OpenCV's grey, :func:`opencv_grey`).
     descs : the session's pattern descriptions; only ``family == "gray"`` ones are used.
         A set missing some bits decodes with the leading run of bits present (a warning
         names the missing ones; see ``GrayResult.bits_used``).
@@ -891,8 +931,13 @@ def decode_gray_images(
         ``"adaptive"``: ``white - black`` must exceed ``min_contrast`` and every bit's
         ``|pattern - inverse|`` both ``min_bit_ratio`` of ``white - black`` and
         ``noise_sigmas`` noise deviations. ``"opencv"``: OpenCV ``GrayCodePattern``'s
-        fixed rule, ``|white - black| > black_threshold`` and every bit's
-        ``|pattern - inverse| >= white_threshold``, in DN of the captures.
+        fixed rule [3]_, ``|white - black| > black_threshold`` and every bit's
+        ``|pattern - inverse| >= white_threshold`` (a bit is set where ``pattern >
+        inverse``; codes beyond the projector are invalid), on the grey images as OpenCV
+        users load them (:func:`opencv_grey`: RGB through ``cv2.cvtColor``, rounded) and
+        in their DN: pass the captures as stored, never linearised (:func:`decode_gray`
+        does). 16-bit captures: the thresholds times 257 (:data:`OPENCV_DN`); float
+        captures: divided by 255.
     min_contrast : float
         ``white - black`` must exceed this fraction of full scale (shadow, background).
     min_bit_ratio : float
@@ -911,7 +956,9 @@ def decode_gray_images(
     edge_axes : {"both", "rows"}
         Search edges along camera rows and columns (each boundary keeps the samples of
         the axis crossing it more steeply), or along rows only (as before).
-    robust : bool
+    robust : bool, optional
+        Default: True with ``"adaptive"`` thresholds, False with ``"opencv"`` (OpenCV's
+        rule alone, so the mask equals what OpenCV decodes).
         Reject codes global light may have corrupted instead of giving wrong 3D points:
         split each pixel's light into direct and global parts from the finest
         ``separation_bits`` column bits (:func:`separate_light`), drop pixels where a
@@ -932,7 +979,7 @@ def decode_gray_images(
     luma : bool
         Read RGB captures as their luma (BT.601 weights, :data:`LUMA_WEIGHTS`) instead of
         the mean of their channels: what :func:`decode_gray` does for lossy (JPEG) sessions,
-        whose chroma is stored at half resolution.
+        whose chroma is stored at half resolution. (``"opencv"`` reads OpenCV's grey.)
     where : str
         Prefix for error messages (e.g. the view folder).
 
@@ -999,7 +1046,9 @@ def decode_gray_images(
             f"{where}white: expected an (h, w) or (h, w, 3) image, got shape {white.shape}"
         )
     full_scale(white, f"{where}white")
-    read = _Reader(white, where, luma)
+    read = _Reader(white, where, luma, opencv=threshold == "opencv")
+    if robust is None:
+        robust = threshold == "adaptive"
     w_img, b_img = read(white, "white"), read(black, "black")
     full_contrast = w_img - b_img
     if threshold == "opencv":  # on the levels: no rounding at ties (white - black = 40 DN)
@@ -1350,7 +1399,10 @@ def decode_gray(session: Session, view: ViewRecord | str, **options) -> GrayResu
     """Read and decode the Gray-code images of ``view`` in ``session``.
 
     ``options`` are passed to :func:`decode_gray_images`. The images are read by a
-    background thread a couple ahead of the decoder, and dropped once used.
+    background thread a couple ahead of the decoder, and dropped once used: in linear light
+    (the camera's curve, ``session.response``, undone), but as stored for
+    ``threshold="opencv"``, whose DN thresholds apply to the images as OpenCV users load
+    them.
 
     Raises
     ------
@@ -1368,12 +1420,14 @@ def decode_gray(session: Session, view: ViewRecord | str, **options) -> GrayResu
     pairs = gray_pairs(descs, "columns") + gray_pairs(descs, "rows")
     ids = [white_id, black_id, *(p for pair in pairs for p in pair)]
     records = {pid: view.image_for(pid) for pid in ids}
-    # in linear light: an sRGB camera's curve undone (float fractions of full scale then)
-    with _Streamed(lambda pid: session.read_image(view, records[pid], linear=True), ids) as images:
+    # in linear light: an sRGB camera's curve undone (float fractions of full scale then);
+    # OpenCV's rule: as stored
+    linear = options.get("threshold", "adaptive") != "opencv"
+    with _Streamed(lambda pid: session.read_image(view, records[pid], linear=linear), ids) as images:
         white, black = images[white_id], images[black_id]
         options.setdefault("luma", session.lossy)
         result = decode_gray_images(images, descs, white, black, where=where, **options)
-    if session.response != "linear":  # colour downstream from the capture as the camera saved it
+    if linear and session.response != "linear":  # colour downstream from the capture as saved
         white = session.read_image(view, records[white_id])
     return replace(result, white=white)
 
@@ -1459,7 +1513,7 @@ def decode(session: Session, view: ViewRecord | str, config) -> FamilyDecode:
     from slscan.decode.codes import codes_from_gray, valid_share
 
     view = session.view(view) if isinstance(view, str) else view
-    res = decode_gray(session, view, threshold=config.gray_threshold, robust=config.gray_robust,
+    res = decode_gray(session, view, threshold=config.gray_threshold, robust=config.gray_robust_applied,
                       drop_bits=config.gray_drop_bits)
     samples = res.edges.smoothed() if config.gray_smooth else res.edges
     used, bits = res.bits_used.get("columns", (0, 0))
@@ -1478,7 +1532,7 @@ def projector_codes(session: Session, view: ViewRecord | str, config=None):
     from slscan.decode.codes import codes_from_gray
 
     view = session.view(view) if isinstance(view, str) else view
-    options = {} if config is None else {"threshold": config.gray_threshold, "robust": config.gray_robust}
+    options = {} if config is None else {"threshold": config.gray_threshold, "robust": config.gray_robust_applied}
     return codes_from_gray(decode_gray(session, view, **options), session, view.name)
 
 

@@ -98,13 +98,20 @@ class DecodeConfig:
     the green line on saturated red or blue paint); 0 keeps all (``decode.hybrid``,
     ``line_axis_sigma``)."""
     gray_threshold: str = "adaptive"
-    """{"adaptive", "opencv"}: Gray-code bit thresholds from the images' noise and contrast,
-    or OpenCV ``GrayCodePattern``'s fixed ones (40 DN white - black, 5 DN per bit); see
-    ``decode.graycode``."""
+    """{"adaptive", "opencv"}: Gray-code bit thresholds from the images' noise and contrast
+    (in linear light), or OpenCV ``GrayCodePattern``'s fixed rule (40 DN white - black, 5 DN
+    per bit, on the grey captures as stored; its mask is OpenCV's, so ``gray_robust`` does
+    not apply); see ``decode.graycode``."""
     gray_robust: bool = True
     """Gray-code pixels whose code global light may have corrupted (a bit failing Gupta's
     direct/global rule) or that disagree with their neighbours are left out instead of
-    giving wrong 3D points (``decode.graycode``, ``robust``); False: the decoder as before."""
+    giving wrong 3D points (``decode.graycode``, ``robust``); False: the decoder as before.
+    Adaptive thresholds only."""
+
+    @property
+    def gray_robust_applied(self) -> bool:
+        """``gray_robust`` as the Gray-code decoder gets it: off under OpenCV's rule."""
+        return self.gray_robust and self.gray_threshold == "adaptive"
     gray_smooth: bool = True
     """Gray code: average each edge position with the same edge on the rows (columns)
     either side, ``[1, 2, 1] / 4`` (:meth:`StripeSamples.smoothed`), as the hybrid decoder
