@@ -209,3 +209,44 @@ def test_virtual_tile_range_map_is_flat_and_true(tile):
     true = truth.point[res.samples.row[ok], res.samples.x[ok].astype(int)].astype(float)
     dist = np.linalg.norm(pts[ok] - true, axis=1)
     assert np.nanmedian(dist) < 0.15 and len(res.range_map.faces) > 1.5 * len(res.range_map.vertices)
+
+
+# --- the projector's response (gamma) --------------------------------------------------------------
+
+
+@pytest.mark.parametrize("steps,gamma", [(3, 2.2), (4, 1.645), (3, 0.6)])
+def test_phase_correction_inverts_the_response(steps, gamma):
+    from slscan.patterns.phase import generate
+    from slscan.decode.phase_gamma import measured_phase, phase_correction, phase_error
+
+    shifts = [d.params["shift"] for d in generate(64, 8, steps=steps) if d.params["kind"] == "sine"]
+    theta = np.linspace(0, 2 * np.pi, 997, endpoint=False)
+    err = phase_error(theta, shifts, gamma)
+    assert np.abs(err).max() > (0.05 if steps == 3 else 0.005)  # the harmonics do bias the phase
+    fixed = phase_correction(measured_phase(theta, shifts, gamma).astype(np.float32), shifts, gamma)
+    assert np.abs(np.angle(np.exp(1j * (fixed - theta)))).max() < 2e-3
+
+
+def test_gamma_fit_recovers_a_known_exponent():
+    from slscan.decode.phase_gamma import emitted, fit_effective_gamma
+
+    rng = np.random.default_rng(3)
+    theta = rng.uniform(0, 2 * np.pi, 4000)
+    shifts = [0.0, 2 * np.pi / 3, 4 * np.pi / 3]
+    a, b = rng.uniform(0.02, 0.1, theta.shape), rng.uniform(0.3, 0.8, theta.shape)
+    images = np.stack([a + b * emitted(theta + d, 1.8) for d in shifts]) + rng.normal(0, 0.003, (3, len(theta)))
+    g, rms = fit_effective_gamma(images, theta, shifts)
+    assert g == pytest.approx(1.8, rel=0.01) and rms < 0.005
+
+
+def test_virtual_response_capture_measures_the_projector_gamma(tmp_path):
+    from slscan.decode.phase_gamma import estimate_gamma
+    from slscan.virtual.device import VirtualCaptureConfig, capture_session
+    from slscan.virtual.render import Optics
+
+    config = VirtualCaptureConfig(scene="tile", patterns="phase-response", camera_scale=0.25, projector_scale=0.25,
+                                  lit_images=False, optics=Optics(projector_gamma=1.8))
+    session = capture_session(config, tmp_path / "response")
+    found = estimate_gamma(session)
+    assert found.gamma == pytest.approx(1.8, rel=0.03) and found.spread < 0.05
+    assert [round(gp, 2) for gp, *_ in found.per_set] == [0.75, 1.25]

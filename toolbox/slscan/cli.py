@@ -378,7 +378,7 @@ def _decode_config(args: argparse.Namespace):
         raise SlscanError(f"--gray-drop-bits must be 0 or more, got {args.gray_drop_bits}")
     return DecodeConfig(method=args.method, estimator=args.estimator, trim_line_ends=args.trim_line_ends,
                         gray_threshold=args.gray_threshold, gray_drop_bits=args.gray_drop_bits,
-                        gray_smooth=not args.no_gray_smooth)
+                        gray_smooth=not args.no_gray_smooth, projector_gamma=args.projector_gamma)
 
 
 def _decode_multicam(args: argparse.Namespace) -> int:
@@ -580,6 +580,29 @@ def _cmd_import(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_response(args: argparse.Namespace) -> int:
+    from slscan.capture.session import load_session
+    from slscan.decode.phase_gamma import estimate_gamma
+    from slscan.fsio import write_json
+
+    session = load_session(args.session)
+    found = estimate_gamma(session, args.view)
+    _console().print(found.describe(), highlight=False)
+    if found.spread > 0.05 * found.gamma:
+        logging.getLogger(__name__).warning(
+            "the pre-distorted sets disagree by %.3f (%.0f %% of gamma): the camera may not be linear (slscan info "
+            "says what its response was measured as), or the fringes are clipped", found.spread,
+            100 * found.spread / found.gamma)
+    if args.out:
+        write_json(args.out, {"format": "slscan.projector-response", "version": 1, "gamma": found.gamma,
+                              "session": str(session.root.resolve()), "pixels": found.pixels,
+                              "sets": [{"pre_distortion": gp, "effective": e, "gamma": g, "rms": r}
+                                       for gp, e, g, r in found.per_set]})
+        _console().print(f"[green]wrote[/] {args.out}; decode with --projector-gamma {found.gamma:.3f}, or capture "
+                         f"with --phase-gamma {found.gamma:.3f}", highlight=False)
+    return 0
+
+
 def _cmd_info(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
@@ -757,6 +780,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "defocus) keeps the code of its leading reliable bits if at most N are missing "
                         "(default 0: it is dropped; 2 brings the virtual marble under subsurface "
                         "scattering from 12 %% to 95 %% coverage at 2x the direct-light error)")
+    p.add_argument("--projector-gamma", type=float, metavar="G",
+                   help="phase shifting: the projector's response exponent (slscan response): the phase of fringes "
+                        "not pre-distorted for it is corrected (3-step fringes through gamma 2.2 on the virtual tile: "
+                        "0.46 -> 0.08 px RMS); default: none")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--calibration", type=Path, metavar="CALIB.json",
@@ -919,6 +946,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_import)
+
+    p = sub.add_parser(
+        "response", help="measure the projector's gamma from a phase-response capture",
+        description="Measure the projector's response exponent (emitted light = pattern value ** gamma) from a "
+                    "capture of the phase-response set (slscan patterns --family phase-response, slscan scan "
+                    "--patterns phase-response, or another tool's gamma set imported, e.g. kamino410's): "
+                    "fringes pre-distorted for two exponents and a fine Gray code that gives every pixel's "
+                    "projector coordinate (Hoang et al. 2010). Use the result to pre-distort the fringes "
+                    "(--phase-gamma G when capturing) or to correct the phase (slscan decode --projector-gamma G).",
+        epilog="example:\n  slscan scan --patterns phase-response --out resp && slscan response resp --out gamma.json",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("session", type=Path, help="capture session of the phase-response set")
+    p.add_argument("--view", help="the view to measure (default: the first)")
+    p.add_argument("--out", type=Path, metavar="FILE.json", help="also write the estimate as JSON")
+    p.set_defaults(func=_cmd_response)
 
     p = sub.add_parser("info", help="check a capture session and summarise it",
                        description="Validate every image of a capture session against its metadata and summarise it.")

@@ -153,7 +153,8 @@ def phase_sets(descs: Sequence[PatternImage], *, where: str = "") -> dict[str, A
             p = d.params
             try:
                 if p["kind"] == "sine":
-                    sines.setdefault((float(p["period"]), float(p.get("origin", 0.0))), []).append(d)
+                    key3 = (float(p["period"]), float(p.get("origin", 0.0)), float(p.get("gamma", 1.0)))
+                    sines.setdefault(key3, []).append(d)
                 elif p["kind"] == "gray":
                     key = (int(p["bit"]), bool(p.get("inverse", False)), bool(p.get("complementary", False)))
                     if key in grays:
@@ -167,7 +168,7 @@ def phase_sets(descs: Sequence[PatternImage], *, where: str = "") -> dict[str, A
             except KeyError as exc:
                 raise SlscanError(f"{where}pattern {d.id!r}: phase description lacks {exc.args[0]!r}") from None
         fringes = []
-        for (period, origin), group in sorted(sines.items(), key=lambda kv: -kv[0][0]):
+        for (period, origin, _), group in sorted(sines.items(), key=lambda kv: (-kv[0][0], kv[0][2])):
             if len(group) < 3:
                 raise SlscanError(
                     f"{where}{axis} fringes of period {period:g} px have {len(group)} image(s) "
@@ -539,6 +540,7 @@ def decode_phase_images(
     noise_sigmas: float = NOISE_SIGMAS,
     consistency_radius: int = CONSISTENCY_RADIUS,
     edge: int = EDGE_PX,
+    projector_gamma: float | None = None,
     luma: bool = False,
     where: str = "",
 ) -> PhaseResult:
@@ -556,6 +558,9 @@ def decode_phase_images(
     noise_sigmas : ...and ``B`` this many standard deviations of its estimate
     consistency_radius : px of the neighbour check of the fringe orders (0: none)
     edge : px dropped around the rim of the decoded region (0: none), see :data:`EDGE_PX`
+    projector_gamma : the projector's response exponent (``slscan response``): the phase of
+        fringes pre-distorted for another value is corrected for the harmonics that leaves
+        (:func:`slscan.decode.phase_gamma.phase_correction`); None: taken as described
     luma : read RGB captures as their luma (lossy sessions) instead of the channel mean
 
     Raises
@@ -588,14 +593,23 @@ def decode_phase_images(
                               f"unlike the white frame's {shape[1]}x{shape[0]}")
         return read.raw(image, pid) if raw else read(image, pid)
 
-    fits = {axis: [fit_phase((get(i) for i in f.ids), f.shifts) for f in s.fringes] for axis, s in sets.items()}
-    steps = min(fit.steps for fl in fits.values() for fit in fl)
-    if steps > 3:  # the fit's own residual: noise (and any fringe distortion) per image
-        dof = sum(fit.steps - 3 for fl in fits.values() for fit in fl)
-        resid = sum(fit.residual for fl in fits.values() for fit in fl)
-        sample = resid[lit] / dof
-        if sample.size > 100:
-            noise = max(noise, float(np.sqrt(np.median(sample) / _chi2_median_ratio(dof))))
+    first: list[np.ndarray] = []  # one fringe image kept: its residual measures the noise
+
+    def fringes(f: Fringes, keep: bool):
+        for k, i in enumerate(f.ids):
+            image = get(i)
+            if keep and k == 0:
+                first.append(image)
+            yield image
+
+    fits = {axis: [fit_phase(fringes(f, not first), f.shifts) for f in s.fringes] for axis, s in sets.items()}
+    if projector_gamma is not None:
+        from slscan.decode.phase_gamma import phase_correction
+
+        fits = {axis: [replace(fit, phase=phase_correction(fit.phase, f.shifts, projector_gamma / f.gamma))
+                       for fit, f in zip(fl, sets[axis].fringes)] for axis, fl in fits.items()}
+    axis0 = next(iter(sets))
+    noise = max(noise, fit_noise(first[0], fits[axis0][0], sets[axis0].fringes[0].shifts, lit))
     axes = {}
     for axis, s in sets.items():
         axes[axis] = _decode_axis(s, fits[axis], get, w_img, b_img, contrast, lit, noise, min_modulation,
@@ -624,11 +638,33 @@ def _uncrop_axis(a: AxisDecode, box: tuple[slice, slice], shape: tuple[int, int]
     )
 
 
-def _chi2_median_ratio(dof: int) -> float:
-    """Median of a chi-square variable with ``dof`` degrees of freedom, over ``dof``."""
-    from scipy.stats import chi2
+def fit_noise(image: np.ndarray, fit: PhaseFit, shifts: Sequence[float], where: np.ndarray) -> float:
+    """Standard deviation of one capture's noise (its own unit) from the residual of the
+    N-step fit of its first image (N >= 4; 0 for N = 3, which leaves no residual).
 
-    return float(chi2.median(dof) / dof)
+    A projector's gamma or clipping leaves a residual too, but one that follows the phase,
+    smooth along the fringes; noise does not. So the residual's differences between
+    neighbouring pixels along the fringes (rows or columns, whichever changes less) are
+    taken, their robust spread (1.4826 MAD / sqrt(2)), over the pixels ``where``, corrected
+    for the fit's own leverage (the residual of N images and 3 parameters keeps
+    ``1 - 3 / N`` of the noise's variance).
+    """
+    n = fit.steps
+    if n <= 3:
+        return 0.0
+    # the first image's model: A + B cos(phase + shift_0)
+    resid = image - (fit.offset + fit.amplitude * np.cos(fit.phase + np.float32(shifts[0])))
+    spreads = []
+    for axis in (0, 1):
+        d = np.diff(resid, axis=axis)
+        ok = np.diff(where.astype(np.int8), axis=axis) == 0
+        ok &= np.take(where, range(d.shape[axis]), axis=axis)
+        values = d[ok]
+        if values.size > 100:
+            spreads.append(1.4826 * float(np.median(np.abs(values - np.median(values)))) / math.sqrt(2))
+    if not spreads:
+        return 0.0
+    return min(spreads) / math.sqrt(1 - 3 / n)
 
 
 def _decode_axis(s: AxisSet, fits: list[PhaseFit], get, w_img, b_img, contrast, lit, noise, min_modulation,
@@ -760,7 +796,7 @@ def pixel_samples(result: PhaseResult) -> StripeSamples:
 def _options(config) -> dict:
     if config is None:
         return {}
-    return {"min_modulation": config.phase_min_modulation}
+    return {"min_modulation": config.phase_min_modulation, "projector_gamma": config.projector_gamma}
 
 
 def _valid_share(result: PhaseResult):

@@ -138,10 +138,13 @@ def generate(
     unwrap: str = "complementary",
     gamma: float = 1.0,
     inverse: bool = True,
+    gammas: Sequence[float] | None = None,
+    cell: float | None = None,
+    response: bool = False,
 ) -> list[PatternImage]:
     """Descriptions of a phase-shifting set along the columns (and rows).
 
-    periods : projector px per fringe; default (16,) for Gray-code unwrapping,
+    periods : projector px per fringe; default (8,) for Gray-code unwrapping,
         :data:`DEFAULT_HETERODYNE` for heterodyne. With Gray code the first (longest) is the
         code's cell and further periods are unwrapped from it.
     steps : N >= 3 phase shifts per period
@@ -149,38 +152,61 @@ def generate(
     gamma : the projector's response the fringes are pre-distorted for (1: none)
     inverse : Gray code: (pattern, inverse) pairs (True) or patterns alone, read against
         the mean of white and black
+    gammas : several pre-distortions: every period's fringes once for each (a response capture)
+    cell : the Gray code's cell, px (default: the first period); at most half the shortest
+        period, it gives every pixel's coordinate to a cell, whatever the phase says
+    response : the projector-response capture (:data:`RESPONSE`): fringes of an eighth of
+        the projector pre-distorted for 0.75 and 1.25, and a Gray code of 2 px cells, from
+        which ``slscan response`` measures the projector's gamma
+        (:func:`slscan.decode.phase_gamma.estimate_gamma`)
     """
-    if periods is None:
+    if response:
+        unwrap, cell = "gray", 2.0 if cell is None else cell
+        gammas = RESPONSE_GAMMAS if gammas is None else gammas
+    elif periods is None:
         periods = DEFAULT_HETERODYNE if unwrap == "heterodyne" else (DEFAULT_PERIOD,)
-    periods = tuple(float(p) for p in (periods if isinstance(periods, Sequence) else (periods,)))
-    if not (isinstance(gamma, (int, float)) and 0.2 <= gamma <= 5):
-        raise SlscanError(f"phase gamma must be in [0.2, 5], got {gamma!r}")
+    gammas = (gamma,) if gammas is None else tuple(float(g) for g in gammas)
+    for g in gammas:
+        if not (isinstance(g, (int, float)) and 0.2 <= g <= 5):
+            raise SlscanError(f"phase gamma must be in [0.2, 5], got {g!r}")
     images = []
     for axis, size in [("columns", width)] + ([("rows", height)] if rows else []):
-        check_set(size, periods, steps, unwrap, axis)
+        axis_periods = (size / 8,) if response and periods is None else periods
+        axis_periods = tuple(float(p) for p in (axis_periods if isinstance(axis_periods, Sequence)
+                                                else (axis_periods,)))
+        check_set(size, axis_periods, steps, unwrap, axis)
         tag = TAGS[axis]
-        for i, period in enumerate(periods):
-            for k in range(steps):
-                images.append(PatternImage(
-                    f"phase-{tag}-p{i}-s{k}", "phase", width, height, axis,
-                    {"kind": "sine", "period": period, "step": k, "steps": int(steps),
-                     "shift": 2 * math.pi * k / steps, "origin": 0.0, "gamma": float(gamma)},
-                ))
+        for i, period in enumerate(axis_periods):
+            for j, g in enumerate(gammas):
+                suffix = f"-g{j}" if len(gammas) > 1 else ""
+                for k in range(steps):
+                    images.append(PatternImage(
+                        f"phase-{tag}-p{i}{suffix}-s{k}", "phase", width, height, axis,
+                        {"kind": "sine", "period": period, "step": k, "steps": int(steps),
+                         "shift": 2 * math.pi * k / steps, "origin": 0.0, "gamma": g},
+                    ))
         if unwrap == "heterodyne":
             continue
-        cell = periods[0]
-        bits = max(1, math.ceil(math.log2(size / cell)))
-        codes = [(b, bits, cell, False) for b in range(bits)]
+        width_px = axis_periods[0] if cell is None else float(cell)
+        if width_px > min(axis_periods) / 2 and abs(width_px - axis_periods[0]) > 1e-9:
+            raise SlscanError(f"phase Gray cell {width_px:g} px: expected the first period or at most half "
+                              f"the shortest ({min(axis_periods):g} px)")
+        bits = max(1, math.ceil(math.log2(size / width_px)))
+        codes = [(b, bits, width_px, False) for b in range(bits)]
         if unwrap == "complementary":
-            codes.append((bits, bits + 1, cell / 2, True))
-        for bit, nbits, width_px, extra in codes:
+            codes.append((bits, bits + 1, width_px / 2, True))
+        for bit, nbits, cell_px, extra in codes:
             for inv in (False, True) if inverse else (False,):
                 images.append(PatternImage(
                     f"phase-{tag}-gray-{bit:02d}{'-inv' if inv else ''}", "phase", width, height, axis,
-                    {"kind": "gray", "bit": bit, "bits": nbits, "cell": width_px, "origin": 0.0,
+                    {"kind": "gray", "bit": bit, "bits": nbits, "cell": cell_px, "origin": 0.0,
                      "inverse": inv, **({"complementary": True} if extra else {})},
                 ))
     return images
+
+
+RESPONSE_GAMMAS = (0.75, 1.25)
+"""Pre-distortions of the response capture's fringes (kamino410's gamma tool uses these)."""
 
 
 def sine_values(desc: PatternImage, at: np.ndarray) -> np.ndarray:
@@ -222,7 +248,7 @@ FAMILY = Family(
     generate=generate,
     profile=profile,
     decoder="slscan.decode.phase",
-    sets={"phase": {}},
+    sets={"phase": {}, "phase-response": {"response": True}},
     options=(
         Option("periods", _floats, f"{DEFAULT_PERIOD:g} (heterodyne: 16,17,18)",
                "projector px per fringe, comma-separated; several: heterodyne, or finer periods unwrapped "
