@@ -387,7 +387,8 @@ def fix_orders(coord: np.ndarray, valid: np.ndarray, period: float, *, radius: i
     that period (an order misread at a cell edge); one with at least ``min_neighbours``
     valid neighbours of which none agrees and none is a period off is rejected.
 
-    Returns the coordinates, the validity, and the numbers corrected and rejected.
+    Returns the coordinates, the validity, and the numbers corrected and rejected
+    (:func:`order_fixes` says which pixels).
     """
     coord = coord.copy()
     valid = valid.copy()
@@ -423,6 +424,20 @@ def fix_orders(coord: np.ndarray, valid: np.ndarray, period: float, *, radius: i
     return coord, valid, corrected, rejected
 
 
+def order_fixes(before: np.ndarray, after: np.ndarray, valid: np.ndarray, period: float) -> np.ndarray:
+    """What :func:`fix_orders` did at each pixel: (h, w) int8, 0 nothing (or not decoded),
+    +1 / -1 moved a period up / down, 2 rejected.
+
+    before : (h, w) its input coordinates (NaN where not decoded); after, valid : its output
+    """
+    decoded = np.isfinite(before)
+    kept = decoded & valid
+    fix = np.zeros(before.shape, np.int8)
+    fix[kept] = np.sign(np.rint((after[kept] - before[kept]) / period)).astype(np.int8)
+    fix[decoded & ~valid] = 2
+    return fix
+
+
 # --- decoding one view ---------------------------------------------------------------------------
 
 
@@ -436,6 +451,8 @@ class AxisDecode:
     wrapped : per period (h, w) float32 wrapped phase, radians
     modulation : (h, w) float32 ``2 B / (white - black)`` of the finest period
     method : {"complementary", "gray", "heterodyne"}
+    order_fix : (h, w) int8 what the neighbour check of the fringe orders did at each pixel:
+        0 nothing (or not decoded), +1 / -1 moved one period up / down, 2 rejected
     counts : pixels ``lit``, ``low_modulation`` (lit, fringes too weak), ``noisy`` (lit,
         modulation under the noise limit), ``order_corrected`` and ``order_rejected`` (the
         neighbour check), ``periods_disagree`` (several periods more than a quarter of the
@@ -449,6 +466,7 @@ class AxisDecode:
     modulation: np.ndarray
     method: str
     counts: dict[str, int]
+    order_fix: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -657,8 +675,11 @@ def _decode_axis(s: AxisSet, fits: list[PhaseFit], get, w_img, b_img, contrast, 
     full = full.reshape(ok.shape)
     valid = np.isfinite(full)
     corrected = rejected = 0
+    order_fix = np.zeros(ok.shape, np.int8)
     if radius:
-        full, valid, corrected, rejected = fix_orders(full, valid, unwrap_period, radius=radius)
+        before = full
+        full, valid, corrected, rejected = fix_orders(before, valid, unwrap_period, radius=radius)
+        order_fix = order_fixes(before, full, valid, unwrap_period)
     inside = valid & (full >= -0.5) & (full <= s.size - 0.5)
     counts["out_of_range"] = int((valid & ~inside).sum())
     full = np.where(inside, full, np.nan)
@@ -670,7 +691,7 @@ def _decode_axis(s: AxisSet, fits: list[PhaseFit], get, w_img, b_img, contrast, 
         periods.append(m.reshape(ok.shape))
     finest_i = int(np.argmin([f.period for f in s.fringes]))
     return AxisDecode(full, tuple(periods), tuple(f.phase for f in fits), mods[finest_i].astype(np.float32),
-                      s.method, counts)
+                      s.method, counts, order_fix)
 
 
 def phase_pattern_ids(session: Session) -> list[str]:
