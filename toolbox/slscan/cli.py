@@ -329,6 +329,7 @@ def _cmd_decode(args: argparse.Namespace) -> int:
         return _decode_multicam(args)
     if args.stereo == "only":
         raise SlscanError(f"{args.session}: --stereo only needs a multi-camera folder (with cameras.json)")
+    from slscan.decode.pipeline import choose_method
     from slscan.viewer.layouts import decode_blueprint
     from slscan.viewer.recording import recording_from_args
 
@@ -354,7 +355,9 @@ def _cmd_decode(args: argparse.Namespace) -> int:
         logging.getLogger(__name__).warning(
             "%s has no calibration: writing projector codes only, no range maps (for range maps, "
             "calibrate the rig with slscan calibrate, then pass --calibration CALIB.json)", args.session)
-    blueprint = decode_blueprint(codes=codes or codes_only)
+    # a family with a decode tab of its own (phase shifting) opens on it
+    chosen = None if codes_only else choose_method(session, config.method)
+    blueprint = decode_blueprint(codes=codes or codes_only, family=chosen)
     with recording_from_args(args, recording_name=f"decode {args.session.name}", blueprint=blueprint) as rec:
         if rec is not None:
             from slscan.viewer.log import log_rig

@@ -370,6 +370,8 @@ class AfterView:
             res = family(choose_method(session)).decode_module().decode(session, view, DecodeConfig())
             codes, code_max = res.codes, max(res.code_max, 1)
             log_code_map(self.rec, log_decode.colormap(codes.astype(np.float64), code_max), view_index=index)
+            log_decode.log_display_maps(self.rec, res.maps, view_index=index)
+            log_decode.log_metrics(self.rec, res.stats, view_index=index, marked=res.stats)
             share = float(res.mask.mean())
             return ViewReport(record.name, decodable=share,
                               note=f"{100 * share:.1f} % of the frame decoded (no calibration: no range map)")
@@ -384,6 +386,8 @@ class AfterView:
             log_decode.log_decode_maps(self.rec, view_index=index, mask=mask, codes=result.codes,
                                        code_max=result.code_max, saturated=result.saturated)
             log_decode.log_range_map(self.rec, rm.vertices, rm.faces, rm.normals, rm.colors, view_index=index)
+            log_decode.log_display_maps(self.rec, result.maps, view_index=index)  # e.g. phase, unwrapping
+            log_decode.log_metrics(self.rec, result.stats, view_index=index, marked=result.stats)
             log_holes(self.rec, holes, coverage, view_index=index)
         note = (f"{len(result.range_map.vertices):,} vertices, {100 * coverage:.1f} % of the decodable pixels "
                 "covered")

@@ -30,6 +30,37 @@ import numpy as np
 from slscan.decode.samples import StripeSamples
 from slscan.errors import SlscanError
 
+COLORMAPS = ("turbo", "viridis", "twilight")
+"""Colormaps a :class:`DisplayMap` may ask for; "twilight" is cyclic (its two ends meet)."""
+
+
+@dataclass(frozen=True)
+class DisplayMap:
+    """A per-pixel map a family's decoder shows in the viewer, and how to colour it.
+
+    values : (h, w) float, NaN where there is nothing to show (drawn black); with
+        ``labels``, (h, w) int class ids
+    colormap : {"turbo", "viridis", "twilight"} across ``value_range``; "twilight" is
+        cyclic, for angles (a wrapped phase)
+    value_range : (lo, hi), the values the colormap spans (clipped outside; cyclic: wrapped)
+    labels : class id -> (name, (r, g, b, a)) for a sparse label map (a few marked
+        pixels): the viewer draws a mark of fixed on-screen size at each pixel of a class
+        other than 0, coloured and named (on hover) by its class
+    draw_order : where several maps share a view, higher is drawn on top; None: the viewer's
+    """
+
+    values: np.ndarray
+    colormap: str = "turbo"
+    value_range: tuple[float, float] = (0.0, 1.0)
+    labels: Mapping[int, tuple[str, tuple[int, int, int, int]]] | None = None
+    draw_order: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.colormap not in COLORMAPS:
+            raise SlscanError(f"unknown colormap {self.colormap!r}: expected one of {', '.join(COLORMAPS)}")
+        if np.ndim(self.values) != 2:
+            raise SlscanError(f"a display map is (h, w), got shape {np.shape(self.values)}")
+
 
 @dataclass(frozen=True)
 class FamilyDecode:
@@ -45,8 +76,11 @@ class FamilyDecode:
         with dropped bits); None: the config's
     projector_codes : :class:`~slscan.decode.codes.ProjectorCodes`, when decoding gave them
     valid_share : :class:`~slscan.decode.codes.ValidShare`, what limited the decoded share
-    maps : further (h, w) maps to stream to the viewer, by name (e.g. wrapped phase)
-    stats : further per-view numbers for ``range_maps.json`` (e.g. unwrapping corrections)
+    maps : further per-pixel maps to stream to the viewer (:class:`DisplayMap`), by entity
+        path under ``world/camera/image/decode`` (e.g. ``phase/wrapped/columns/period_8``)
+    stats : further per-view numbers for ``range_maps.json`` and the viewer's plots, by
+        name; a name may be a path (``phase/columns/order_corrected_share``), plotted under
+        ``plot/decode/``
     """
 
     samples: StripeSamples
@@ -58,7 +92,7 @@ class FamilyDecode:
     max_gap_columns: float | None = None
     projector_codes: Any = None
     valid_share: Any = None
-    maps: Mapping[str, np.ndarray] = field(default_factory=dict)
+    maps: Mapping[str, DisplayMap] = field(default_factory=dict)
     stats: Mapping[str, float] = field(default_factory=dict)
 
 

@@ -389,7 +389,8 @@ def fix_orders(coord: np.ndarray, valid: np.ndarray, period: float, *, radius: i
     that period (an order misread at a cell edge); one with at least ``min_neighbours``
     valid neighbours of which none agrees and none is a period off is rejected.
 
-    Returns the coordinates, the validity, and the numbers corrected and rejected.
+    Returns the coordinates, the validity, and the numbers corrected and rejected
+    (:func:`order_fixes` says which pixels).
     """
     coord = coord.copy()
     valid = valid.copy()
@@ -425,6 +426,20 @@ def fix_orders(coord: np.ndarray, valid: np.ndarray, period: float, *, radius: i
     return coord, valid, corrected, rejected
 
 
+def order_fixes(before: np.ndarray, after: np.ndarray, valid: np.ndarray, period: float) -> np.ndarray:
+    """What :func:`fix_orders` did at each pixel: (h, w) int8, 0 nothing (or not decoded),
+    +1 / -1 moved a period up / down, 2 rejected.
+
+    before : (h, w) its input coordinates (NaN where not decoded); after, valid : its output
+    """
+    decoded = np.isfinite(before)
+    kept = decoded & valid
+    fix = np.zeros(before.shape, np.int8)
+    fix[kept] = np.sign(np.rint((after[kept] - before[kept]) / period)).astype(np.int8)
+    fix[decoded & ~valid] = 2
+    return fix
+
+
 # --- decoding one view ---------------------------------------------------------------------------
 
 
@@ -438,6 +453,8 @@ class AxisDecode:
     wrapped : per period (h, w) float32 wrapped phase, radians
     modulation : (h, w) float32 ``2 B / (white - black)`` of the finest period
     method : {"complementary", "gray", "heterodyne"}
+    order_fix : (h, w) int8 what the neighbour check of the fringe orders did at each pixel:
+        0 nothing (or not decoded), +1 / -1 moved one period up / down, 2 rejected
     counts : pixels ``lit``, ``low_modulation`` (lit, fringes too weak), ``noisy`` (lit,
         modulation under the noise limit), ``order_corrected`` and ``order_rejected`` (the
         neighbour check), ``periods_disagree`` (several periods more than a quarter of the
@@ -451,6 +468,7 @@ class AxisDecode:
     modulation: np.ndarray
     method: str
     counts: dict[str, int]
+    order_fix: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -731,8 +749,11 @@ def _decode_axis(s: AxisSet, fits: list[PhaseFit], get, w_img, b_img, contrast, 
     full = full.reshape(ok.shape)
     valid = np.isfinite(full)
     corrected = rejected = 0
+    order_fix = np.zeros(ok.shape, np.int8)
     if radius:
-        full, valid, corrected, rejected = fix_orders(full, valid, unwrap_period, radius=radius)
+        before = full
+        full, valid, corrected, rejected = fix_orders(before, valid, unwrap_period, radius=radius)
+        order_fix = order_fixes(before, full, valid, unwrap_period)
     inside = valid & (full >= -0.5) & (full <= s.size - 0.5)
     counts["out_of_range"] = int((valid & ~inside).sum())
     full = np.where(inside, full, np.nan)
@@ -744,7 +765,7 @@ def _decode_axis(s: AxisSet, fits: list[PhaseFit], get, w_img, b_img, contrast, 
         periods.append(m.reshape(ok.shape))
     finest_i = int(np.argmin([f.period for f in s.fringes]))
     return AxisDecode(full, tuple(periods), tuple(f.phase for f in fits), mods[finest_i].astype(np.float32),
-                      s.method, counts)
+                      s.method, counts, order_fix)
 
 
 def phase_pattern_ids(session: Session) -> list[str]:
@@ -828,19 +849,80 @@ def decode(session: Session, view: ViewRecord | str, config) -> FamilyDecode:
     every decoded pixel, meshed on the pixel grid."""
     view = session.view(view) if isinstance(view, str) else view
     res = decode_phase(session, view, **_options(config))
-    stats = {}
-    for axis, a in res.axes.items():
-        tag = "column" if axis == "columns" else "row"
-        lit = max(a.counts["lit"], 1)
-        stats[f"phase_{tag}_corrected_share"] = a.counts["order_corrected"] / lit
-        stats[f"phase_{tag}_rejected_share"] = (a.counts["order_rejected"] + a.counts["periods_disagree"]
-                                                + a.counts["ambiguous"]) / lit
-    maps = {"wrapped_phase": res.axes["columns"].wrapped[-1], "modulation": res.modulation}
     return FamilyDecode(
         samples=pixel_samples(res), mask=res.mask, codes=res.column, code_max=session.projector_size[0],
         saturated=res.saturated, white=res.white, max_gap_columns=None,
-        projector_codes=codes_of(res, session, view.name), valid_share=_valid_share(res), maps=maps, stats=stats,
+        projector_codes=codes_of(res, session, view.name), valid_share=_valid_share(res),
+        maps=display_maps(res, session), stats=phase_stats(res),
     )
+
+
+ORDER_FIX_LABELS = {
+    1: ("fringe order corrected: one period up", (40, 255, 40, 255)),
+    2: ("fringe order corrected: one period down", (0, 230, 255, 255)),
+    3: ("rejected: fringe order agrees with no neighbour", (255, 0, 255, 255)),
+}
+"""The viewer's classes of :attr:`AxisDecode.order_fix` (+1, -1, 2 as 1, 2, 3; 0 transparent)."""
+
+
+def display_maps(result: PhaseResult, session: Session) -> dict:
+    """What the viewer shows of a phase decode, per axis (``columns``, ``rows``), by entity
+    path under ``world/camera/image/decode`` (:class:`~slscan.decode.family.DisplayMap`):
+
+    ``phase/wrapped/<axis>/period_<P>``
+        each period's wrapped phase (radians, cyclic colours), on the lit pixels; the
+        finest period drawn on top
+    ``phase/unwrapped/<axis>``
+        the axis's unwrapped projector coordinate (Turbo over the projector's width or
+        height), before the axes' masks are joined and the rim dropped
+    ``phase/modulation/<axis>``
+        the finest period's relative modulation ``2 B / (white - black)`` on [0, 1], the
+        per-pixel quality the decoder thresholds (``min_modulation``)
+    ``phase/order_fix/<axis>``
+        the pixels whose fringe order the neighbour check moved a period up or down, or
+        rejected (a label map: marks at those pixels)
+    """
+    from slscan.decode.family import DisplayMap
+
+    lit = result.contrast > MIN_CONTRAST
+    sizes = {"columns": session.projector_size[0], "rows": session.projector_size[1]}
+    sets = phase_sets(session.patterns)
+    maps = {}
+    for axis, a in result.axes.items():
+        periods = [f.period for f in sets[axis].fringes]
+        for rank, (period, wrapped) in enumerate(sorted(zip(periods, a.wrapped), key=lambda pw: -pw[0])):
+            maps[f"phase/wrapped/{axis}/period_{period:g}"] = DisplayMap(
+                np.where(lit, wrapped, np.float32(np.nan)), "twilight", (0.0, 2 * np.pi), draw_order=float(rank))
+        maps[f"phase/unwrapped/{axis}"] = DisplayMap(a.coordinate.astype(np.float32), "turbo",
+                                                     (0.0, sizes[axis] - 1.0))
+        maps[f"phase/modulation/{axis}"] = DisplayMap(np.where(lit, a.modulation, np.float32(np.nan)),
+                                                      "viridis", (0.0, 1.0))
+        if a.order_fix is not None:
+            classes = np.zeros(a.order_fix.shape, np.uint8)
+            for fix, label in ((1, 1), (-1, 2), (2, 3)):
+                classes[a.order_fix == fix] = label
+            maps[f"phase/order_fix/{axis}"] = DisplayMap(classes, labels=ORDER_FIX_LABELS)
+    return maps
+
+
+def phase_stats(result: PhaseResult) -> dict[str, float]:
+    """Per axis, shares of its lit pixels: ``phase/<axis>/<what>_share`` with <what> one of
+    ``low_modulation`` (fringes too weak or noisy), ``order_corrected`` and
+    ``order_rejected`` (the neighbour check), ``unwrap_rejected`` (periods disagreeing, or
+    an ambiguous order) and ``out_of_range`` (the decoded share is the view's ``mask_share``)."""
+    stats = {}
+    for axis, a in result.axes.items():
+        c = a.counts
+        lit = max(c["lit"], 1)
+        shares = {
+            "low_modulation": c["low_modulation"] + c["noisy"],
+            "order_corrected": c["order_corrected"],
+            "order_rejected": c["order_rejected"],
+            "unwrap_rejected": c["periods_disagree"] + c["ambiguous"],
+            "out_of_range": c["out_of_range"],
+        }
+        stats.update({f"phase/{axis}/{k}_share": v / lit for k, v in shares.items()})
+    return stats
 
 
 def projector_codes(session: Session, view: ViewRecord | str, config=None):

@@ -30,6 +30,7 @@ from slscan.decode.codes import (
     write_codes_manifest,
     write_view_codes,
 )
+from slscan.decode.family import DisplayMap
 from slscan.decode.graycode import THRESHOLD_MODES
 from slscan.decode.hybrid import (
     DEFAULT_ESTIMATOR,
@@ -192,7 +193,10 @@ class ViewDecode:
     white : the white-frame capture the range map's colours come from
     projector_codes : the projector column/row maps, when asked for (Gray-code sets)
     valid_share : what limited the decoded share (Gray-code decoding)
-    maps : further per-pixel maps of the family's decoder, by name (streamed to the viewer)
+    maps : further per-pixel maps of the family's decoder
+        (:class:`~slscan.decode.family.DisplayMap`), by entity path under
+        ``world/camera/image/decode`` (streamed to the viewer; :func:`decode_session` keeps
+        them only until then)
     stats : further per-view numbers of the family's decoder (in ``metrics``)
     """
 
@@ -209,7 +213,7 @@ class ViewDecode:
     seconds: dict[str, float] = field(default_factory=dict)
     projector_codes: ProjectorCodes | None = None
     valid_share: ValidShare | None = None
-    maps: dict[str, np.ndarray] = field(default_factory=dict)
+    maps: dict[str, DisplayMap] = field(default_factory=dict)
     stats: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -353,13 +357,14 @@ def _why_unusable(result: ViewDecode) -> str:
 
 
 def _decode_task(task: tuple) -> ViewDecode:
-    """Decode one view and write its PLY, and its codes when asked (runs in a worker process)."""
-    session, view_name, config, planes, folder, codes = task
+    """Decode one view and write its PLY, and its codes when asked (runs in a worker process);
+    the decoder's display maps come back only when they are ``shown`` (streamed)."""
+    session, view_name, config, planes, folder, codes, shown = task
     result = decode_view(session, session.view(view_name), config, planes=planes, with_codes=codes)
     write_ply(result.range_map, Path(folder) / f"{view_name}.ply")
     if result.projector_codes is not None:
         write_view_codes(result.projector_codes, Path(folder) / view_name)
-    return result
+    return result if shown else replace(result, maps={})
 
 
 def decode_session(
@@ -404,7 +409,7 @@ def decode_session(
     with atomic_output_dir(out, overwrite=overwrite) as tmp:
         entries = []
         code_entries = []  # every view's, usable or not: codes do not need a range map
-        tasks = [(session, view.name, chosen, planes, tmp, codes) for view in session.views]
+        tasks = [(session, view.name, chosen, planes, tmp, codes, rec is not None) for view in session.views]
         for index, (view, result) in enumerate(zip(session.views, executor.map(_decode_task, tasks))):
             if rec is not None:
                 rm = result.range_map
@@ -413,8 +418,10 @@ def decode_session(
                 log_capture(rec, result.white, view_index=index, frame_index=0, label="white")
                 rlog.log_stripes(rec, result.samples, view_index=index)
                 rlog.log_range_map(rec, rm.vertices, rm.faces, rm.normals, rm.colors, view_index=index)
-                rlog.log_metrics(rec, result.metrics, view_index=index)
+                rlog.log_display_maps(rec, result.maps, view_index=index)
+                rlog.log_metrics(rec, result.metrics, view_index=index, marked=result.stats)
                 _log_codes(rec, result, index)
+                result = replace(result, maps={})  # streamed: not kept for every view
             if progress:
                 progress(view.name)
             if result.projector_codes is not None:

@@ -82,7 +82,77 @@ def stage_blueprint(root: rrb.Container, timeline: str = VIEW_TIMELINE) -> rrb.B
     )
 
 
-def decode_blueprint(*, codes: bool = True) -> rrb.Blueprint:
+PHASE_PATH = "decode/phase"
+"""Where a phase decode's maps are, under ``world/camera/image`` (``decode.phase.display_maps``)."""
+
+
+def phase_map_views(*, compact: bool = False) -> list[rrb.View | rrb.Container]:
+    """The 2D views of a phase decode: wrapped phase, unwrapped coordinate, modulation per
+    axis, and the fringe-order corrections over the capture; ``compact``: the columns only."""
+    image = "world/camera/image"
+
+    def maps(kind: str, axis: str, name: str) -> rrb.Spatial2DView:
+        return rrb.Spatial2DView(origin=image, contents=f"$origin/{PHASE_PATH}/{kind}/{axis}/**", name=name)
+
+    # names short enough for the title bars at the default window size
+    fixes = rrb.Spatial2DView(
+        origin=image, contents=["+ $origin/capture", f"+ $origin/{PHASE_PATH}/order_fix/**"], name="Order fixes",
+    )
+    if compact:
+        return [maps("wrapped", "columns", "Wrapped phase"), maps("unwrapped", "columns", "Projector column"),
+                maps("modulation", "columns", "Modulation"), fixes]
+    modulation = rrb.Tabs(maps("modulation", "columns", "Modulation"),
+                          maps("modulation", "rows", "Modulation (rows)"), name="Modulation")
+    return [
+        maps("wrapped", "columns", "Wrapped (columns)"),
+        maps("unwrapped", "columns", "Projector column"),
+        modulation,
+        maps("wrapped", "rows", "Wrapped (rows)"),
+        maps("unwrapped", "rows", "Projector row"),
+        fixes,
+    ]
+
+
+def phase_container(name: str = "Phase") -> rrb.Container:
+    """A phase-shifting decode: its maps (left) beside the range map and its unwrapping
+    counts (right).
+
+    Left, per axis (projector columns, then rows): the wrapped phase of each period (cyclic
+    colours, the finest period on top; hide it in the blueprint panel to see the coarser
+    ones), the unwrapped projector coordinate (Turbo over the projector), and the
+    modulation (the per-pixel quality; Viridis on [0, 1]) beside the fringe-order
+    corrections marked over the capture (green: moved a period up, cyan: down, magenta:
+    rejected). Right: the range maps in 3D and, per axis, the shares of lit pixels the
+    unwrapping corrected, rejected or lost (``plot/decode/phase/<axis>``), a point per view.
+    """
+    views = phase_map_views()
+    scans = rrb.Spatial3DView(
+        origin="world",
+        contents=["+ $origin/scans/**", "+ $origin/camera", "+ $origin/projector"],
+        name="Range maps",
+    )
+    counts = rrb.Horizontal(
+        *(rrb.TimeSeriesView(origin=f"plot/decode/phase/{axis}", name=f"{axis.capitalize()} (shares)")
+          for axis in ("columns", "rows")),
+    )
+    return rrb.Horizontal(
+        rrb.Horizontal(rrb.Vertical(*views[:3]), rrb.Vertical(*views[3:])),  # a column per axis
+        rrb.Vertical(scans, counts, row_shares=[3, 2]),
+        column_shares=[3, 2],
+        name=name,
+    )
+
+
+def phase_blueprint() -> rrb.Blueprint:
+    """A phase-shifting decode on its own (:func:`phase_container`), on the view timeline."""
+    return stage_blueprint(phase_container())
+
+
+FAMILY_TABS: dict[str, Callable[[], rrb.Container]] = {"phase": phase_container}
+"""Pattern families whose decode has a tab of its own, beside the Decode tab."""
+
+
+def decode_blueprint(*, codes: bool = True, family: str | None = None) -> rrb.Blueprint:
     """Decode stage: what was measured on the image beside the range map it gives.
 
     Left: the white capture with the stripe axes and the saturation overlay drawn over it
@@ -90,6 +160,9 @@ def decode_blueprint(*, codes: bool = True) -> rrb.Blueprint:
     and the validity mask, and with ``codes`` the projector column and row maps of a
     Gray-code set (``slscan decode --codes``). Right: 3D view of the range maps (and the
     true surface points on the virtual rig), and the per-view metrics.
+
+    family : the pattern family decoded; one with a tab of its own (:data:`FAMILY_TABS`:
+        phase shifting) gets it beside the Decode tab, and the viewer opens on it
     """
     overlay = rrb.Spatial2DView(
         origin="world/camera/image",
@@ -115,14 +188,15 @@ def decode_blueprint(*, codes: bool = True) -> rrb.Blueprint:
         name="Range maps",
     )
     metrics = rrb.TimeSeriesView(origin="plot/decode", name="Per-view metrics")
-    return stage_blueprint(
-        rrb.Horizontal(
-            rrb.Vertical(overlay, maps, row_shares=[3, 2]),
-            rrb.Vertical(scans, metrics, row_shares=[3, 1]),
-            column_shares=[1, 1],
-            name="Decode",
-        )
+    root = rrb.Horizontal(
+        rrb.Vertical(overlay, maps, row_shares=[3, 2]),
+        rrb.Vertical(scans, metrics, row_shares=[3, 1]),
+        column_shares=[1, 1],
+        name="Decode",
     )
+    if family in FAMILY_TABS:
+        root = rrb.Tabs(root, FAMILY_TABS[family](), active_tab=1, name="Decode")
+    return stage_blueprint(root)
 
 
 # recipe stage -> the pipeline tab showing it (index into pipeline_blueprint's tabs)
@@ -208,6 +282,7 @@ LAYOUTS: dict[str, Callable[[], rrb.Blueprint]] = {
     "capture": capture_blueprint,
     "calibrate": _calibrate,
     "decode": decode_blueprint,
+    "phase": phase_blueprint,
     "albedo": _albedo,
     "register": register_blueprint,
     "texture": _texture,

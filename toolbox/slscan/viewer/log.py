@@ -87,13 +87,13 @@ def _check_image(image: np.ndarray, what: str) -> np.ndarray:
     return image[..., 0] if image.ndim == 3 and image.shape[2] == 1 else image
 
 
-def _png(image: np.ndarray) -> rr.EncodedImage:
+def _png(image: np.ndarray, *, draw_order: float | None = None) -> rr.EncodedImage:
     """Lossless PNG of an (h, w) or (h, w, 3) RGB uint8 image."""
     bgr = image[..., ::-1] if image.ndim == 3 else image
     ok, data = cv2.imencode(".png", np.ascontiguousarray(bgr), [cv2.IMWRITE_PNG_COMPRESSION, 1])
     if not ok:
         raise SlscanError("could not PNG-encode an image for Rerun")
-    return rr.EncodedImage(contents=data.tobytes(), media_type="image/png")
+    return rr.EncodedImage(contents=data.tobytes(), media_type="image/png", draw_order=draw_order)
 
 
 def _colors_u8(colors: np.ndarray) -> np.ndarray:

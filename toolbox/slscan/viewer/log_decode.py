@@ -8,12 +8,15 @@ Entity tree, continuing :mod:`slscan.viewer.log`::
     world/camera/image/decode/rows         projector row map (Gray code), colour-mapped  [view]
     world/camera/image/decode/saturation   saturated pixels (red overlay)  [view]
     world/camera/image/decode/stripes      stripe medial axes / edges as 2D line strips  [view]
+    world/camera/image/decode/<map>        a family decoder's further maps (DisplayMap), e.g.
+                                           phase/wrapped/columns/period_8  [view]
     world/scans/view_NNN/range_map         Mesh3D of the range map (rig frame, mm)  [view]
     plot/decode/<metric>                   per-view scalars  [view]
 """
 
 from __future__ import annotations
 
+from collections.abc import Collection, Mapping
 from typing import TYPE_CHECKING
 
 import cv2
@@ -23,11 +26,23 @@ import rerun as rr
 from slscan.viewer.log import _colors_u8, _png, _set_view, scan_path
 
 if TYPE_CHECKING:
+    from slscan.decode.family import DisplayMap
     from slscan.decode.samples import StripeSamples
 
 DECODE_PATH = "world/camera/image/decode"
 STRIPE_COLOR = (40, 255, 120)
 SATURATION_COLOR = (255, 30, 30, 160)
+LABEL_DRAW_ORDER = 15.0
+"""Marks of label maps (:class:`~slscan.decode.family.DisplayMap` with labels) over the
+capture and the saturation overlay (10), under the stripe axes (20)."""
+LABEL_RADIUS_UI = 1.5
+"""Radius of a label map's marks, UI points: a single pixel stays visible when the image is
+shown at a fraction of its size."""
+MARKER_SIZE_UI = 3.0
+"""Size of the point drawn for each view of a marked metric (a single view shows)."""
+CV_COLORMAPS = {"turbo": cv2.COLORMAP_TURBO, "viridis": cv2.COLORMAP_VIRIDIS, "twilight": cv2.COLORMAP_TWILIGHT}
+STATIC_LOGGED_ATTR = "slscan_static_logged"
+"""Attribute of a recording stream: the entity paths whose static data it has been sent."""
 
 
 def colormap(values: np.ndarray, vmax: float) -> np.ndarray:
@@ -38,6 +53,66 @@ def colormap(values: np.ndarray, vmax: float) -> np.ndarray:
     rgb = cv2.applyColorMap(scaled, cv2.COLORMAP_TURBO)[..., ::-1]
     rgb[~valid] = 0
     return np.ascontiguousarray(rgb)
+
+
+def colormap_range(values: np.ndarray, value_range: tuple[float, float], name: str = "turbo") -> np.ndarray:
+    """Colours (h, w, 3) uint8 of ``values`` (h, w) across ``value_range`` with the colormap
+    ``name`` ({"turbo", "viridis", "twilight"}; "twilight" wraps around the range); NaN black."""
+    lo, hi = float(value_range[0]), float(value_range[1])
+    valid = np.isfinite(values)
+    t = (np.asarray(values, np.float64)[valid] - lo) / max(hi - lo, 1e-12)
+    t = np.mod(t, 1.0) if name == "twilight" else np.clip(t, 0.0, 1.0)
+    scaled = np.zeros(values.shape, np.uint8)
+    scaled[valid] = np.minimum(t * 256, 255).astype(np.uint8)
+    rgb = cv2.applyColorMap(scaled, CV_COLORMAPS[name])[..., ::-1]
+    rgb[~valid] = 0
+    return np.ascontiguousarray(rgb)
+
+
+def _first_static(rec: rr.RecordingStream, path: str) -> bool:
+    """True the first time ``path``'s static data is asked for on ``rec`` (then log it)."""
+    done = getattr(rec, STATIC_LOGGED_ATTR, None)
+    if done is None:
+        done = set()
+        setattr(rec, STATIC_LOGGED_ATTR, done)
+    if path in done:
+        return False
+    done.add(path)
+    return True
+
+
+def log_display_maps(
+    rec: rr.RecordingStream | None, maps: Mapping[str, DisplayMap], *, view_index: int
+) -> None:
+    """A family decoder's further per-pixel maps (``FamilyDecode.maps``) at
+    ``world/camera/image/decode/<name>``: colour-mapped PNGs, black where NaN.
+
+    A label map (``labels``; sparse: e.g. the few pixels a decoder corrected) is a mark at
+    each labelled pixel's centre, of :data:`LABEL_RADIUS_UI` on screen so that one pixel
+    shows when the image is shown small, coloured and named (on hover) by its class under
+    the map's annotation context (sent once per recording, static); class 0 is not drawn.
+    """
+    if rec is None or not maps:
+        return
+    _set_view(rec, view_index)
+    for name, shown in maps.items():
+        path = f"{DECODE_PATH}/{name}"
+        if shown.labels is not None:
+            if _first_static(rec, path):
+                infos = [rr.AnnotationInfo(id=int(k), label=label, color=color)
+                         for k, (label, color) in shown.labels.items()]
+                rec.log(path, rr.AnnotationContext(infos), static=True)
+            classes = np.asarray(shown.values)
+            ys, xs = np.nonzero(classes)
+            rec.log(path, rr.Points2D(
+                np.stack([xs, ys], axis=1).astype(np.float32) + 0.5,  # pixel centres in Rerun's image space
+                class_ids=classes[ys, xs].astype(np.uint16),
+                radii=rr.components.Radius.ui_points(LABEL_RADIUS_UI),
+                draw_order=LABEL_DRAW_ORDER if shown.draw_order is None else shown.draw_order,
+            ))
+        else:
+            rec.log(path, _png(colormap_range(shown.values, shown.value_range, shown.colormap),
+                               draw_order=shown.draw_order))
 
 
 def stripe_strips(samples: StripeSamples, *, max_gap_rows: int = 1) -> list[np.ndarray]:
@@ -127,11 +202,20 @@ def log_range_map(
     )
 
 
-def log_metrics(rec: rr.RecordingStream | None, metrics: dict[str, float], *, view_index: int) -> None:
-    """Per-view scalars under ``plot/decode/``."""
+def log_metrics(
+    rec: rr.RecordingStream | None, metrics: Mapping[str, float], *, view_index: int, marked: Collection[str] = ()
+) -> None:
+    """Per-view scalars under ``plot/decode/`` (a name may be a path: ``phase/rows/x``).
+
+    marked : names drawn with a point per view besides the line (styled once, static), so
+        that a decode of one view shows them: a family decoder's ``stats``
+    """
     if rec is None:
         return
     _set_view(rec, view_index)
     for name, value in metrics.items():
         if value is not None and np.isfinite(value):
-            rec.log(f"plot/decode/{name}", rr.Scalars(float(value)))
+            path = f"plot/decode/{name}"
+            if name in marked and _first_static(rec, path):
+                rec.log(path, rr.SeriesLines(), rr.SeriesPoints(marker_sizes=MARKER_SIZE_UI), static=True)
+            rec.log(path, rr.Scalars(float(value)))

@@ -63,8 +63,9 @@ def log_code_map(rec: rr.RecordingStream | None, image: np.ndarray, *, view_inde
 
 def scan_blueprint() -> rrb.Blueprint:
     """Live scan: the frame arriving and the pattern on the projector (left); the last
-    view's range map in 3D and its holes over the white frame (right); coverage per view
-    and the scan log below."""
+    view's range map in 3D (or its code map, or with phase shifting its wrapped phase,
+    projector column, modulation and fringe-order corrections) and its holes over the
+    white frame (right); coverage per view and the scan log below."""
     from slscan.viewer.layouts import stage_blueprint
 
     live = rrb.Vertical(
@@ -78,10 +79,13 @@ def scan_blueprint() -> rrb.Blueprint:
                   "+ $origin/corners"],
         name="Holes (magenta) and clipping (red)",
     )
+    from slscan.viewer.layouts import phase_map_views
+
     maps = rrb.Tabs(
         rrb.Spatial3DView(origin="world", contents=["+ $origin/scans/**", "+ $origin/camera",
                                                    "+ $origin/projector"], name="Range maps"),
         rrb.Spatial2DView(origin="world/camera/image", contents="$origin/decode/codes", name="Codes"),
+        rrb.Grid(*phase_map_views(compact=True), grid_columns=2, name="Phase"),
         name="Quick decode",
     )
     bottom = rrb.Horizontal(
