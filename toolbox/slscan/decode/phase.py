@@ -653,6 +653,7 @@ def _uncrop_axis(a: AxisDecode, box: tuple[slice, slice], shape: tuple[int, int]
         periods=tuple(uncrop(p, box, shape, np.nan) for p in a.periods),
         wrapped=tuple(uncrop(w, box, shape, np.float32(np.nan)) for w in a.wrapped),
         modulation=uncrop(a.modulation, box, shape, np.float32(0)),
+        order_fix=None if a.order_fix is None else uncrop(a.order_fix, box, shape, np.int8(0)),
     )
 
 
