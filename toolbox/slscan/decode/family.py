@@ -76,6 +76,8 @@ class FamilyDecode:
         with dropped bits); None: the config's
     projector_codes : :class:`~slscan.decode.codes.ProjectorCodes`, when decoding gave them
     valid_share : :class:`~slscan.decode.codes.ValidShare`, what limited the decoded share
+    features : the samples are features the viewer draws as stripe axes (green lines,
+        stripe edges); False: a sample at every decoded pixel (phase shifting), shown as maps
     maps : further per-pixel maps to stream to the viewer (:class:`DisplayMap`), by entity
         path under ``world/camera/image/decode`` (e.g. ``phase/wrapped/columns/period_8``)
     stats : further per-view numbers for ``range_maps.json`` and the viewer's plots, by
@@ -90,6 +92,7 @@ class FamilyDecode:
     saturated: np.ndarray
     white: np.ndarray
     max_gap_columns: float | None = None
+    features: bool = True
     projector_codes: Any = None
     valid_share: Any = None
     maps: Mapping[str, DisplayMap] = field(default_factory=dict)

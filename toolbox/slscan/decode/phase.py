@@ -852,7 +852,7 @@ def decode(session: Session, view: ViewRecord | str, config) -> FamilyDecode:
     res = decode_phase(session, view, **_options(config))
     return FamilyDecode(
         samples=pixel_samples(res), mask=res.mask, codes=res.column, code_max=session.projector_size[0],
-        saturated=res.saturated, white=res.white, max_gap_columns=None,
+        saturated=res.saturated, white=res.white, max_gap_columns=None, features=False,
         projector_codes=codes_of(res, session, view.name), valid_share=_valid_share(res),
         maps=display_maps(res, session), stats=phase_stats(res),
     )

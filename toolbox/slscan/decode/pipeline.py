@@ -198,6 +198,7 @@ class ViewDecode:
         ``world/camera/image/decode`` (streamed to the viewer; :func:`decode_session` keeps
         them only until then)
     stats : further per-view numbers of the family's decoder (in ``metrics``)
+    features : the samples are features drawn as stripe axes (False: one per pixel)
     """
 
     view: str
@@ -215,6 +216,7 @@ class ViewDecode:
     valid_share: ValidShare | None = None
     maps: dict[str, DisplayMap] = field(default_factory=dict)
     stats: dict[str, float] = field(default_factory=dict)
+    features: bool = True
 
     @property
     def metrics(self) -> dict[str, float]:
@@ -342,6 +344,7 @@ def decode_view(
         view=view.name, method=method, samples=samples, points=points, range_map=range_map,
         mask=res.mask, codes=res.codes, code_max=res.code_max, saturated=res.saturated, white=res.white,
         seconds=seconds, projector_codes=projector_codes, valid_share=share, maps=dict(res.maps),
+        features=res.features,
         stats=dict(res.stats),
     )
 
@@ -416,7 +419,8 @@ def decode_session(
                 rlog.log_decode_maps(rec, view_index=index, mask=result.mask, codes=result.codes,
                                      code_max=result.code_max, saturated=result.saturated)
                 log_capture(rec, result.white, view_index=index, frame_index=0, label="white")
-                rlog.log_stripes(rec, result.samples, view_index=index)
+                if result.features:  # per-pixel samples are shown as maps, not as stripe axes
+                    rlog.log_stripes(rec, result.samples, view_index=index)
                 rlog.log_range_map(rec, rm.vertices, rm.faces, rm.normals, rm.colors, view_index=index)
                 rlog.log_display_maps(rec, result.maps, view_index=index)
                 rlog.log_metrics(rec, result.metrics, view_index=index, marked=result.stats)
