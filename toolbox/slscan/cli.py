@@ -214,7 +214,7 @@ def _add_demo_options(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("--patterns", type=pattern_set_name, metavar="SET",
                    help="the coded patterns (default: the recipe's, hybrid); phase: 4-step phase shifting "
-                        "with complementary Gray code, columns and rows (the phase recipe's set)")
+                        "with complementary Gray code (the phase recipe's set)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="override a setting of the recipe, e.g. capture.seed=3 (repeatable)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -227,11 +227,7 @@ def demo_overrides(*, views: int | None = None, scale: float | None = None,
     """``--set`` overrides of the demo recipe for ``slscan demo --views N --scale S --patterns P``."""
     overrides = []
     if patterns is not None:  # the family decoded is the one captured ("auto")
-        from slscan.patterns import family, set_families
-
         overrides += [f"capture.patterns={patterns}", "decode.method=auto"]
-        if any(family(name).rows_triangulate for name in set_families(patterns)):
-            overrides.append("capture.gray_rows=true")
     if views is not None:
         overrides.append(f"capture.views={views}")
     if scale is not None:

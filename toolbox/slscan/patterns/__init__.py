@@ -215,8 +215,6 @@ class Family:
         that does not when another one is present
     rows : can code projector rows as well as columns (the inverse-camera calibration and
         two-camera matching need both)
-    rows_triangulate : its range maps use the projector rows too when the set codes them
-        (phase shifting: every pixel ray to ray), so a scan should capture them
     finest : ``finest(patterns) -> PatternImage | None``, the image with the finest detail
         of this family in a set (exposure and focus checks look at it)
     """
@@ -231,7 +229,6 @@ class Family:
     priority: int = 0
     lossy: bool = True
     rows: bool = False
-    rows_triangulate: bool = False
     finest: Callable[[Sequence[PatternImage]], PatternImage | None] | None = None
 
     def decode_module(self) -> ModuleType:

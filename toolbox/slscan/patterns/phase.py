@@ -259,6 +259,5 @@ FAMILY = Family(
     ),
     priority=3,
     rows=True,
-    rows_triangulate=True,
     finest=finest,
 )
