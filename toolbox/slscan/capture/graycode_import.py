@@ -22,10 +22,10 @@ Grammar (items separated by commas, one item per image or block of images)::
 needs one ``white``, one ``black`` and a ``cols`` block; ``rows`` is optional. The
 projector size and how the projector is mounted (rotated by 0, 90, 180 or 270 degrees)
 are given beside the order. Named presets (:data:`PRESETS`) hold the layouts of known
-tools. Images are copied byte for byte, PNG, JPEG or TIFF as they are; JPEG (and
-JPEG-compressed TIFF) sessions are marked lossy. The camera's tone curve (linear or sRGB)
-is measured from the captures themselves (:mod:`slscan.capture.response`), not assumed
-from the file format.
+tools. Images are copied byte for byte, PNG, JPEG or TIFF as they are (BMP, which a
+session does not hold, is converted to PNG without loss); JPEG (and JPEG-compressed TIFF)
+sessions are marked lossy. The camera's tone curve (linear or sRGB) is measured from the
+captures themselves (:mod:`slscan.capture.response`), not assumed from the file format.
 
 References
 ----------
@@ -51,6 +51,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from slscan.capture.response import (
@@ -71,6 +72,7 @@ from slscan.capture.session import (
     read_capture,
 )
 from slscan.errors import SlscanError
+from slscan.fsio import write_png
 from slscan.patterns import PatternImage, flat
 from slscan.patterns.graycode import n_bits
 
@@ -81,6 +83,9 @@ MISSING_BITS = ("error", "drop")
 AXIS_NAMES = {"cols": "columns", "rows": "rows"}
 _TAGS = {"columns": "col", "rows": "row"}
 _NUMBERED = re.compile(r"^(.*?)(\d+)(\D*)$")
+SOURCE_FORMATS = {**IMAGE_FORMATS, ".bmp": "bmp"}
+"""Capture file extensions an import reads: the session's own formats, copied byte for
+byte, and BMP, converted to PNG (lossless both; a session holds no BMP)."""
 
 
 # --- the order spec ---------------------------------------------------------------------------
@@ -282,7 +287,7 @@ def natural_key(name: str) -> list:
 def _images(folder: Path, pattern: str) -> list[Path]:
     found = [
         p for p in folder.iterdir()
-        if p.suffix.lower() in IMAGE_FORMATS and fnmatch.fnmatch(p.name, pattern) and p.is_file()
+        if p.suffix.lower() in SOURCE_FORMATS and fnmatch.fnmatch(p.name, pattern) and p.is_file()
     ]
     return sorted(found, key=lambda p: natural_key(p.name))
 
@@ -303,7 +308,7 @@ def find_views(src: Path, *, pattern: str = "*", views: str = "*") -> dict[Path,
         files = _images(folder, pattern)
         if files:
             found[folder] = files
-    kinds = "/".join(sorted({f.upper() for f in IMAGE_FORMATS.values()}))
+    kinds = "/".join(sorted({f.upper() for f in SOURCE_FORMATS.values()}))
     if not found and candidates:
         raise SlscanError(
             f"{candidates[0]}: no {pattern} images ({kinds}), nor in {src} or its other "
@@ -551,8 +556,6 @@ def import_graycode(
         "projector %dx%d turned %d degrees", len(placed), src, spec.text, fmt.upper(), response, cw, ch, pw, ph,
         rotation,
     )
-    total = sum(sum(1 for i in p if _kept(slots[i], keep)) for p in placed.values())
-    done = 0
     with SessionWriter(
         out_path,
         camera_size=(cw, ch),
@@ -568,22 +571,7 @@ def import_graycode(
         response=response,
         response_fit=response_fit,
     ) as writer:
-        for folder, files in placed.items():
-            view_dir = writer.view_folder(folder.name)
-            records = []
-            for i in sorted(files):
-                slot = slots[i]
-                if not _kept(slot, keep):
-                    continue
-                path = files[i]
-                ext = path.suffix.lower()
-                name = f"{i:02d}_{slot.pattern_id}{ext}"
-                shutil.copy2(path, view_dir / name)
-                records.append(ImageRecord(name, "pattern", pattern=slot.pattern_id))
-                done += 1
-                if progress is not None:
-                    progress(done, total)
-            writer.add_view(ViewRecord(folder.name, tuple(records), rig_from_object=None, exposure={}))
+        copy_views(writer, placed, [s.pattern_id if _kept(s, keep) else None for s in slots], progress)
         session = writer.session()
     logger.info("wrote capture session %s (%d views)", out_path, len(placed))
     return session
@@ -601,10 +589,60 @@ def _measure_response(placed: dict[Path, dict[int, Path]], slots: list[Slot],
               if all(i in files for pair in response_pairs(pairs) for i in pair)]
 
     def read(view: str, index: int) -> np.ndarray:
-        image = read_capture(views[view][index])
+        path = views[view][index]
+        image = _read_bmp(path) if path.suffix.lower() == ".bmp" else read_capture(path)
         return image[..., :3] if image.ndim == 3 else image
 
     return measure_response(read, usable, at["white"], at["black"], response_pairs(pairs))
+
+
+def copy_views(
+    writer: SessionWriter, placed: dict[Path, dict[int, Path]], pattern_ids: list[str | None],
+    progress: Callable[[int, int], None] | None = None,
+) -> None:
+    """Copy each view's captures into the session ``writer`` writes, one view per folder of
+    ``placed`` (position in the order -> file), as ``NN_<pattern id>.<ext>`` with ``NN`` the
+    position; positions whose ``pattern_ids`` entry is None are left out. Files are copied
+    byte for byte; BMP is converted to PNG (lossless). ``progress(done, total)`` after each."""
+    total = sum(1 for files in placed.values() for i in files if pattern_ids[i] is not None)
+    done = 0
+    for folder, files in placed.items():
+        view_dir = writer.view_folder(folder.name)
+        records = []
+        for i in sorted(files):
+            if pattern_ids[i] is None:
+                continue
+            path = files[i]
+            ext = path.suffix.lower()
+            name = f"{i:02d}_{pattern_ids[i]}{'.png' if ext == '.bmp' else ext}"
+            if ext == ".bmp":
+                write_png(view_dir / name, _read_bmp(path))
+            else:
+                shutil.copy2(path, view_dir / name)
+            records.append(ImageRecord(name, "pattern", pattern=pattern_ids[i]))
+            done += 1
+            if progress is not None:
+                progress(done, total)
+        writer.add_view(ViewRecord(folder.name, tuple(records), rig_from_object=None, exposure={}))
+
+
+def _read_bmp(path: Path) -> np.ndarray:
+    """A BMP capture's pixels: (h, w) grey or (h, w, 3) RGB uint8 (a grey palette reads grey)."""
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise SlscanError(f"{path}: not a readable BMP image")
+    if image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGRA2RGB if image.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+    return image
+
+
+def _header(path: Path) -> tuple[int, int, int, int]:
+    """(width, height, channels, bit depth) of a capture to import (BMP decoded: it is small
+    work and tells the channels exactly as the conversion will write them)."""
+    if path.suffix.lower() != ".bmp":
+        return image_header(path)
+    image = _read_bmp(path)
+    return image.shape[1], image.shape[0], 1 if image.ndim == 2 else image.shape[2], 8
 
 
 def _kept(slot: Slot, keep: dict[str, int]) -> bool:
@@ -665,10 +703,10 @@ def _image_format(placed: dict[Path, dict[int, Path]]) -> tuple[str, tuple[int, 
     lossy = False
     for files in placed.values():
         for path in files.values():
-            this = IMAGE_FORMATS[path.suffix.lower()]
+            this = SOURCE_FORMATS[path.suffix.lower()]
             if first_path is None:
                 first_path, fmt = path, this
-                first = image_header(path)
+                first = _header(path)
                 w, h, c, d = first
                 if c not in (1, 3, 4) or d not in (8, 16):
                     raise SlscanError(
@@ -681,7 +719,7 @@ def _image_format(placed: dict[Path, dict[int, Path]]) -> tuple[str, tuple[int, 
                     f"{path.parent}: mixes {fmt.upper()} ({first_path.name}) and {this.upper()} "
                     f"({path.name}) captures; expected one format"
                 )
-            header = image_header(path)
+            header = _header(path)
             if header != first:
                 hw, hh, hc, hd = header
                 w, h, c, d = first
