@@ -403,6 +403,28 @@ def write_png(path: str | os.PathLike, image: np.ndarray) -> None:
     write_bytes(path, data.tobytes())
 
 
+def write_float_tiff(path: str | os.PathLike, image: np.ndarray) -> None:
+    """Write a grey ``image`` as a 32-bit float TIFF (deflate-compressed, NaN kept), atomically."""
+    image = np.ascontiguousarray(image, dtype=np.float32)
+    if image.ndim != 2:
+        raise SlscanError(f"{path}: a float TIFF map needs a (h, w) array, got shape {image.shape}")
+    ok, data = cv2.imencode(".tiff", image, [cv2.IMWRITE_TIFF_COMPRESSION, 8])  # 8: Adobe deflate
+    if not ok:
+        raise SlscanError(f"{path}: could not encode the TIFF")
+    write_bytes(path, data.tobytes())
+
+
+def read_float_tiff(path: str | os.PathLike) -> np.ndarray:
+    """Read a TIFF as stored (a :func:`write_float_tiff` map: (h, w) float32)."""
+    path = Path(path)
+    if not path.is_file():
+        raise SlscanError(f"{path}: image not found")
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise SlscanError(f"{path}: not a readable TIFF image")
+    return image
+
+
 def encode_jpeg(image: np.ndarray, quality: int) -> bytes:
     """JPEG bytes of an RGB or grey uint8 ``image`` at ``quality`` (1–100, libjpeg through
     OpenCV, 4:2:0 chroma subsampling as cameras save)."""

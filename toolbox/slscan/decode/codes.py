@@ -1,18 +1,22 @@
-"""Projector codes without a calibration: per-pixel projector column/row maps of Gray-code views.
+"""Projector codes without a calibration: per-pixel projector column/row maps of Gray-code
+and phase-shifting views.
 
-The column and row a Gray-code decoder reads at each camera pixel are the most reused
-output of such a decoder (camera-projector calibration, matching two cameras through the
-projector); they need no calibration. This module turns a
-:class:`~slscan.decode.graycode.GrayResult` into :class:`ProjectorCodes`, writes them as
-16-bit PNG maps with a small JSON per view, reads them back (:func:`read_codes`), and
-says what limited the share of decoded pixels (:func:`valid_share`).
+The column and row a Gray-code (or phase-shifting) decoder reads at each camera pixel are
+the most reused output of such a decoder (camera-projector calibration, matching two
+cameras through the projector); they need no calibration. This module turns a
+:class:`~slscan.decode.graycode.GrayResult` (or a phase decode) into
+:class:`ProjectorCodes`, writes them as maps with a small JSON per view, reads them back
+(:func:`read_codes`), and says what limited the share of decoded pixels (:func:`valid_share`).
 
 Files, in the decode output folder (``slscan decode SESSION --out DIR --codes``)::
 
-    DIR/projector_codes.json      manifest: session, projector size, sentinel, views
-    DIR/VIEW/columns.png          16-bit grey: projector column, 65535 where not decoded
+    DIR/projector_codes.json      manifest: session, projector size, sentinel, encoding, views
+    DIR/VIEW/columns.png          Gray code: 16-bit grey projector column, 65535 where not decoded
     DIR/VIEW/rows.png             16-bit grey: projector row, 65535 where not decoded
                                   (absent when the set has no row codes)
+    DIR/VIEW/columns.tiff         phase shifting, instead: 32-bit float sub-pixel projector
+    DIR/VIEW/rows.tiff            column / row (pixel centres at whole numbers), NaN where not
+                                  decoded (``"encoding": "float32-tiff"`` in the JSON files)
     DIR/VIEW/mask.png             8-bit grey: 255 where the column and the row decoded
     DIR/VIEW/codes.json           projector size, bits, valid share, noise, what limited it
 """
@@ -35,9 +39,17 @@ from slscan.decode.budget import fit_workers, warn_if_lossy
 from slscan.decode.graycode import GrayResult, decode_gray, gray_pairs
 from slscan.decode.masks import full_scale
 from slscan.errors import SlscanError
-from slscan.patterns import families_in
 from slscan.executor import LOCAL, Executor
-from slscan.fsio import atomic_output_dir, read_json, read_png, write_json, write_png
+from slscan.fsio import (
+    atomic_output_dir,
+    read_float_tiff,
+    read_json,
+    read_png,
+    write_float_tiff,
+    write_json,
+    write_png,
+)
+from slscan.patterns import families_in
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +59,11 @@ MANIFEST = "projector_codes.json"
 VIEW_FILE = "codes.json"
 INVALID = 65535
 """Value of ``columns.png`` and ``rows.png`` where nothing decoded (projectors up to 65535 px)."""
+PNG_ENCODING = "uint16-png"
+FLOAT_ENCODING = "float32-tiff"
+"""How the column and row maps are stored: 16-bit PNG of whole projector pixels (Gray code;
+the files say nothing, as before there was a choice), or 32-bit float TIFF of sub-pixel
+coordinates with NaN where not decoded (phase shifting: ``"encoding"`` says so)."""
 MIN_CONTRAST = 0.03
 NOISE_SIGMAS = 3.0
 """The defaults of :func:`~slscan.decode.graycode.decode_gray_images` the estimate assumes."""
@@ -108,8 +125,9 @@ class ValidShare:
 class ProjectorCodes:
     """The projector column and row seen by each camera pixel of one view.
 
-    column : (h, w) int32 projector column (px), -1 where not decoded
-    row : (h, w) int32 projector row (px), -1 where not decoded; None without row codes
+    column : (h, w) int32 projector column (px), -1 where not decoded; or (phase
+        shifting) float sub-pixel column, NaN where not decoded
+    row : (h, w) likewise the projector row; None without row codes
     mask : (h, w) bool, the column and (when there are row codes) the row decoded
     projector_size : (width, height) px
     bits : (column bits, row bits) read; row bits 0 without row codes
@@ -123,6 +141,11 @@ class ProjectorCodes:
     projector_size: tuple[int, int]
     bits: tuple[int, int]
     valid_share: ValidShare
+
+    @property
+    def encoding(self) -> str:
+        """{"uint16-png", "float32-tiff"}: how :func:`write_view_codes` stores the maps."""
+        return FLOAT_ENCODING if np.issubdtype(self.column.dtype, np.floating) else PNG_ENCODING
 
     def summary(self) -> dict[str, Any]:
         """The JSON-ready description written as ``VIEW/codes.json`` (files not included)."""
@@ -280,35 +303,53 @@ def _to_u16(values: np.ndarray) -> np.ndarray:
 
 
 def write_view_codes(codes: ProjectorCodes, folder: str | os.PathLike) -> dict[str, Any]:
-    """Write one view's maps and ``codes.json`` into ``folder`` (atomically, file by file).
+    """Write one view's maps and ``codes.json`` into ``folder`` (atomically, file by file):
+    16-bit PNG of whole projector pixels, or float32 TIFF for sub-pixel maps (phase
+    shifting; :attr:`ProjectorCodes.encoding`).
 
     Returns the view's summary with its file names (relative to ``folder``).
     """
     w, h = codes.projector_size
-    if max(w, h) >= INVALID:
+    floats = codes.encoding == FLOAT_ENCODING
+    if max(w, h) >= INVALID and not floats:
         raise SlscanError(f"{folder}: a {w}x{h} projector does not fit 16-bit code maps")
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    files = {"columns": "columns.png", "rows": None if codes.row is None else "rows.png", "mask": "mask.png"}
-    write_png(folder / "columns.png", _to_u16(codes.column))
+    ext, write, encode = ("tiff", write_float_tiff, np.asarray) if floats else ("png", write_png, _to_u16)
+    files = {"columns": f"columns.{ext}", "rows": None if codes.row is None else f"rows.{ext}", "mask": "mask.png"}
+    write(folder / files["columns"], encode(codes.column))
     if codes.row is not None:
-        write_png(folder / "rows.png", _to_u16(codes.row))
+        write(folder / files["rows"], encode(codes.row))
     write_png(folder / "mask.png", codes.mask.astype(np.uint8) * 255)
     summary = {"format": f"{CODES_FORMAT}.view", "version": CODES_VERSION, **codes.summary(),
-               "invalid": INVALID, "files": files}
+               **_sentinel(codes.encoding), "files": files}
     write_json(folder / VIEW_FILE, summary)
     return summary
 
 
-def write_codes_manifest(folder: str | os.PathLike, session: Session, entries: list[dict[str, Any]]) -> None:
-    """Write ``projector_codes.json``: what was decoded, the sentinel, the views' folders."""
+def _sentinel(encoding: str) -> dict[str, Any]:
+    """The JSON keys saying how the maps mark pixels not decoded (Gray code's as before)."""
+    if encoding == FLOAT_ENCODING:
+        return {"encoding": FLOAT_ENCODING, "invalid": "NaN"}
+    return {"invalid": INVALID}
+
+
+def write_codes_manifest(folder: str | os.PathLike, session: Session, entries: list[dict[str, Any]], *,
+                         encoding: str = PNG_ENCODING) -> None:
+    """Write ``projector_codes.json``: what was decoded, how the maps are stored
+    (``encoding``, :attr:`ProjectorCodes.encoding`), the sentinel, the views' folders."""
+    if encoding == FLOAT_ENCODING:
+        maps = ("columns.tiff / rows.tiff: 32-bit float sub-pixel projector column / row (pixel centres at "
+                "whole numbers), NaN where not decoded; mask.png: 255 where the column and the row decoded")
+    else:
+        maps = ("columns.png / rows.png: 16-bit projector column / row, 65535 where not decoded; "
+                "mask.png: 255 where the column and the row decoded")
     write_json(Path(folder) / MANIFEST, {
         "format": CODES_FORMAT, "version": CODES_VERSION, "written_by": f"slscan {__version__}",
         "session": str(Path(session.root).resolve()),
         "projector": {"width": session.projector_size[0], "height": session.projector_size[1]},
-        "invalid": INVALID,
-        "maps": "columns.png / rows.png: 16-bit projector column / row, 65535 where not decoded; "
-                "mask.png: 255 where the column and the row decoded",
+        **_sentinel(encoding),
+        "maps": maps,
         "views": entries,
     })
 
@@ -316,11 +357,12 @@ def write_codes_manifest(folder: str | os.PathLike, session: Session, entries: l
 def _map(folder: Path, name: str | None, shape: tuple[int, int] | None, dtype) -> np.ndarray | None:
     if name is None:
         return None
-    image = read_png(folder / name)
+    image = read_float_tiff(folder / name) if dtype == np.float32 else read_png(folder / name)
     if image.ndim != 2 or image.dtype != dtype or (shape is not None and image.shape != shape):
         want = f"{shape[1]}x{shape[0]} " if shape else ""
+        kind = "float TIFF" if dtype == np.float32 else "grey PNG"
         raise SlscanError(
-            f"{folder / name}: expected a {want}{np.dtype(dtype).itemsize * 8}-bit grey PNG, "
+            f"{folder / name}: expected a {want}{np.dtype(dtype).itemsize * 8}-bit {kind}, "
             f"got {image.dtype} of shape {image.shape}"
         )
     return image
@@ -333,8 +375,9 @@ def read_codes(folder: str | os.PathLike, view: str | None = None) -> ProjectorC
         (holding ``projector_codes.json``); from the latter ``view`` picks the view
         (default: the only one)
 
-    Returns maps as :func:`~slscan.decode.graycode.decode_gray` gives them: int32 columns
-    and rows with -1 where not decoded, and the bool mask.
+    Returns maps as the decoder gave them: Gray code's int32 columns and rows with -1
+    where not decoded (as :func:`~slscan.decode.graycode.decode_gray`), phase shifting's
+    float (float32 as stored) with NaN where not decoded; and the bool mask.
     """
     folder = Path(folder)
     if (folder / MANIFEST).is_file():
@@ -361,8 +404,13 @@ def read_codes(folder: str | os.PathLike, view: str | None = None) -> ProjectorC
             f"{meta_path}: expected format {CODES_FORMAT}.view version {CODES_VERSION}, "
             f"got {meta.get('format')!r} version {meta.get('version')!r}"
         )
+    encoding = meta.get("encoding", PNG_ENCODING)
+    if encoding not in (PNG_ENCODING, FLOAT_ENCODING):
+        raise SlscanError(f"{meta_path}: unknown map encoding {encoding!r}; expected {PNG_ENCODING} or "
+                          f"{FLOAT_ENCODING}")
     try:
-        files, invalid = meta["files"], int(meta["invalid"])
+        files = meta["files"]
+        invalid = int(meta["invalid"]) if encoding == PNG_ENCODING else None
         shape = (int(meta["camera"]["height"]), int(meta["camera"]["width"]))
         size = (int(meta["projector"]["width"]), int(meta["projector"]["height"]))
         bits = (int(meta["bits"]["columns"]), int(meta["bits"]["rows"]))
@@ -371,6 +419,8 @@ def read_codes(folder: str | os.PathLike, view: str | None = None) -> ProjectorC
         raise SlscanError(f"{meta_path}: malformed projector-codes file ({exc})") from None
 
     def codes(name: str | None) -> np.ndarray | None:
+        if encoding == FLOAT_ENCODING:
+            return _map(folder, name, shape, np.float32)
         values = _map(folder, name, shape, np.uint16)
         return None if values is None else np.where(values == invalid, -1, values.astype(np.int32))
 
@@ -393,8 +443,13 @@ def _codes_task(task: tuple) -> tuple[ProjectorCodes, np.ndarray | None, np.ndar
     and the saturation map come back only when they are to be logged."""
     session, view_name, folder, images, threshold = task
     t = time.perf_counter()
-    result = decode_gray(session, session.view(view_name), threshold=threshold)
-    codes = codes_from_gray(result, session, view_name)
+    fam = codes_family(session)
+    if fam.name == "gray":  # the bit threshold is Gray code's own option
+        result = decode_gray(session, session.view(view_name), threshold=threshold)
+        codes = codes_from_gray(result, session, view_name)
+    else:  # the family's decode (phase shifting: sub-pixel float maps)
+        result = fam.decode_module().decode(session, session.view(view_name), None)
+        codes = result.projector_codes
     entry = write_view_codes(codes, Path(folder) / view_name)
     seconds = time.perf_counter() - t
     return codes, result.white if images else None, result.saturated if images else None, entry, seconds
@@ -410,7 +465,8 @@ def decode_codes_session(
     executor: Executor = LOCAL,
     threshold: str = "adaptive",
 ) -> list[ProjectorCodes]:
-    """Decode every view's Gray code into ``out/VIEW/{columns,rows,mask}.png`` and
+    """Decode every view's Gray code (or phase shifting) into ``out/VIEW/columns.png``,
+    ``rows.png`` (phase: ``columns.tiff``, ``rows.tiff``), ``mask.png`` and
     ``out/projector_codes.json``; no calibration needed, no range maps written.
 
     rec : an ``rr.RecordingStream`` for the white capture, the mask, the column and row maps
@@ -438,7 +494,8 @@ def decode_codes_session(
             entries.append({"view": codes.view, "folder": codes.view, "valid_share": entry["valid_share"],
                             "noise_dn": entry["noise_dn"], "seconds": seconds})
             results.append(codes)
-        write_codes_manifest(tmp, session, entries)
+        write_codes_manifest(tmp, session, entries,
+                             encoding=results[0].encoding if results else PNG_ENCODING)
     return results
 
 

@@ -23,6 +23,7 @@ from slscan import __version__
 from slscan.capture.session import SESSION_FILE, Session, ViewRecord, load_session
 from slscan.decode.budget import fit_workers, warn_if_lossy
 from slscan.decode.codes import (
+    PNG_ENCODING,
     ProjectorCodes,
     ValidShare,
     decode_codes,
@@ -412,6 +413,7 @@ def decode_session(
     with atomic_output_dir(out, overwrite=overwrite) as tmp:
         entries = []
         code_entries = []  # every view's, usable or not: codes do not need a range map
+        encoding = PNG_ENCODING  # how the code maps are stored (phase shifting: float TIFF)
         tasks = [(session, view.name, chosen, planes, tmp, codes, rec is not None) for view in session.views]
         for index, (view, result) in enumerate(zip(session.views, executor.map(_decode_task, tasks))):
             if rec is not None:
@@ -430,6 +432,7 @@ def decode_session(
                 progress(view.name)
             if result.projector_codes is not None:
                 code_entries.append(_codes_entry(result))
+                encoding = result.projector_codes.encoding
             if len(result.range_map.faces) == 0:
                 unusable[view.name] = _why_unusable(result)
                 log.warning("%s: unusable view, left out: %s", view.name, unusable[view.name])
@@ -442,7 +445,7 @@ def decode_session(
             })
             results.append(result)
         if codes:
-            write_codes_manifest(tmp, session, code_entries)
+            write_codes_manifest(tmp, session, code_entries, encoding=encoding)
         if not entries:
             reasons = "; ".join(f"{name}: {why}" for name, why in unusable.items())
             raise SlscanError(f"{session.root}: no usable view ({reasons})")
