@@ -295,9 +295,15 @@ def _decode_codes(session, out: Path, overwrite: bool, rec, quiet: bool, executo
     elapsed = time.perf_counter() - t0
     _print_response(session, threshold)
     _print_valid_shares([(r.view, r.valid_share) for r in results])
+    from slscan.decode.codes import FLOAT_ENCODING
+
+    if results and results[0].encoding == FLOAT_ENCODING:
+        maps = "VIEW/columns.tiff, rows.tiff: float32 sub-pixel, NaN = not decoded; mask.png"
+    else:
+        maps = "VIEW/columns.png, rows.png, mask.png; 65535 = not decoded"
     _console().print(
-        f"[green]wrote[/] {out}: projector codes of {len(results)} view(s) (VIEW/columns.png, rows.png, "
-        f"mask.png; 65535 = not decoded; projector_codes.json), no range maps, {elapsed:.1f} s"
+        f"[green]wrote[/] {out}: projector codes of {len(results)} view(s) ({maps}; projector_codes.json), "
+        f"no range maps, {elapsed:.1f} s"
     )
 
 
@@ -546,12 +552,40 @@ def _projector_size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def _import_format(args: argparse.Namespace) -> str:
+    """--format when not given: phase for a phase preset or an order with fringe blocks,
+    graycode for another preset or order, else kamino410."""
+    from slscan.capture.phase_import import PRESETS as PHASE_PRESETS
+    from slscan.capture.phase_import import is_phase_order
+
+    if args.preset in PHASE_PRESETS or (args.order and is_phase_order(args.order)):
+        return "phase"
+    return "graycode" if args.preset or args.order else "kamino410"
+
+
 def _cmd_import(args: argparse.Namespace) -> int:
     graycode_only = {"--preset": args.preset, "--order": args.order, "--pattern": args.pattern,
                      "--rotation": args.rotation, "--missing-bits": args.missing_bits}
     if args.format is None:
-        args.format = "graycode" if args.preset or args.order else "kamino410"
-    if args.format == "kamino410":
+        args.format = _import_format(args)
+    if args.format == "phase":
+        from slscan.capture.phase_import import PRESETS as PHASE_PRESETS
+        from slscan.capture.phase_import import import_phase
+
+        if args.missing_bits is not None:
+            raise SlscanError("--missing-bits: only with --format graycode (a phase set has no bits to drop)")
+        if (args.preset is None) == (args.order is None):
+            raise SlscanError("--format phase: give --preset NAME or --order SPEC (one of them)")
+        if args.preset is not None and args.preset not in PHASE_PRESETS:
+            raise SlscanError(f"--preset {args.preset} is a Gray-code preset; --format phase takes "
+                              f"{', '.join(PHASE_PRESETS)} (or --format graycode)")
+        with _ProgressBar(1, "importing phase-shifting captures", args.quiet) as bar:
+            session = import_phase(
+                args.src, args.out, preset=args.preset, order=args.order, projector_size=args.projector,
+                rotation=args.rotation, pattern=args.pattern, overwrite=args.overwrite, progress=bar.set,
+                response=args.response,
+            )
+    elif args.format == "kamino410":
         given = [name for name, value in graycode_only.items() if value is not None]
         if given:
             raise SlscanError(f"{', '.join(given)}: only with --format graycode")
@@ -561,10 +595,13 @@ def _cmd_import(args: argparse.Namespace) -> int:
             session = import_kamino410(args.src, args.out, projector_size=args.projector,
                                        overwrite=args.overwrite, progress=bar.set, response=args.response)
     else:
-        from slscan.capture.graycode_import import import_graycode
+        from slscan.capture.graycode_import import PRESETS, import_graycode
 
         if (args.preset is None) == (args.order is None):
             raise SlscanError("--format graycode: give --preset NAME or --order SPEC (one of them)")
+        if args.preset is not None and args.preset not in PRESETS:
+            raise SlscanError(f"--preset {args.preset} is a phase-shifting preset; --format graycode takes "
+                              f"{', '.join(PRESETS)} (or --format phase)")
         with _ProgressBar(1, "importing Gray-code captures", args.quiet) as bar:
             session = import_graycode(
                 args.src, args.out, preset=args.preset, order=args.order, projector_size=args.projector,
@@ -760,8 +797,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "for a smaller axis error")
     p.add_argument("--codes", action="store_true",
                    help="also write each view's projector column/row maps: VIEW/columns.png, rows.png "
-                        "(16-bit, 65535 = not decoded), mask.png and projector_codes.json (Gray-code "
-                        "sets only; automatic, without range maps, when the session has no calibration)")
+                        "(16-bit, 65535 = not decoded; phase shifting: columns.tiff, rows.tiff, float32 "
+                        "sub-pixel, NaN = not decoded), mask.png and projector_codes.json (Gray-code and "
+                        "phase sets only; automatic, without range maps, when the session has no calibration)")
     p.add_argument("--gray-threshold", choices=("adaptive", "opencv"), default="adaptive",
                    help="Gray-code bit thresholds: adaptive (default: from the images' noise and "
                         "contrast, in linear light) or opencv (OpenCV GrayCodePattern's rule: 40 DN "
@@ -900,39 +938,54 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_patterns)
 
     from slscan.capture.graycode_import import MISSING_BITS, PRESETS
+    from slscan.capture.phase_import import PRESETS as PHASE_PRESETS
     from slscan.capture.session import RESPONSES
 
     p = sub.add_parser(
         "import", help="turn another tool's captures into a capture session",
-        description="Import captures made by another tool; images (PNG, JPEG, TIFF) are copied as they are. "
+        description="Import captures made by another tool; images (PNG, JPEG, TIFF) are copied as they are "
+                    "(BMP converted to PNG). "
                     "graycode: any folder of Gray-code captures, the image order given by a preset or an "
                     "order spec (see docs/capture-session.md), one folder = one view or one sub-folder per "
-                    "view. kamino410: procam-calibration's 42 Gray-code images per pose (a folder of "
+                    "view. phase: phase-shifting fringes with Gray code (kamino410/phase-shifting, OpenCV's "
+                    "SinusoidalPattern, or an order spec with cols:sine / cols:gray / cols:comp blocks). "
+                    "kamino410: procam-calibration's 42 Gray-code images per pose (a folder of "
                     "capture_N folders, or one), projector size from its graycode_pattern folder.",
         epilog="examples:\n"
                "  slscan import sample_data --out kamino\n"
                "  slscan import sample_data --format graycode --preset kamino410 --out kamino\n"
                "  slscan import leftCam/dataset1 --format graycode --preset 3dunderworld --out left\n"
                "  slscan import shots --format graycode --order white,black,cols:11:pairs,rows:pairs "
-               "--projector 1920x1080 --rotation 90 --out scan\n\n"
-               "order spec: comma-separated items in file order: white, black, skip, "
-               "cols[:BITS][:pairs|split|plain][:msb|lsb], rows[...]; BITS defaults to ceil(log2(size)).",
+               "--projector 1920x1080 --rotation 90 --out scan\n"
+               "  slscan import phaseshift/object1 --preset kamino410-phase --out o1\n"
+               "  slscan import fringes --order white,black,cols:sine:period=16:steps=4,cols:gray:cell=16:pairs,"
+               "cols:comp:pairs --projector 1280x800 --out scan\n\n"
+               "Gray-code order spec: comma-separated items in file order: white, black, skip, "
+               "cols[:BITS][:pairs|split|plain][:msb|lsb], rows[...]; BITS defaults to ceil(log2(size)).\n"
+               "phase order spec: white, black, skip, cols:sine:period=P|count=N:steps=N[:shift=DEG]"
+               "[:shifts=D/D/D][:origin=PX][:decreasing][:sin][:gamma=G], cols:gray[:cell=PX][:BITS]"
+               "[:pairs|split|plain][:msb|lsb][:origin=PX], cols:comp[:pairs|plain], rows:...",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("src", type=Path, help="folder with the other tool's captures")
-    p.add_argument("--format", choices=("kamino410", "graycode"),
-                   help="default: graycode when --preset or --order is given, else kamino410")
-    p.add_argument("--preset", choices=tuple(PRESETS), help="graycode: a known tool's layout")
-    p.add_argument("--order", metavar="SPEC", help="graycode: the image order, e.g. white,black,cols:10:pairs,rows:10:pairs")
+    p.add_argument("--format", choices=("kamino410", "graycode", "phase"),
+                   help="default: phase for a phase preset or an order with sine blocks, graycode for another "
+                        "--preset or --order, else kamino410")
+    p.add_argument("--preset", choices=tuple(PRESETS) + tuple(PHASE_PRESETS),
+                   help=f"a known tool's layout: Gray code {', '.join(PRESETS)}; phase shifting "
+                        f"{', '.join(PHASE_PRESETS)} (kamino410-*: sizes from the folder's config.xml)")
+    p.add_argument("--order", metavar="SPEC",
+                   help="the image order, e.g. white,black,cols:10:pairs,rows:10:pairs (graycode) or "
+                        "white,black,cols:sine:period=16:steps=4,cols:gray:pairs (phase)")
     p.add_argument("--projector", type=_projector_size, metavar="WxH",
                    help="projector size in pixels (default: the preset's, else 1024x768; kamino410: "
                         "read from graycode_pattern/)")
     p.add_argument("--rotation", type=int, choices=(0, 90, 180, 270),
-                   help="graycode: degrees the projector is mounted turned (90, 270: its column stripes "
+                   help="graycode, phase: degrees the projector is mounted turned (90, 270: its column stripes "
                         "appear horizontal); default: the preset's, else 0")
     p.add_argument("--pattern", metavar="GLOB",
-                   help="graycode: which files are captures (default: the preset's, else every PNG/JPEG/TIFF), "
-                        "taken in natural sort order")
+                   help="graycode, phase: which files are captures (default: the preset's, else every "
+                        "PNG/JPEG/TIFF/BMP), taken in natural sort order")
     p.add_argument("--missing-bits", choices=MISSING_BITS,
                    help="graycode: images missing from a numbered set are an error (default), or drop: "
                         "import the most significant bits that are complete")
