@@ -534,12 +534,7 @@ def import_graycode(
     placed = place_views(src, found, len(slots), chosen.first, spec.text, needs, missing_bits == "drop")
     keep, dropped = _bits_kept(placed, slots)
     fmt, (cw, ch, channels, depth), lossy = _image_format(placed)
-    fit = _measure_response(placed, slots, keep)
-    response_fit = {**fit.to_dict(), "source": "measured" if response is None else "given"}
-    if response is None:
-        response = fit.response
-    level = logging.WARNING if not fit.measured and response_fit["source"] == "measured" else logging.INFO
-    logger.log(level, "%s: camera response %s", src, describe_response(response, response_fit))
+    response, response_fit = choose_response(src, response, _measure_response(placed, slots, keep))
 
     patterns = flat.generate(pw, ph) + [
         PatternImage(s.pattern_id, "gray", pw, ph, s.axis,
@@ -584,6 +579,14 @@ def _measure_response(placed: dict[Path, dict[int, Path]], slots: list[Slot],
     at = {slot.pattern_id: i for i, slot in enumerate(slots) if slot.pattern_id is not None}
     bits = sorted({s.bit for s in slots if s.kind == "gray" and s.axis == "columns" and s.bit < keep["columns"]})
     pairs = [(at[f"gray-col-{b:02d}"], at[f"gray-col-{b:02d}-inv"]) for b in bits]
+    return measure_placed_response(placed, at["white"], at["black"], pairs)
+
+
+def measure_placed_response(placed: dict[Path, dict[int, Path]], white: int, black: int,
+                            pairs: list[tuple[int, int]]) -> ResponseFit:
+    """The tone curve measured on the files ``placed`` (per view, position -> file): the
+    finest of the (pattern, inverse) ``pairs`` of positions (most significant first),
+    against the ``white`` and ``black`` positions, of the first views holding them all."""
     views = {folder.name: files for folder, files in placed.items()}
     usable = [name for name, files in views.items()
               if all(i in files for pair in response_pairs(pairs) for i in pair)]
@@ -593,7 +596,19 @@ def _measure_response(placed: dict[Path, dict[int, Path]], slots: list[Slot],
         image = _read_bmp(path) if path.suffix.lower() == ".bmp" else read_capture(path)
         return image[..., :3] if image.ndim == 3 else image
 
-    return measure_response(read, usable, at["white"], at["black"], response_pairs(pairs))
+    return measure_response(read, usable, white, black, response_pairs(pairs))
+
+
+def choose_response(src: Path, response: str | None, fit: ResponseFit) -> tuple[str, dict]:
+    """The camera response to record and its ``response_fit``: the measured one when none
+    was given (None), else the one given beside what was measured; logged (a warning when
+    it had to be assumed)."""
+    response_fit = {**fit.to_dict(), "source": "measured" if response is None else "given"}
+    if response is None:
+        response = fit.response
+    level = logging.WARNING if not fit.measured and response_fit["source"] == "measured" else logging.INFO
+    logger.log(level, "%s: camera response %s", src, describe_response(response, response_fit))
+    return response, response_fit
 
 
 def copy_views(

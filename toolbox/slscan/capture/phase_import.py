@@ -76,8 +76,10 @@ from slscan.capture.graycode_import import (
     _numbering,
     _place,
     _refuse_overlap,
+    choose_response,
     copy_views,
     find_views,
+    measure_placed_response,
 )
 from slscan.capture.session import RESPONSES, ROTATIONS, Session, SessionWriter
 from slscan.errors import SlscanError
@@ -665,9 +667,6 @@ def import_phase(
         Called after each image is copied.
     tool : str, optional
         What ``device.tool`` says (default: the preset's, else "phase").
-    response : {"linear", "srgb"}, optional
-        The camera's tone curve; default "srgb" for JPEG captures, else "linear" (as the
-        Gray-code importer).
 
     Returns
     -------
@@ -691,8 +690,10 @@ def import_phase(
     rotation = 0 if rotation is None else int(rotation)
     if rotation not in ROTATIONS:
         raise SlscanError(f"projector rotation {rotation} is not one of {ROTATIONS} (degrees)")
+    if response == "auto":
+        response = None
     if response is not None and response not in RESPONSES:
-        raise SlscanError(f"camera response must be one of {', '.join(RESPONSES)}, got {response!r}")
+        raise SlscanError(f"camera response must be auto or one of {', '.join(RESPONSES)}, got {response!r}")
     src = Path(src).resolve()
     out_path = Path(out)
     found = find_views(src, pattern=pattern or chosen.pattern, views=chosen.views)
@@ -711,8 +712,7 @@ def import_phase(
     placed = {folder: _place_all(folder, files, slots, chosen.first, text, needs)
               for folder, files in found.items()}
     fmt, (cw, ch, channels, depth), lossy = _image_format(placed)
-    if response is None:
-        response = "srgb" if fmt == "jpeg" else "linear"
+    response, response_fit = choose_response(src, response, _measure_response(placed, slots))
     patterns = flat.generate(pw, ph) + [s.desc for s in slots if s.desc is not None]
     device = {"kind": "import", "tool": tool or chosen.tool, "source": str(src), "order": text}
     if preset is not None:
@@ -724,12 +724,24 @@ def import_phase(
     with SessionWriter(
         out_path, camera_size=(cw, ch), projector_size=(pw, ph), channels=3 if channels == 4 else channels,
         bit_depth=depth, patterns=patterns, calibration=None, device=device, overwrite=overwrite, lossy=lossy,
-        projector_rotation=rotation, response=response,
+        projector_rotation=rotation, response=response, response_fit=response_fit,
     ) as writer:
         copy_views(writer, placed, [s.pattern_id for s in slots], progress)
         session = writer.session()
     logger.info("wrote capture session %s (%d views)", out_path, len(placed))
     return session
+
+
+def _measure_response(placed: dict[Path, dict[int, Path]], slots: list[PhaseSlot]):
+    """The camera's tone curve measured as the Gray-code importer does, on the column Gray
+    code's (pattern, inverse) pairs against white and black (not measured, linear, without
+    them: fringes alone do not tell)."""
+    at = {slot.pattern_id: i for i, slot in enumerate(slots) if slot.pattern_id is not None}
+    bits = sorted({s.desc.params["bit"] for s in slots if s.kind == "gray" and s.desc.axis == "columns"
+                   and not s.desc.params.get("complementary")})
+    pairs = [(at[f"phase-col-gray-{b:02d}"], at[f"phase-col-gray-{b:02d}-inv"]) for b in bits
+             if f"phase-col-gray-{b:02d}-inv" in at]
+    return measure_placed_response(placed, at["white"], at["black"], pairs)
 
 
 def _place_all(folder: Path, files: list[Path], slots: list[PhaseSlot], first: int | None, text: str,
