@@ -563,6 +563,15 @@ def _import_format(args: argparse.Namespace) -> str:
     return "graycode" if args.preset or args.order else "kamino410"
 
 
+def _projector_gamma(text: str) -> float | str | None:
+    if text in ("auto", "none"):
+        return None if text == "none" else text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, auto or none, got {text!r}") from None
+
+
 def _cmd_import(args: argparse.Namespace) -> int:
     graycode_only = {"--preset": args.preset, "--order": args.order, "--pattern": args.pattern,
                      "--rotation": args.rotation, "--missing-bits": args.missing_bits}
@@ -817,10 +826,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "defocus) keeps the code of its leading reliable bits if at most N are missing "
                         "(default 0: it is dropped; 2 brings the virtual marble under subsurface "
                         "scattering from 12 %% to 95 %% coverage at 2x the direct-light error)")
-    p.add_argument("--projector-gamma", type=float, metavar="G",
+    p.add_argument("--projector-gamma", type=_projector_gamma, metavar="G|auto|none", default="auto",
                    help="phase shifting: the projector's response exponent (slscan response): the phase of fringes "
                         "not pre-distorted for it is corrected (3-step fringes through gamma 2.2 on the virtual tile: "
-                        "0.46 -> 0.08 px RMS); default: none")
+                        "0.46 -> 0.08 px RMS); default auto: estimated per view from the fringes, used when they "
+                        "clearly show it; none: no correction")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--calibration", type=Path, metavar="CALIB.json",

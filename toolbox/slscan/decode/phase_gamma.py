@@ -17,6 +17,12 @@ much weaker). Two remedies, both here:
   ``gamma = effective * gamma_p`` (:func:`estimate_gamma`; ``slscan response``). This is
   the idea of Hoang et al. (2010): two pre-distortions make the estimate independent of
   how the camera sees the fringes' amplitude.
+- **estimate gamma from any capture** (:func:`gamma_from_phases`; the decoder's
+  ``projector_gamma="auto"``): the error piles the fitted phases up at N values per
+  period, while on a surface that sees many fringes the true phases are evenly spread; the
+  gamma whose correction levels the phases' N-th harmonic is the rig's (projector and
+  camera together, as the fringes reach the camera: blur and subsurface scattering soften
+  them, so a scene's estimate can be below the projector's own).
 
 References
 ----------
@@ -132,6 +138,40 @@ def _refined(x: np.ndarray, stacks: Sequence[np.ndarray], fringes, gamma: float)
         at = 2 * np.pi * (x - f.origin) / f.period
         moves.append(np.angle(np.exp(1j * (phase - at))) * f.period / (2 * np.pi))
     return x + np.mean(moves, axis=0)
+
+
+def unevenness(phases: Sequence[np.ndarray], fringes, gamma: float) -> float:
+    """Mean over fringe sets of the N-th harmonic (0: even, 1: all alike) of the wrapped
+    ``phases`` (one (n,) sample per set) corrected for a projector of exponent ``gamma``."""
+    return float(np.mean([
+        abs(np.mean(np.exp(1j * len(f.shifts) * phase_correction(ph, f.shifts, gamma / f.gamma))))
+        for ph, f in zip(phases, fringes)
+    ]))
+
+
+def gamma_from_phases(phases: Sequence[np.ndarray], fringes) -> tuple[float, float, float]:
+    """The projector exponent that spreads the fitted ``phases`` (one (n,) sample of
+    well-modulated pixels per fringe set, :class:`~slscan.decode.phase.Fringes`) most
+    evenly: a grid over :data:`GAMMA_RANGE` (log-spaced), refined by golden section.
+
+    Returns (gamma, the harmonic there, the harmonic as the fringes are described: the
+    level before correcting; infinite when the sets' pre-distortions differ).
+    """
+    lo, hi = np.log(GAMMA_RANGE[0]), np.log(GAMMA_RANGE[1])
+    grid = np.exp(np.linspace(lo, hi, 41))
+    costs = [unevenness(phases, fringes, g) for g in grid]
+    i = int(np.argmin(costs))
+    a, b = np.log(grid[max(i - 1, 0)]), np.log(grid[min(i + 1, len(grid) - 1)])
+    for _ in range(20):
+        m1, m2 = b - 0.618 * (b - a), a + 0.618 * (b - a)
+        if unevenness(phases, fringes, np.exp(m1)) <= unevenness(phases, fringes, np.exp(m2)):
+            b = m2
+        else:
+            a = m1
+    gamma = float(np.exp(0.5 * (a + b)))
+    own = {f.gamma for f in fringes}
+    before = unevenness(phases, fringes, own.pop()) if len(own) == 1 else math.inf
+    return gamma, unevenness(phases, fringes, gamma), before
 
 
 @dataclass(frozen=True)

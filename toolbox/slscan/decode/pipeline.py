@@ -131,11 +131,13 @@ class DecodeConfig:
     """Phase shifting: a pixel's fringe amplitude ``2 B`` must exceed this share of its white
     minus black (defocus, subsurface scattering and global light lower it; below, the phase
     is mostly noise); ``decode.phase``, ``MIN_MODULATION``."""
-    projector_gamma: float | None = None
+    projector_gamma: float | str | None = "auto"
     """Phase shifting: the projector's response exponent (emitted light = value ** gamma),
     measured by ``slscan response``: fringes pre-distorted for another value (their
     description's ``gamma``, 1 when not) have their phase corrected for the harmonics the
-    mismatch leaves (``decode.phase_gamma``); None: no correction."""
+    mismatch leaves (``decode.phase_gamma``); "auto": estimated per view from the
+    captures, used when they clearly show it (``decode.phase.GAMMA_EVIDENCE``); None or
+    "none": no correction."""
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -165,9 +167,11 @@ class DecodeConfig:
             raise SlscanError(
                 f"phase_min_modulation must be in [0, 2) (share of white - black), got {self.phase_min_modulation!r}"
             )
-        if self.projector_gamma is not None and not (
-                isinstance(self.projector_gamma, (int, float)) and 0.2 <= self.projector_gamma <= 5):
-            raise SlscanError(f"projector_gamma must be in [0.2, 5] (or unset), got {self.projector_gamma!r}")
+        if self.projector_gamma == "none":
+            object.__setattr__(self, "projector_gamma", None)
+        if self.projector_gamma not in (None, "auto") and (isinstance(self.projector_gamma, bool) or not (
+                isinstance(self.projector_gamma, (int, float)) and 0.2 <= self.projector_gamma <= 5)):
+            raise SlscanError(f"projector_gamma must be auto, none or in [0.2, 5], got {self.projector_gamma!r}")
         if not (isinstance(self.max_line_sigma, (int, float)) and self.max_line_sigma >= 0):
             raise SlscanError(
                 f"max_line_sigma must be >= 0 camera px (0: off), got {self.max_line_sigma!r}"
