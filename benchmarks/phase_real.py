@@ -191,7 +191,8 @@ def main() -> None:
         print(f"{r['set']:<9}{r['region']:<10}{r['decoder']:<8}{r['lit']:>10,}{r['decoded']:>9.1%}"
               f"{r['agree']:>8.1%}{r['in_cell']:>9.1%}{r['far']:>8.2%}{r['clipped']:>9.2%}")
     print()
-    keys = ("lit", "low_modulation", "noisy", "periods_disagree", "order_corrected", "order_rejected",
+    keys = ("lit", "low_modulation", "noisy", "order_from_periods", "periods_disagree", "order_corrected",
+            "order_rejected",
             "out_of_range", "valid")
     head = (f"{'set':<9}{'axis':<8}" + "".join(f"{k:>17}" for k in keys)
             + f"{'clipped':>9}{'column':>8}{'gamma':>7}")

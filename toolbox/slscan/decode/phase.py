@@ -338,6 +338,55 @@ def unwrap_from(estimate: np.ndarray, phase: np.ndarray, fringes: Fringes) -> np
     return fringes.origin + fringes.period * (k + frac)
 
 
+def reorder_by_periods(per: list[np.ndarray], phases: Sequence[np.ndarray], fringes: Sequence[Fringes],
+                       gray: GrayCode, idx: np.ndarray, shape: tuple[int, int], *,
+                       radius: int = CONSISTENCY_RADIUS) -> tuple[list[np.ndarray], int]:
+    """Undo a Gray-code cell misread at a cell edge, where the periods and the neighbours say so.
+
+    With a Gray cell of one period (the longest) and no complementary bit, the cell edges
+    fall on that period's phase wraps: a camera pixel on an edge may read the next cell,
+    and the longest period's coordinate is then one period off (the phase puts it near the
+    far edge of the cell read); the other periods, unwrapped in turn from it, then disagree
+    by a fraction of their period. Where the periods' coordinates ``per`` (each (n,) at
+    the flat pixel indices ``idx`` of an image of ``shape``, the longest first) disagree by
+    a quarter of the shortest period or more and the longest lies within a quarter cell of
+    an edge, its order is moved by one back across that edge and the others are unwrapped
+    again; the move is kept when they then agree, and the mean of the neighbours whose
+    periods agree (within ``radius`` px) is nearer the moved coordinate than the unmoved
+    one, by less than a quarter period. (Agreeing alone says little: two periods in a 3:2
+    ratio disagree by a fraction of a period that some move always undoes.) A pixel
+    mid-cell is left alone: its code is wrong, not at an edge. Returns the coordinates and
+    the number of pixels moved.
+    """
+    shortest = min(f.period for f in fringes)
+    spread = np.max(per, axis=0) - np.min(per, axis=0)
+    good = spread < shortest / 4
+    where = np.mod((per[0] - gray.origin) / gray.cell, 1.0)
+    move = np.where(where >= 0.75, -1.0, np.where(where < 0.25, 1.0, 0.0))  # back across the edge it is near
+    bad = np.flatnonzero(~good & (move != 0))
+    if bad.size == 0:
+        return per, 0
+    moved = [per[0][bad] + move[bad] * fringes[0].period]
+    for ph, f in zip(phases[1:], fringes[1:]):
+        moved.append(unwrap_from(moved[-1], ph[bad], f))
+    agree = (np.max(moved, axis=0) - np.min(moved, axis=0)) < shortest / 4
+    values = np.zeros(shape[0] * shape[1], np.float32)
+    weight = np.zeros(shape[0] * shape[1], np.float32)
+    values[idx[good]] = per[0][good]
+    weight[idx[good]] = 1
+    size = (2 * radius + 1, 2 * radius + 1)
+    total = cv2.boxFilter(values.reshape(shape), -1, size, normalize=False).ravel()[idx[bad]]
+    count = cv2.boxFilter(weight.reshape(shape), -1, size, normalize=False).ravel()[idx[bad]]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(count >= 3, total / count, np.nan)
+    near = np.abs(moved[0] - mean)
+    keep = agree & (near < np.abs(per[0][bad] - mean)) & (near < fringes[0].period / 4)
+    out = [p.copy() for p in per]
+    for i in range(len(out)):
+        out[i][bad[keep]] = moved[i][keep]
+    return out, int(keep.sum())
+
+
 def unwrap_temporal(phases: Sequence[np.ndarray], fringes: Sequence[Fringes], sigmas: Sequence[np.ndarray],
                     size: int, *, chunk: int = 1 << 16) -> tuple[np.ndarray, np.ndarray]:
     """Coordinates from several periods' wrapped phases, without Gray code.
@@ -465,9 +514,11 @@ class AxisDecode:
         0 nothing (or not decoded), +1 / -1 moved one period up / down, 2 rejected
     counts : pixels ``lit``, ``low_modulation`` (lit, fringes too weak), ``noisy`` (lit,
         modulation under the noise limit), ``order_corrected`` and ``order_rejected`` (the
-        neighbour check), ``periods_disagree`` (several periods more than a quarter of the
-        shortest apart), ``ambiguous`` (temporal unwrapping: two orders nearly as good),
-        ``valid``
+        neighbour check), ``order_from_periods`` (Gray code of one-period cells: the
+        longest period's order moved by one so that the periods agree,
+        :func:`reorder_by_periods`), ``periods_disagree`` (several periods more than a
+        quarter of the shortest apart), ``ambiguous`` (temporal unwrapping: two orders
+        nearly as good), ``valid``
     """
 
     coordinate: np.ndarray
@@ -754,7 +805,7 @@ def _decode_axis(s: AxisSet, fits: list[PhaseFit], get, w_img, b_img, contrast, 
     idx = np.flatnonzero(ok.ravel())
     phases = [fit.phase.ravel()[idx] for fit in fits]
     per = []
-    counts["ambiguous"] = 0
+    counts["ambiguous"] = counts["order_from_periods"] = 0
     if s.gray is not None:
         threshold = None if s.gray.bits[0][1] is not None else 0.5 * (w_img + b_img).ravel()[idx]
 
@@ -770,6 +821,12 @@ def _decode_axis(s: AxisSet, fits: list[PhaseFit], get, w_img, b_img, contrast, 
         per.append(first)
         for ph, f in zip(phases[1:], s.fringes[1:]):
             per.append(unwrap_from(per[-1], ph, f))
+        first_set = s.fringes[0]
+        edges_on_wraps = (abs(s.gray.cell - first_set.period) < 1e-6 * first_set.period
+                          and abs(math.remainder(s.gray.origin - first_set.origin, first_set.period)) < 1e-6)
+        if len(per) > 1 and fine is None and edges_on_wraps:
+            per, counts["order_from_periods"] = reorder_by_periods(per, phases, s.fringes, s.gray, idx, ok.shape,
+                                                                   radius=max(radius, 1))
         unwrap_period = s.fringes[0].period
     else:
         finest, margin = unwrap_temporal(phases, s.fringes, [sg.ravel()[idx] for sg in sigmas], s.size)
