@@ -660,7 +660,10 @@ def decode_phase_images(
     b_full = read(black, "black")
     shape = w_full.shape
     contrast_full = w_full - b_full
-    noise = max(noise_sigma(np.asarray(black)) / (read.scale or 1.0), 1.0 / (read.scale or 255.0) / math.sqrt(12))
+    # quantisation floor: one digital number of the captures (linearised sRGB ones come as
+    # fractions of full scale, from 8-bit files)
+    dn = 255.0 if read.scale == 1.0 else float(read.scale)
+    noise = max(noise_sigma(np.asarray(black)) / (read.scale or 1.0), 1.0 / dn / math.sqrt(12))
     # work on the lit region's bounding box only (windows around a lit pixel stay inside)
     box = lit_bounds(contrast_full > min_contrast, consistency_radius + edge + 2)
     read.box, read.saturated = box, read.saturated[box]
@@ -711,7 +714,7 @@ def decode_phase_images(
     own = {f.gamma for s in sets.values() for f in s.fringes}
     used = gamma if gamma is not None else (own.pop() if len(own) == 1 else 1.0)
     return PhaseResult(column, row, mask, contrast_full, uncrop(read.saturated, box, shape, False), float(noise),
-                       axes, dn=255.0 if read.scale == 1.0 else float(read.scale), projector_gamma=float(used))
+                       axes, dn=dn, projector_gamma=float(used))
 
 
 def _projector_gamma(option: float | str | None, sets: dict[str, AxisSet], fits: dict[str, list[PhaseFit]],
