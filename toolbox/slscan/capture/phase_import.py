@@ -699,7 +699,7 @@ def import_phase(
     found = find_views(src, pattern=pattern or chosen.pattern, views=chosen.views)
     _refuse_overlap(out_path.resolve(), src, list(found))
     values = _preset_values(chosen, src, list(found))
-    text = chosen.order.format(**values)
+    text = chosen.order.format(**values) if preset is not None else chosen.order
     spec = parse_phase_order(text)
     size = projector_size or chosen.projector_size
     if size is None:
