@@ -194,14 +194,14 @@ def main() -> None:
     keys = ("lit", "low_modulation", "noisy", "order_from_periods", "periods_disagree", "order_corrected",
             "order_rejected",
             "out_of_range", "valid")
-    head = (f"{'set':<9}{'axis':<8}" + "".join(f"{k:>17}" for k in keys)
+    head = (f"{'set':<9}{'axis':<8}" + "".join(f"{k:>19}" for k in keys)
             + f"{'clipped':>9}{'column':>8}{'gamma':>7}")
     print("slscan decoder, whole image (pixels; clipped: share of the image; column: share decoded; gamma: "
           "the projector response the phases were corrected for)")
     print(head)
     print("-" * len(head))
     for name, axis, c, clipped, share, gamma in counts:
-        print(f"{name:<9}{axis:<8}" + "".join(f"{c.get(k, 0):>17,}" for k in keys)
+        print(f"{name:<9}{axis:<8}" + "".join(f"{c.get(k, 0):>19,}" for k in keys)
               + f"{clipped:>9.2%}{share:>8.1%}{gamma:>7.2f}")
 
 
