@@ -642,13 +642,13 @@ def import_phase(
 ) -> Session:
     """Turn a folder of phase-shifting captures into an slscan capture session.
 
+    ``src`` (one folder of captures, or one sub-folder per view), ``out``, ``overwrite``,
+    ``progress``, ``tool`` and ``response`` are as for
+    :func:`~slscan.capture.graycode_import.import_graycode` (default ``tool``: the
+    preset's, else "phase").
+
     Parameters
     ----------
-    src : folder
-        One folder of captures (one view, named after the folder), or a folder of
-        sub-folders, one view each (in natural order of their names).
-    out : folder
-        The session to write; must be absent or empty unless ``overwrite``.
     preset : {"kamino410-phase", "kamino410-gamma", "opencv-sinusoidal"}, optional
         A named layout (:data:`PRESETS`); its order, projector size (or the tool's config
         file) and file globs are the defaults of the options below.
@@ -661,12 +661,6 @@ def import_phase(
     pattern : glob, optional
         Which files of a folder are captures (default: the preset's, else every PNG, JPEG,
         TIFF and BMP file), taken in natural sort order.
-    overwrite : bool
-        Replace an existing non-empty ``out``.
-    progress : callable ``(done, total)``, optional
-        Called after each image is copied.
-    tool : str, optional
-        What ``device.tool`` says (default: the preset's, else "phase").
 
     Returns
     -------
