@@ -445,3 +445,25 @@ def test_kamino410_phase_captures_import_and_decode(shared_data: Path, tmp_path:
     # the projector column grows to the right along camera rows (no mirror): 0.86 px per px
     steps = np.diff(codes.column, axis=1)
     assert 0.6 < float(np.nanmedian(steps)) < 1.2
+
+
+def test_sub_folders_of_another_layout_are_skipped_and_named(tmp_path: Path, caplog):
+    """A folder of kamino410 folders (two objects and a gamma set, as the tool's sample_data):
+    the phase preset takes the objects as views and names the gamma set it skips."""
+    _kamino_folder(tmp_path / "data" / "object1")
+    _kamino_folder(tmp_path / "data" / "object2", seed=1)
+    gamma = tmp_path / "data" / "gamma_correction"
+    images = _kamino_gamma(KAMINO_PROJECTOR, 2, 0.75, 1.25)
+    _write(gamma, images, [f"pat{i:02d}" for i in range(len(images))], KAMINO_PROJECTOR)
+    _write_config(gamma / "config.xml", disp_width=200, disp_height=120, gamma_p1=0.75, gamma_p2=1.25, step=2)
+    with caplog.at_level("WARNING"):
+        session = import_phase(tmp_path / "data", tmp_path / "s", preset="kamino410-phase")
+    assert [v.name for v in session.views] == ["object1", "object2"]
+    assert "1 sub-folder(s) skipped" in caplog.text and "gamma_correction/ (period=0.666667 px does not fit" \
+        in caplog.text
+    session = import_phase(tmp_path / "data", tmp_path / "g", preset="kamino410-gamma")
+    assert [v.name for v in session.views] == ["gamma_correction"]
+    (tmp_path / "data" / "object2" / "config.xml").write_text((tmp_path / "data" / "object2" / "config.xml")
+                                                              .read_text().replace(">40<", ">42<"))  # same count
+    with pytest.raises(SlscanError, match=r"object2: its images show order .* expected one pattern set"):
+        import_phase(tmp_path / "data", tmp_path / "x", preset="kamino410-phase")

@@ -65,6 +65,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -606,21 +607,72 @@ def read_tool_config(path: Path, keys: tuple[str, ...]) -> dict[str, float]:
     return values
 
 
-def _preset_values(chosen: PhasePreset, src: Path, views: list[Path]) -> dict[str, Any]:
-    """The fields of a preset's order, from its config file beside the captures (every
-    view's must agree)."""
-    if chosen.config is None:
-        return {}
-    found = [v / chosen.config for v in views if (v / chosen.config).is_file()]
-    if not found:
-        found = [src / chosen.config]  # a missing file is named there
-    values = [(path, chosen.values(read_tool_config(path, chosen.keys))) for path in found]
-    first_path, first = values[0]
-    for path, other in values[1:]:
-        if other != first:
-            raise SlscanError(f"{path}: differs from {first_path} ({other} against {first}); expected one "
-                              "pattern set for every view (import the folders one at a time)")
-    return first
+@dataclass(frozen=True)
+class _Plan:
+    """What one view folder's images show: the order (a preset's filled from its config
+    file), the projector size, one slot per image and each file's position."""
+
+    text: str
+    size: tuple[int, int]
+    slots: list[PhaseSlot]
+    placed: dict[int, Path]
+
+
+def _plan(chosen: PhasePreset, preset: str | None, src: Path, folder: Path, files: list[Path],
+          projector_size: tuple[int, int] | None) -> _Plan:
+    """Read the view's config (a preset's: in the view folder, else ``src``), parse the
+    order, check it against the projector and place the files; raise naming what is wrong."""
+    values: dict[str, Any] = {}
+    if chosen.config is not None:
+        path = folder / chosen.config if (folder / chosen.config).is_file() else src / chosen.config
+        values = chosen.values(read_tool_config(path, chosen.keys))
+    text = chosen.order.format(**values) if preset is not None else chosen.order
+    spec = parse_phase_order(text)
+    size = projector_size or chosen.projector_size
+    if size is None:
+        size = (values["width"], values["height"]) if "width" in values else (1024, 768)
+    pw, ph = (int(v) for v in size)
+    if pw <= 0 or ph <= 0:
+        raise SlscanError(f"projector size must be positive, got {pw}x{ph}")
+    slots = spec.slots((pw, ph))
+    return _Plan(text, (pw, ph), slots, _place_all(folder, files, slots, chosen.first, text, spec.summary(slots)))
+
+
+def _reason(exc: SlscanError, folder: Path) -> str:
+    """An error's message about ``folder`` without the path and the order's text."""
+    text = re.sub(r"order '[^']*'(: )?", "", str(exc).removeprefix(str(folder)).lstrip(":/ "))
+    return text.split("; expected")[0]
+
+
+def _plans(chosen: PhasePreset, preset: str | None, src: Path, found: dict[Path, list[Path]],
+           projector_size: tuple[int, int] | None) -> dict[Path, _Plan]:
+    """Each view's plan. ``src`` itself as the one view must fit; of its sub-folders, those
+    that do not (another tool's set, a folder of notes) are not views: skipped, named with
+    the reason in one warning, as the Gray-code importer does. The views kept must share
+    one pattern set (order and projector)."""
+    if list(found) == [src]:
+        return {src: _plan(chosen, preset, src, src, found[src], projector_size)}
+    plans: dict[Path, _Plan] = {}
+    skipped: list[tuple[Path, SlscanError]] = []
+    for folder, files in found.items():
+        try:
+            plans[folder] = _plan(chosen, preset, src, folder, files, projector_size)
+        except SlscanError as exc:
+            skipped.append((folder, exc))
+    if not plans:
+        raise skipped[0][1]
+    if skipped:
+        logger.warning("%s: %d sub-folder(s) skipped, not views of this layout: %s", src, len(skipped),
+                       "; ".join(f"{folder.name}/ ({_reason(exc, folder)})" for folder, exc in skipped))
+    (first, one), *others = plans.items()
+    for folder, other in others:
+        if (other.text, other.size) != (one.text, one.size):
+            raise SlscanError(
+                f"{folder}: its images show order {other.text!r} on a {other.size[0]}x{other.size[1]} projector, "
+                f"{first.name} {one.text!r} on {one.size[0]}x{one.size[1]}; expected one pattern set for every "
+                "view (import the folders one at a time)"
+            )
+    return plans
 
 
 # --- the import -------------------------------------------------------------------------------
@@ -692,19 +744,10 @@ def import_phase(
     out_path = Path(out)
     found = find_views(src, pattern=pattern or chosen.pattern, views=chosen.views)
     _refuse_overlap(out_path.resolve(), src, list(found))
-    values = _preset_values(chosen, src, list(found))
-    text = chosen.order.format(**values) if preset is not None else chosen.order
-    spec = parse_phase_order(text)
-    size = projector_size or chosen.projector_size
-    if size is None:
-        size = (values["width"], values["height"]) if "width" in values else (1024, 768)
-    pw, ph = (int(v) for v in size)
-    if pw <= 0 or ph <= 0:
-        raise SlscanError(f"projector size must be positive, got {pw}x{ph}")
-    slots = spec.slots((pw, ph))
-    needs = spec.summary(slots)
-    placed = {folder: _place_all(folder, files, slots, chosen.first, text, needs)
-              for folder, files in found.items()}
+    plans = _plans(chosen, preset, src, found, projector_size)
+    plan = next(iter(plans.values()))
+    text, (pw, ph), slots = plan.text, plan.size, plan.slots
+    placed = {folder: p.placed for folder, p in plans.items()}
     fmt, (cw, ch, channels, depth), lossy = _image_format(placed)
     response, response_fit = choose_response(src, response, _measure_response(placed, slots))
     patterns = flat.generate(pw, ph) + [s.desc for s in slots if s.desc is not None]
