@@ -420,7 +420,7 @@ def test_cli_refusals_are_one_line_and_non_zero(tmp_path: Path, capsys):
     assert "--missing-bits: only with --format graycode" in capsys.readouterr().err
     assert main(["import", str(src), "--out", str(tmp_path / "s"), "--format", "graycode",
                  "--preset", "kamino410-phase", "--quiet"]) != 0
-    assert "is a phase-shifting preset" in capsys.readouterr().err
+    assert "is a phase preset; --format graycode takes" in capsys.readouterr().err
     assert not (tmp_path / "s").exists()
 
 

@@ -577,24 +577,7 @@ def _cmd_import(args: argparse.Namespace) -> int:
                      "--rotation": args.rotation, "--missing-bits": args.missing_bits}
     if args.format is None:
         args.format = _import_format(args)
-    if args.format == "phase":
-        from slscan.capture.phase_import import PRESETS as PHASE_PRESETS
-        from slscan.capture.phase_import import import_phase
-
-        if args.missing_bits is not None:
-            raise SlscanError("--missing-bits: only with --format graycode (a phase set has no bits to drop)")
-        if (args.preset is None) == (args.order is None):
-            raise SlscanError("--format phase: give --preset NAME or --order SPEC (one of them)")
-        if args.preset is not None and args.preset not in PHASE_PRESETS:
-            raise SlscanError(f"--preset {args.preset} is a Gray-code preset; --format phase takes "
-                              f"{', '.join(PHASE_PRESETS)} (or --format graycode)")
-        with _ProgressBar(1, "importing phase-shifting captures", args.quiet) as bar:
-            session = import_phase(
-                args.src, args.out, preset=args.preset, order=args.order, projector_size=args.projector,
-                rotation=args.rotation, pattern=args.pattern, overwrite=args.overwrite, progress=bar.set,
-                response=args.response,
-            )
-    elif args.format == "kamino410":
+    if args.format == "kamino410":
         given = [name for name, value in graycode_only.items() if value is not None]
         if given:
             raise SlscanError(f"{', '.join(given)}: only with --format graycode")
@@ -603,19 +586,26 @@ def _cmd_import(args: argparse.Namespace) -> int:
         with _ProgressBar(1, f"importing {args.format}", args.quiet) as bar:
             session = import_kamino410(args.src, args.out, projector_size=args.projector,
                                        overwrite=args.overwrite, progress=bar.set, response=args.response)
-    else:
-        from slscan.capture.graycode_import import PRESETS, import_graycode
+    else:  # graycode or phase: a preset or an order spec
+        from slscan.capture import graycode_import, phase_import
 
+        phase = args.format == "phase"
+        if phase and args.missing_bits is not None:
+            raise SlscanError("--missing-bits: only with --format graycode (a phase set has no bits to drop)")
         if (args.preset is None) == (args.order is None):
-            raise SlscanError("--format graycode: give --preset NAME or --order SPEC (one of them)")
-        if args.preset is not None and args.preset not in PRESETS:
-            raise SlscanError(f"--preset {args.preset} is a phase-shifting preset; --format graycode takes "
-                              f"{', '.join(PRESETS)} (or --format phase)")
-        with _ProgressBar(1, "importing Gray-code captures", args.quiet) as bar:
-            session = import_graycode(
+            raise SlscanError(f"--format {args.format}: give --preset NAME or --order SPEC (one of them)")
+        module, other = (phase_import, "graycode") if phase else (graycode_import, "phase")
+        if args.preset is not None and args.preset not in module.PRESETS:
+            raise SlscanError(f"--preset {args.preset} is a {other} preset; --format {args.format} takes "
+                              f"{', '.join(module.PRESETS)} (or --format {other})")
+        importer = phase_import.import_phase if phase else graycode_import.import_graycode
+        options = {} if phase else {"missing_bits": args.missing_bits or "error"}
+        what = "phase-shifting" if phase else "Gray-code"
+        with _ProgressBar(1, f"importing {what} captures", args.quiet) as bar:
+            session = importer(
                 args.src, args.out, preset=args.preset, order=args.order, projector_size=args.projector,
-                rotation=args.rotation, pattern=args.pattern, missing_bits=args.missing_bits or "error",
-                overwrite=args.overwrite, progress=bar.set, response=args.response,
+                rotation=args.rotation, pattern=args.pattern, overwrite=args.overwrite, progress=bar.set,
+                response=args.response, **options,
             )
     from slscan.capture.response import describe_session_response
 

@@ -51,7 +51,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from slscan.capture.response import (
@@ -72,7 +71,7 @@ from slscan.capture.session import (
     read_capture,
 )
 from slscan.errors import SlscanError
-from slscan.fsio import write_png
+from slscan.fsio import decode_image, write_png
 from slscan.patterns import PatternImage, flat
 from slscan.patterns.graycode import n_bits
 
@@ -178,22 +177,37 @@ class GrayOrder:
         return ", ".join(parts)
 
 
+def order_items(text: str) -> list[tuple[str, str, list[str]]]:
+    """The items of an order spec: (as written, head, options) of each, lower case."""
+    out = []
+    for raw in text.split(","):
+        head, *options = raw.strip().lower().split(":")
+        out.append((raw.strip(), head, options))
+    return out
+
+
+def flat_item(text: str, head: str, options: list[str], seen: set[str]) -> bool:
+    """Whether an order item is ``white``, ``black`` or ``skip`` (recorded in ``seen``);
+    raise when white or black comes twice."""
+    if head not in ("white", "black", "skip") or options:
+        return False
+    if head in seen and head != "skip":
+        raise SlscanError(f"order {text!r}: {head!r} appears twice; expected one {head} image")
+    seen.add(head)
+    return True
+
+
 def parse_order(text: str) -> GrayOrder:
     """Parse an order spec (grammar in the module docstring); raise naming the bad item."""
     items: list[str | CodeBlock] = []
     seen: set[str] = set()
-    for raw in text.split(","):
-        token = raw.strip().lower()
-        head, *options = token.split(":")
-        if head in ("white", "black", "skip") and not options:
-            if head in seen and head != "skip":
-                raise SlscanError(f"order {text!r}: {head!r} appears twice; expected one {head} image")
-            seen.add(head)
+    for raw, head, options in order_items(text):
+        if flat_item(text, head, options, seen):
             items.append(head)
             continue
         if head not in AXIS_NAMES:
             raise SlscanError(
-                f"order {text!r}: unknown item {raw.strip()!r}; expected white, black, skip, "
+                f"order {text!r}: unknown item {raw!r}; expected white, black, skip, "
                 "cols[:BITS][:pairs|split|plain][:msb|lsb] or rows[...]"
             )
         if head in seen:
@@ -428,7 +442,7 @@ def _short(exc: SlscanError, folder: Path) -> str:
         text = text[len(str(folder)):].lstrip("/: ")
     for cut in ("; expected", ", the order", "; the order", "; pass --missing-bits"):
         text = text.split(cut)[0]
-    return text
+    return re.sub(r"order '[^']*'(: )?", "", text)  # an order named at the start (phase import)
 
 
 # --- the import -------------------------------------------------------------------------------
@@ -643,12 +657,10 @@ def copy_views(
 
 def _read_bmp(path: Path) -> np.ndarray:
     """A BMP capture's pixels: (h, w) grey or (h, w, 3) RGB uint8 (a grey palette reads grey)."""
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise SlscanError(f"{path}: not a readable BMP image")
-    if image.ndim == 3:
-        image = cv2.cvtColor(image, cv2.COLOR_BGRA2RGB if image.shape[2] == 4 else cv2.COLOR_BGR2RGB)
-    return image
+    try:
+        return decode_image(path.read_bytes())
+    except SlscanError:
+        raise SlscanError(f"{path}: not a readable BMP image") from None
 
 
 def _header(path: Path) -> tuple[int, int, int, int]:

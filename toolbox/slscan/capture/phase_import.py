@@ -65,7 +65,6 @@ from __future__ import annotations
 import logging
 import math
 import os
-import re
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -77,10 +76,13 @@ from slscan.capture.graycode_import import (
     _numbering,
     _place,
     _refuse_overlap,
+    _short,
     choose_response,
     copy_views,
     find_views,
+    flat_item,
     measure_placed_response,
+    order_items,
 )
 from slscan.capture.session import RESPONSES, ROTATIONS, Session, SessionWriter
 from slscan.errors import SlscanError
@@ -422,17 +424,12 @@ def parse_phase_order(text: str) -> PhaseOrder:
     """Parse a phase order spec (grammar in the module docstring); raise naming the bad item."""
     items: list[str | Block] = []
     seen: set[str] = set()
-    for raw in text.split(","):
-        token = raw.strip().lower()
-        head, *options = token.split(":")
-        if head in ("white", "black", "skip") and not options:
-            if head in seen and head != "skip":
-                raise SlscanError(f"order {text!r}: {head!r} appears twice; expected one {head} image")
-            seen.add(head)
+    for raw, head, options in order_items(text):
+        if flat_item(text, head, options, seen):
             items.append(head)
             continue
         if head not in AXIS_NAMES or not options or options[0] not in KINDS:
-            raise SlscanError(f"order {text!r}: unknown item {raw.strip()!r}; {_SYNTAX}")
+            raise SlscanError(f"order {text!r}: unknown item {raw!r}; {_SYNTAX}")
         kind, options = options[0], options[1:]
         axis = AXIS_NAMES[head]
         name = f"{head}:{kind}"
@@ -638,12 +635,6 @@ def _plan(chosen: PhasePreset, preset: str | None, src: Path, folder: Path, file
     return _Plan(text, (pw, ph), slots, _place_all(folder, files, slots, chosen.first, text, spec.summary(slots)))
 
 
-def _reason(exc: SlscanError, folder: Path) -> str:
-    """An error's message about ``folder`` without the path and the order's text."""
-    text = re.sub(r"order '[^']*'(: )?", "", str(exc).removeprefix(str(folder)).lstrip(":/ "))
-    return text.split("; expected")[0]
-
-
 def _plans(chosen: PhasePreset, preset: str | None, src: Path, found: dict[Path, list[Path]],
            projector_size: tuple[int, int] | None) -> dict[Path, _Plan]:
     """Each view's plan. ``src`` itself as the one view must fit; of its sub-folders, those
@@ -663,7 +654,7 @@ def _plans(chosen: PhasePreset, preset: str | None, src: Path, found: dict[Path,
         raise skipped[0][1]
     if skipped:
         logger.warning("%s: %d sub-folder(s) skipped, not views of this layout: %s", src, len(skipped),
-                       "; ".join(f"{folder.name}/ ({_reason(exc, folder)})" for folder, exc in skipped))
+                       "; ".join(f"{folder.name}/ ({_short(exc, folder)})" for folder, exc in skipped))
     (first, one), *others = plans.items()
     for folder, other in others:
         if (other.text, other.size) != (one.text, one.size):
