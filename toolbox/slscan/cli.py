@@ -620,6 +620,8 @@ def _cmd_response(args: argparse.Namespace) -> int:
     from slscan.decode.phase_gamma import estimate_gamma
     from slscan.fsio import write_json
 
+    if args.out and args.out.exists() and not args.overwrite:
+        raise SlscanError(f"{args.out}: already exists (--overwrite replaces it)")
     session = load_session(args.session)
     found = estimate_gamma(session, args.view)
     _console().print(found.describe(), highlight=False)
@@ -1013,6 +1015,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("session", type=Path, help="capture session of the phase-response set")
     p.add_argument("--view", help="the view to measure (default: the first)")
     p.add_argument("--out", type=Path, metavar="FILE.json", help="also write the estimate as JSON")
+    p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.set_defaults(func=_cmd_response)
 
     p = sub.add_parser("info", help="check a capture session and summarise it",
