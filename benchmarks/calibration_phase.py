@@ -24,7 +24,10 @@ Prints, per rig:
    together, px), rotation (deg) and centre (mm); and the board corners mapped into the
    projector against their true projections (RMS px): "corners" from the corners
    detected in the camera, "homog." from the true camera corners (the local homographies
-   alone, without the camera's corner error).
+   alone, without the camera's corner error). (1b): the same calibrations from the true
+   camera corners (the camera calibrated from them, each projector corner mapped from
+   them): what each kind of correspondence allows once the camera's corner detection,
+   the same for all, is taken out.
 2. The light planes (the paper's method) from the Gray-code edges and from phase
    shifting (one plane per whole projector column, where camera rows cross it): planes,
    points, point-to-plane RMS before and after the global fit (mm), the model's fx (%)
@@ -35,7 +38,8 @@ Prints, per rig:
    one; mean and 95th percentile of the range-map vertices' distance to the true surface
    (mm), the mean over the true calibration's, and "shape": the mean after the best
    similarity transform onto the true calibration's points (what is left once the
-   calibration's small error of scale and pose is taken out).
+   calibration's small error of scale and pose is taken out) and that transform's scale
+   error (parts per million; 100 ppm is 0.13 mm at 1.3 m).
 """
 
 from __future__ import annotations
@@ -50,11 +54,16 @@ from pathlib import Path
 
 import numpy as np
 
-from slscan.calibrate.camera import detect_corners
-from slscan.calibrate.io import apply_calibration, calibration_planes
+from slscan.calibrate.camera import calibrate_camera, detect_corners
+from slscan.calibrate.io import Calibration, apply_calibration, calibration_planes
 from slscan.calibrate.pipeline import CalibrationConfig, calibrate_session
-from slscan.calibrate.procam import default_half_window, projector_corners_from_edges
-from slscan.calibrate.target import Board, board_image_id
+from slscan.calibrate.procam import (
+    calibrate_inverse_camera,
+    default_half_window,
+    projector_corners,
+    projector_corners_from_edges,
+)
+from slscan.calibrate.target import Board, CornerDetection, board_image_id
 from slscan.capture.session import load_session
 from slscan.decode.pipeline import DecodeConfig, decode_view
 from slscan.patterns import family
@@ -89,29 +98,39 @@ def lens_error(lens, truth) -> tuple[float, float]:
     return float(np.sqrt(np.mean(err**2))), float(err.max())
 
 
-def homography_errors(session, board: Board, name: str, correspondences: str) -> np.ndarray:
-    """(k,) px: the board's true camera corners mapped into the projector by the local
-    homographies of ``name``'s codes, against their true projections, every view."""
-    truth = session.calibration
-    white = board_image_id(session)
+def true_detections(session, board: Board) -> list[CornerDetection]:
+    """Every view's board corners where the true camera sees them (no detection error)."""
     out = []
     for view in session.views:
         pose = view.rig_from_object
         points = board.object_points() @ pose[:3, :3].T + pose[:3, 3]
-        cam = truth.camera.project_local(points)
-        det = detect_corners(session.read_image(view, view.image_for(white)), board)
-        half = default_half_window(det, board)
-        dec = family(name).decode_module()
+        out.append(CornerDetection(view.name, session.calibration.camera.project_local(points),
+                                   np.arange(len(points))))
+    return out
+
+
+def true_corner_mapping(session, board: Board, name: str, correspondences: str, detections):
+    """The true camera corners of every view mapped into the projector by the local
+    homographies of ``name``'s codes: the :class:`ProjectorCorners` per view, and (k,) px
+    their distance to the true projections (the homographies' own error)."""
+    truth = session.calibration
+    white = board_image_id(session)
+    pcs, errors = [], []
+    dec = family(name).decode_module()
+    for view, det in zip(session.views, detections):
+        pose = view.rig_from_object
+        points = board.object_points() @ pose[:3, :3].T + pose[:3, 3]
+        found = detect_corners(session.read_image(view, view.image_for(white)), board)
+        half = default_half_window(found, board)  # the window the calibration uses
         if correspondences == "edges":
-            pc = projector_corners_from_edges(dec.projector_constraints(session, view), cam,
+            pc = projector_corners_from_edges(dec.projector_constraints(session, view), det.corners,
                                               half_window=half)
         else:
-            from slscan.calibrate.procam import projector_corners
-
             codes = dec.projector_codes(session, view)
-            pc = projector_corners(codes.column, codes.row, codes.mask, cam, half_window=half)
-        out.append(np.linalg.norm(pc.points - truth.projector.project(points), axis=1)[pc.ok])
-    return np.concatenate(out)
+            pc = projector_corners(codes.column, codes.row, codes.mask, det.corners, half_window=half)
+        pcs.append(pc)
+        errors.append(np.linalg.norm(pc.points - truth.projector.project(points), axis=1)[pc.ok])
+    return pcs, np.concatenate(errors)
 
 
 def corner_errors(session, board: Board, run) -> np.ndarray:
@@ -151,29 +170,49 @@ def rig_tables(label: str, session, scenes, board: Board, elapsed: float) -> Non
           f"{PATTERNS} with rows (capture {elapsed:.0f} s)")
 
     # (1) the inverse camera
-    runs = {}
+    runs, ideal = {}, {}
     head = (f"{'correspondences':<14}{'cam rms':>8}{'prj rms':>8}{'stereo':>8}{'fx %':>8}{'fy %':>8}{'cx px':>8}"
             f"{'cy px':>8}{'lens rms':>9}{'max':>7}{'rot deg':>9}{'ctr mm':>8}{'corners':>9}{'homog.':>8}{'s':>5}")
+
+    def row(name, cam_rms, inv, corners, homog, elapsed):
+        proj = inv.rig.projector
+        lens = proj.lens
+        lrms, lmax = lens_error(lens, tl)
+        print(f"{name:<14}{cam_rms:>8.4f}{inv.projector_rms:>8.4f}{inv.stereo_rms:>8.4f}"
+              f"{100 * (lens.fx / tl.fx - 1):>+8.3f}{100 * (lens.fy / tl.fy - 1):>+8.3f}{lens.cx - tl.cx:>+8.3f}"
+              f"{lens.cy - tl.cy:>+8.3f}{lrms:>9.3f}{lmax:>7.3f}"
+              f"{rotation_deg(proj.rig_from_projector[:3, :3], truth.projector.rig_from_projector[:3, :3]):>9.4f}"
+              f"{np.linalg.norm(proj.center - truth.projector.center):>8.3f}"
+              f"{np.sqrt(np.mean(corners**2)):>9.4f}{np.sqrt(np.mean(homog**2)):>8.4f}{elapsed:>5.0f}")
+
     print("\n(1) projector as an inverse camera, errors vs the true rig")
     print(head)
     print("-" * len(head))
+    true_dets = true_detections(session, board)
+    mapped = {}
     for name, fam, corr in INVERSE:
         t = time.perf_counter()
         run = calibrate_session(session, CalibrationConfig(board=board, method="inverse-camera",
                                                            inverse_pattern=fam, correspondences=corr))
         elapsed = time.perf_counter() - t
         runs[name] = run
-        inv, proj = run.inverse_camera, run.calibration.projector
-        lens = proj.lens
-        lrms, lmax = lens_error(lens, tl)
-        corners = corner_errors(session, board, run)
-        homog = homography_errors(session, board, fam, corr)
-        print(f"{name:<14}{run.camera.rms:>8.4f}{inv.projector_rms:>8.4f}{inv.stereo_rms:>8.4f}"
-              f"{100 * (lens.fx / tl.fx - 1):>+8.3f}{100 * (lens.fy / tl.fy - 1):>+8.3f}{lens.cx - tl.cx:>+8.3f}"
-              f"{lens.cy - tl.cy:>+8.3f}{lrms:>9.3f}{lmax:>7.3f}"
-              f"{rotation_deg(proj.rig_from_projector[:3, :3], truth.projector.rig_from_projector[:3, :3]):>9.4f}"
-              f"{np.linalg.norm(proj.center - truth.projector.center):>8.3f}"
-              f"{np.sqrt(np.mean(corners**2)):>9.4f}{np.sqrt(np.mean(homog**2)):>8.4f}{elapsed:>5.0f}")
+        mapped[name] = true_corner_mapping(session, board, fam, corr, true_dets)
+        row(name, run.camera.rms, run.inverse_camera, corner_errors(session, board, run), mapped[name][1], elapsed)
+
+    print("\n(1b) the same with the true camera corners (the camera's corner detection left out: what the "
+          "projector's correspondences alone allow)")
+    print(head)
+    print("-" * len(head))
+    camera = calibrate_camera(true_dets, board, session.camera_size)
+    for name, _, _ in INVERSE:
+        pcs, homog = mapped[name]
+        t = time.perf_counter()
+        inv = calibrate_inverse_camera(camera.lens, [(d.source, d, pc) for d, pc in zip(true_dets, pcs)], board,
+                                       session.projector_size)
+        elapsed = time.perf_counter() - t
+        ideal[name] = Calibration(camera=inv.rig.camera, projector_size=session.projector_size,
+                                  projector=inv.rig.projector, board=board)
+        row(name, camera.rms, inv, homog, homog, elapsed)
 
     # (2) the light planes
     print("\n(2) light planes (the paper's method), errors vs the true column planes")
@@ -199,11 +238,12 @@ def rig_tables(label: str, session, scenes, board: Board, elapsed: float) -> Non
     # (3) reconstruction of held-out scenes
     variants = [("true calibration", None, None)]
     variants += [(f"inverse cam, {name}", runs[name].calibration, "inverse-camera") for name, _, _ in INVERSE]
+    variants += [(f"  true corners, {name}", ideal[name], "inverse-camera") for name, _, _ in INVERSE]
     variants += [("planes, Gray edges", runs["gray planes"].calibration, "planes"),
                  ("planes, phase", runs["phase planes"].calibration, "planes")]
     print("\n(3) reconstruction error vs the true surface (mm), held-out scenes captured by the true rig")
-    head = (f"{'scene':<10}{'decode':<8}{'calibration':<26}{'vertices':>9}{'mean':>9}{'p95':>9}{'mean/true':>11}"
-            f"{'shape mean':>12}")
+    head = (f"{'scene':<10}{'decode':<8}{'calibration':<28}{'vertices':>9}{'mean':>9}{'p95':>9}{'mean/true':>11}"
+            f"{'shape mean':>12}{'scale ppm':>11}")
     print(head)
     print("-" * len(head))
     for scene_name, (sess, scene) in scenes.items():
@@ -223,8 +263,8 @@ def rig_tables(label: str, session, scenes, board: Board, elapsed: float) -> Non
                 both = np.isfinite(result.points[:, 0]) & np.isfinite(ref_points[:, 0])
                 scale, rot, t = similarity(result.points[both], ref_points[both])
                 shape = true_surface_distance(scale * vertices @ rot.T + t, scene, view.rig_from_object)
-                print(f"{scene_name:<10}{method:<8}{name:<26}{len(d):>9d}{d.mean():>9.4f}{np.percentile(d, 95):>9.4f}"
-                      f"{d.mean() / ref:>11.3f}{shape.mean():>12.4f}")
+                print(f"{scene_name:<10}{method:<8}{name:<28}{len(d):>9d}{d.mean():>9.4f}{np.percentile(d, 95):>9.4f}"
+                      f"{d.mean() / ref:>11.3f}{shape.mean():>12.4f}{1e6 * (scale - 1):>+11.0f}")
 
 
 def main() -> None:
