@@ -78,7 +78,7 @@ from reconstruction import true_surface_distance
 PATTERNS = "gray+phase"
 DISTORTION = (0.06, -0.04, 0.0005, -0.0005, 0.0)
 """Default projector lens distortion of the second rig: pincushion (the camera's is barrel),
-3.6 px at the projector's corners at full size, and a little decentring."""
+3.7-4.6 px at the projector's corners, and a little decentring."""
 INVERSE = (("gray edges", "gray", "edges"), ("phase edges", "phase", "edges"),
            ("phase pixels", "phase", "pixels"))
 
