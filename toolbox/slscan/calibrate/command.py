@@ -49,6 +49,7 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
         DEFAULT_DICTIONARY,
         DISTORTION_MODELS,
         IMPORT_FORMATS,
+        INVERSE_PATTERNS,
         METHODS,
         PLANE_PATTERNS,
         SECOND_KINDS,
@@ -114,7 +115,15 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
         "--planes-pattern",
         choices=PLANE_PATTERNS,
         default="auto",
-        help="features whose light planes are measured (default auto: hybrid lines if captured)",
+        help="features whose light planes are measured (default auto: phase shifting, else hybrid "
+        "lines, else Gray-code edges, whichever was captured first in that order)",
+    )
+    method.add_argument(
+        "--inverse-pattern",
+        choices=INVERSE_PATTERNS,
+        default="auto",
+        help="codes that map the board corners into the projector, inverse camera (default auto: "
+        "phase shifting with rows if captured, else Gray code with rows)",
     )
     method.add_argument(
         "--camera-distortion",
@@ -137,7 +146,8 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
         "--correspondences",
         choices=CORRESPONDENCES,
         default="edges",
-        help="local homographies from Gray-code stripe edges (default) or decoded pixels",
+        help="local homographies from one-coordinate constraints (default: Gray-code stripe edges, "
+        "or every phase-decoded pixel's column and row) or from decoded pixels (RANSAC)",
     )
     method.add_argument(
         "--window",
@@ -278,6 +288,7 @@ def run_command(args: argparse.Namespace) -> int:
         board=board,
         method=args.method,
         planes_pattern=args.planes_pattern,
+        inverse_pattern=args.inverse_pattern,
         camera_distortion=args.camera_distortion,
         projector_distortion=args.projector_distortion,
         refine_camera=not args.no_refine,

@@ -13,6 +13,9 @@ METHODS = ("planes", "inverse-camera", "both")
 PLANE_PATTERNS = ("auto", "phase", "hybrid", "gray")
 """Features whose light planes are measured (auto: the first family captured of phase
 shifting, hybrid lines, Gray code; the pattern registry's "auto" order)."""
+INVERSE_PATTERNS = ("auto", "phase", "gray")
+"""Codes that map the board corners into the projector (auto: the first family captured
+with rows of phase shifting, Gray code; the pattern registry's "auto" order)."""
 CORRESPONDENCES = ("edges", "pixels")
 """Local homographies from Gray-code stripe edges or from decoded pixels."""
 BOARD_KINDS = ("chessboard", "charuco")

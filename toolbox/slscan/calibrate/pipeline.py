@@ -4,11 +4,12 @@ Per view: find the board's corners in the white image; calibrate the camera (Zha
 decode the projected patterns. Then the projector, by either or both methods:
 
 - ``"inverse-camera"`` (Moreno & Taubin 2012): board corners mapped into the projector by
-  local homographies of the decoded Gray-code columns and rows, the projector calibrated
-  as a camera, its pose by a stereo calibration that also refines the camera
-  (:mod:`slscan.calibrate.procam`);
+  local homographies of the decoded columns and rows (phase shifting's at every pixel, or
+  the Gray code's stripe edges), the projector calibrated as a camera, its pose by a
+  stereo calibration that also refines the camera (:mod:`slscan.calibrate.procam`);
 - ``"planes"`` (Rocchini et al. 2001): the board as the flat panel, one light plane per
-  hybrid green line or Gray-code edge, then the global fit (:mod:`slscan.calibrate.planes`).
+  hybrid green line, Gray-code edge or (phase shifting) whole projector column, then the
+  global fit (:mod:`slscan.calibrate.planes`).
 
 With both, the camera jointly refined by the inverse-camera method is the one the planes
 are measured with and the one written, so the two projector models share one camera.
@@ -31,6 +32,7 @@ from slscan.calibrate.io import Calibration
 from slscan.calibrate.options import (
     CORRESPONDENCES,
     DISTORTION_MODELS,
+    INVERSE_PATTERNS,
     METHODS,
     PLANE_PATTERNS,
 )
@@ -73,9 +75,15 @@ class CalibrationConfig:
     """Projector lens model (inverse camera), as ``camera_distortion``."""
     refine_camera: bool = True
     """Refine the camera jointly with the projector in the stereo calibration."""
+    inverse_pattern: str = "auto"
+    """{"auto", "phase", "gray"}: the codes (columns and rows) that map the board corners
+    into the projector for the inverse camera; "auto" takes the first family with rows the
+    session has in the pattern registry's "auto" order (phase shifting, Gray code)."""
     correspondences: str = "edges"
-    """{"edges", "pixels"}: what the local homographies are fitted to, the Gray code's
-    sub-pixel stripe edges or Moreno & Taubin's decoded pixels (see ``calibrate.procam``)."""
+    """{"edges", "pixels"}: what the local homographies are fitted to: one-coordinate
+    constraints (the Gray code's sub-pixel stripe edges; phase shifting's every decoded
+    pixel, once with its column and once with its row) or Moreno & Taubin's decoded pixels
+    with both coordinates (see ``calibrate.procam``)."""
     window: int = 0
     """Half-size (camera px) of the local-homography windows; 0: 0.3 board squares."""
     min_views: int = 3
@@ -100,6 +108,11 @@ class CalibrationConfig:
                     f"unknown {name.replace('_', ' ')} model {getattr(self, name)!r}: "
                     f"expected one of {', '.join(DISTORTION_MODELS)}"
                 )
+        if self.inverse_pattern not in INVERSE_PATTERNS:
+            raise SlscanError(
+                f"unknown inverse-camera pattern {self.inverse_pattern!r}: "
+                f"expected one of {', '.join(INVERSE_PATTERNS)}"
+            )
         if self.correspondences not in CORRESPONDENCES:
             raise SlscanError(
                 f"unknown correspondences {self.correspondences!r}: expected one of {', '.join(CORRESPONDENCES)}"
@@ -149,11 +162,29 @@ def plane_pattern(session: Session, wanted: str = "auto") -> str:
     return wanted
 
 
-def row_family(session: Session) -> Family:
-    """The family that gives the projector rows the inverse-camera method needs (the first
-    present in "auto" order that codes rows and has them in this session)."""
+def row_family(session: Session, wanted: str = "auto") -> Family:
+    """The family that gives the projector rows the inverse-camera method needs: the one
+    asked ("phase", "gray"), or with "auto" the first present in "auto" order that codes
+    rows and has them in this session."""
+
+    def has_rows(fam: Family) -> bool:
+        return fam.rows and any(p.family == fam.name and p.axis == "rows" for p in session.patterns)
+
+    if wanted != "auto":
+        if wanted not in {f.name for f in families_in(session.patterns)}:
+            raise SlscanError(
+                f"{session.root}: the session has no {wanted} patterns for the inverse camera"
+            )
+        fam = family(wanted)
+        if not has_rows(fam):
+            raise SlscanError(
+                f"{session.root}: the session's {wanted} patterns code the projector columns "
+                "only; the inverse-camera method needs the rows too (capture with --gray-rows, "
+                "or slscan scan --board)"
+            )
+        return fam
     for fam in families_in(session.patterns):
-        if fam.rows and any(p.family == fam.name and p.axis == "rows" for p in session.patterns):
+        if has_rows(fam):
             return fam
     raise SlscanError(
         f"{session.root}: the inverse-camera method needs projector row patterns (Gray code or phase "
@@ -188,8 +219,9 @@ def calibrate_session(
     Parameters
     ----------
     session : the capture session (or its folder): every view shows ``config.board``
-        under the white frame and the coded patterns (Gray code with row codes for the
-        inverse-camera method; hybrid or Gray code for the planes method)
+        under the white frame and the coded patterns (phase shifting or Gray code with
+        rows for the inverse-camera method; phase shifting, hybrid or Gray code for the
+        planes method)
     config : what to measure and how
     rec : an ``rr.RecordingStream`` for corners, board poses, the projector and its
         planes, and residuals (see :mod:`slscan.viewer.log_calibrate`), or None
@@ -224,7 +256,7 @@ def calibrate_session(
         if progress is not None:
             progress(done, total, label)
 
-    rows_from = row_family(session) if "inverse-camera" in methods else None
+    rows_from = row_family(session, config.inverse_pattern) if "inverse-camera" in methods else None
     pattern = plane_pattern(session, config.planes_pattern) if "planes" in methods else None
 
     # 1. corners and the camera

@@ -6,6 +6,9 @@ the printed board's corners). Every measured projector feature (a hybrid green l
 Gray-code stripe edge between two projector columns) is seen on the panel as a curve of
 camera pixels; their camera rays meet the panel's plane in 3D points that all lie on the
 feature's light plane. Pooling the points of every pose, one plane is fitted per feature.
+Per-pixel codes (phase shifting: a continuous projector column at every decoded pixel)
+are first resampled where each camera row crosses whole projector columns
+(:func:`column_crossings`), one feature per projector column.
 
 Those raw planes are then refined by the **global fit**: a pinhole projector's column
 planes all contain one line (the projector's vertical axis through its centre) and are
@@ -203,6 +206,83 @@ class MeasuredPlanes:
     def __repr__(self) -> str:
         n = 0 if self.raw_columns is None else len(self.raw_columns)
         return f"MeasuredPlanes(fx={self.model.fx:.1f}, {n} raw planes, use_raw={self.use_raw})"
+
+
+# --- per-pixel codes to features ------------------------------------------------------------
+
+MAX_CROSSING_SLOPE = 3.0
+"""Projector px per camera px: two neighbouring pixels whose columns differ by more are on
+either side of a jump (a silhouette, a wrong fringe order), and no column is crossed between."""
+
+
+def per_pixel(samples: StripeSamples) -> bool:
+    """Whether ``samples`` are per-pixel codes (phase shifting: every decoded pixel with its
+    own continuous projector column) rather than features many samples share (a hybrid
+    green line, a Gray-code edge): more than half the samples have a column of their own."""
+    n = len(samples)
+    return n > 0 and len(np.unique(np.asarray(samples.projector_column))) > n // 2
+
+
+def column_crossings(
+    samples: StripeSamples, *, step: float = 1.0, max_slope: float = MAX_CROSSING_SLOPE
+) -> StripeSamples:
+    """Per-pixel codes resampled as features: where each camera row crosses whole projector
+    columns.
+
+    A light plane is fitted to the points of one projector column; per-pixel codes (phase
+    shifting) give every pixel a column of its own, so no two share one. Along each camera
+    row, between two neighbouring decoded pixels whose columns ``a`` and ``b`` straddle a
+    multiple ``k step`` of ``step``, the column is ``k step`` at ``x + (k step - a) / (b -
+    a)`` (linear interpolation of the decoded column, which is smooth on the flat panel):
+    a sample of that column's light plane at a sub-pixel camera position, as a Gray-code
+    edge is of ``c + 0.5``.
+
+    Parameters
+    ----------
+    samples : per-pixel samples of one view (``x`` whole camera columns, ``row`` rows)
+    step : projector px between the columns sampled
+    max_slope : see :data:`MAX_CROSSING_SLOPE`
+
+    Returns
+    -------
+    StripeSamples
+        ``projector_column`` ``k step``, ``stripe`` ``k``, ``x`` sub-pixel on camera row
+        ``row``; ``contrast`` interpolated, ``saturated`` where either pixel is.
+    """
+    if not step > 0:
+        raise SlscanError(f"column step must be positive, got {step}")
+    if len(samples) == 0:
+        return samples
+    rows = np.asarray(samples.row, np.int64)
+    xs = np.rint(np.asarray(samples.x, np.float64)).astype(np.int64)
+    x_min, row_min = int(xs.min()), int(rows.min())
+    shape = (int(rows.max()) - row_min + 1, int(xs.max()) - x_min + 2)
+    cols = np.full(shape, np.nan)
+    contrast = np.zeros(shape, np.float32)
+    saturated = np.zeros(shape, bool)
+    at = (rows - row_min, xs - x_min)
+    cols[at] = np.asarray(samples.projector_column, np.float64) / step
+    contrast[at] = samples.contrast
+    saturated[at] = samples.saturated
+    a, b = cols[:, :-1], cols[:, 1:]
+    with np.errstate(invalid="ignore"):
+        near = np.abs(b - a) <= max_slope / step
+    first, last = np.floor(np.fmin(a, b)), np.floor(np.fmax(a, b))
+    count = np.where(near, last - first, 0).astype(np.int64)  # multiples of step in (min, max]
+    r, c = np.nonzero(count)
+    n = count[r, c]
+    r, c = np.repeat(r, n), np.repeat(c, n)
+    within = np.arange(len(r)) - np.repeat(np.cumsum(n) - n, n)
+    k = first[r, c] + 1 + within
+    t = (k - a[r, c]) / (b[r, c] - a[r, c])
+    return StripeSamples(
+        row=(r + row_min).astype(np.int32),
+        x=(c + x_min + t).astype(np.float64),
+        projector_column=k * step,
+        stripe=k.astype(np.int32),
+        contrast=((1 - t) * contrast[r, c] + t * contrast[r, c + 1]).astype(np.float32),
+        saturated=saturated[r, c] | saturated[r, c + 1],
+    )
 
 
 # --- panel points ---------------------------------------------------------------------------
@@ -505,7 +585,9 @@ class PanelView:
     """One pose of the panel: what was decoded on it and where it was.
 
     name : the view (for messages)
-    samples : the decoded features (hybrid green lines or Gray-code edges)
+    samples : the decoded features (hybrid green lines or Gray-code edges), or per-pixel
+        codes (phase shifting), which are measured where they cross whole projector
+        columns (:func:`column_crossings`)
     camera_from_board : (4, 4) mm, the board's pose from its corners
     """
 
@@ -524,7 +606,7 @@ class LightPlaneCalibration:
     line_rms_after : (m,) mm
     views : names of the panel poses used
     points_per_view : (n,) points kept on the panel in each pose
-    pattern : {"hybrid", "gray"}, what the features were
+    pattern : {"hybrid", "gray", "phase"}, what the features were
     """
 
     model: LightPlaneModel
@@ -573,7 +655,7 @@ def calibrate_light_planes(
     board : the printed target on the panel (the area trusted to be flat, see
         :func:`panel_points`)
     projector_width : px
-    pattern : {"hybrid", "gray"}, recorded with the result
+    pattern : {"hybrid", "gray", "phase"}, recorded with the result
     margin : mm around the board's squares also trusted to be panel (default half a square)
     min_points : points a feature needs to get a plane
     min_spread : see :data:`MIN_SPREAD_RATIO`
@@ -599,7 +681,8 @@ def calibrate_light_planes(
         )
     cols, pts, views, counts = [], [], [], []
     for v, panel in enumerate(panels):
-        c, p = panel_points(panel.samples, camera, panel.camera_from_board, board, margin=margin)
+        samples = column_crossings(panel.samples) if per_pixel(panel.samples) else panel.samples
+        c, p = panel_points(samples, camera, panel.camera_from_board, board, margin=margin)
         cols.append(c)
         pts.append(p)
         views.append(np.full(len(c), v))

@@ -177,13 +177,16 @@ def _dlt_homography(
         np.concatenate([zero, p, -value[:, None] * p], axis=1),
         np.concatenate([p, zero, -value[:, None] * p], axis=1),
     )
+    # the right singular vector of the smallest singular value, from the 9 x 9 normal
+    # matrix: the same vector (points and values are normalised to about unit size) at a
+    # fraction of the cost of an SVD of the (n, 9) matrix when every pixel is a constraint
     try:
-        _, s, vt = np.linalg.svd(a, full_matrices=False)
+        eigval, eigvec = np.linalg.eigh(a.T @ a)
     except np.linalg.LinAlgError:
         return None
-    if s[-2] <= 1e-12 * s[0]:
+    if not np.isfinite(eigval).all() or eigval[1] <= 1e-20 * eigval[-1]:
         return None
-    return vt[-1].reshape(3, 3)
+    return eigvec[:, 0].reshape(3, 3)
 
 
 def projector_corners_from_edges(
@@ -229,10 +232,15 @@ def projector_corners_from_edges(
     support = np.zeros(k, int)
     residual = np.full(k, np.nan)
     scale = 1.0 / max(half_window, 1)
+    by_y = np.argsort(cy_all, kind="stable")  # each window is a band of rows, then a span of x
+    y_sorted = cy_all[by_y]
     for i, (x0, y0) in enumerate(corners):
-        sel = np.flatnonzero(
-            (np.abs(cx_all - x0) <= half_window) & (np.abs(cy_all - y0) <= half_window)
-        )
+        band = by_y[
+            np.searchsorted(y_sorted, y0 - half_window, "left") : np.searchsorted(
+                y_sorted, y0 + half_window, "right"
+            )
+        ]
+        sel = np.sort(band[np.abs(cx_all[band] - x0) <= half_window])
         is_row = is_row_all[sel]
         if min(int(is_row.sum()), int((~is_row).sum())) < max(min_support, 4):
             support[i] = len(sel)

@@ -188,6 +188,7 @@ def capture_calibration_session(
     out: str | os.PathLike,
     board: Board,
     *,
+    patterns: str | None = None,
     config=None,
     poses: Sequence[np.ndarray] | None = None,
     n_poses: int = 6,
@@ -198,9 +199,14 @@ def capture_calibration_session(
 ) -> Session:
     """Capture a calibration session of ``board`` on the virtual rig into folder ``out``.
 
+    patterns : the coded patterns after white and black, a set name of
+        :func:`slscan.patterns.set_names` or several joined by "+": "both" (hybrid and Gray
+        code, the default), "phase" (phase shifting), "gray+phase" (both families on the
+        same poses, to compare them), ...; they code the projector rows too. Replaces
+        ``config.patterns`` when both are given.
     config : a :class:`~slscan.virtual.device.VirtualCaptureConfig`; default: the
-        paper's rig, hybrid and Gray-code patterns with row codes, no ring-light images.
-        Its ``scene`` and ``views`` are ignored.
+        paper's rig, ``patterns`` with row codes, no ring-light images. Its ``scene`` and
+        ``views`` are ignored.
     poses : ``rig_from_object`` of each view; default :func:`board_poses` (``n_poses``)
     rig : default ``config.rig()``
 
@@ -210,7 +216,9 @@ def capture_calibration_session(
     from slscan.virtual.device import VirtualCaptureConfig, capture_session
 
     if config is None:
-        config = VirtualCaptureConfig(patterns="both", gray_rows=True, lit_images=False)
+        config = VirtualCaptureConfig(patterns=patterns or "both", gray_rows=True, lit_images=False)
+    elif patterns is not None:
+        config = replace(config, patterns=patterns)
     rig = rig or config.rig()
     poses = list(poses) if poses is not None else board_poses(rig, board, n_poses)
     scene = board_scene(board, edge_sigma=default_edge_sigma(rig))
