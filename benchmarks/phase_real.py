@@ -157,6 +157,22 @@ def measure(name: str, session, result: PhaseResult) -> list[dict]:
     return rows
 
 
+def period_difference(diff: np.ndarray, size: int = 9) -> tuple[float, float, float]:
+    """(median |difference|, robust SD of its pixel-to-pixel part, median |smooth part|) of
+    two periods' column maps' difference (NaN where either is not decoded), px: noise
+    differs from pixel to pixel, a bias (the fringes' residual distortion) does not."""
+    from scipy import ndimage
+
+    ok = np.isfinite(diff)
+    filled = np.where(ok, diff, 0.0)
+    weight = ndimage.uniform_filter(ok.astype(float), size)
+    mean = ndimage.uniform_filter(filled, size) / np.maximum(weight, 1e-9)
+    inner = ok & (weight > 0.9)
+    high = (diff - mean)[inner]
+    return (float(np.median(np.abs(diff[ok]))), float(1.4826 * np.median(np.abs(high - np.median(high)))),
+            float(np.median(np.abs(mean[inner]))))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", type=Path, help=f"the shared data folder (default: ${ENV_VAR} or ../shared/data)")
@@ -169,7 +185,7 @@ def main() -> None:
     root = None if data is None else data / "phaseshift_kamino410" / "sample_data"
     if root is None or not root.is_dir():
         raise SystemExit(f"phaseshift_kamino410 captures not found (set {ENV_VAR} or pass --data)")
-    rows, counts = [], []
+    rows, counts, spreads = [], [], []
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.sets.split(","):
             folder, preset = SETS[name]
@@ -181,6 +197,8 @@ def main() -> None:
             for axis, a in result.axes.items():
                 counts.append((name, axis, a.counts, float(result.saturated.mean()),
                                float(np.isfinite(result.column).mean()), result.projector_gamma))
+                if len(a.periods) > 1:
+                    spreads.append((name, axis, *period_difference(a.periods[-1] - a.periods[0])))
     head = (f"{'set':<9}{'region':<10}{'decoder':<8}{'lit px':>10}{'decoded':>9}{'agree':>8}"
             f"{'in cell':>9}{'> P/4':>8}{'clipped':>9}")
     print(f"columns, per region (agree: both fringe sets' columns within {AGREE_PX} px, share of lit; "
@@ -203,6 +221,12 @@ def main() -> None:
     for name, axis, c, clipped, share, gamma in counts:
         print(f"{name:<9}{axis:<8}" + "".join(f"{c.get(k, 0):>19,}" for k in keys)
               + f"{clipped:>9.2%}{share:>8.1%}{gamma:>7.2f}")
+    if spreads:
+        print("\nthe two periods' columns: their difference split into a pixel-to-pixel part (robust SD of the "
+              "difference minus its 9x9 mean: noise) and a smooth part (median |9x9 mean|: bias), px")
+        print(f"{'set':<9}{'axis':<8}{'|difference| median':>21}{'noise SD':>10}{'smooth |bias|':>15}")
+        for name, axis, median, noise, bias in spreads:
+            print(f"{name:<9}{axis:<8}{median:>21.3f}{noise:>10.3f}{bias:>15.3f}")
 
 
 if __name__ == "__main__":
