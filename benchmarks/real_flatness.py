@@ -19,13 +19,14 @@ triangulated with:
   projector pixels halved (``projector_scale=0.5``);
 - our calibration from all five poses (not independent either).
 
-Prints four tables:
+Prints five tables:
 
 1. flatness: per pose, RMS and 95th percentile (mm) of the points' distances to the plane
    fitted to those inside the board's outer corners, and the mean over poses; then the
-   RMS left about a quadratic surface (what bending leaves) and the expected depth noise
-   (``TriangulationReport``: the coordinate noise measured from the edges through each
-   axis's depth per projector pixel).
+   RMS left about a quadratic surface (what bending leaves), the RMS of the points more
+   than 3 px from the print's edges (the squares' borders, where the albedo step moves the
+   stripe edges) and the expected depth noise (``TriangulationReport``: the coordinate
+   noise of the edges through each axis's depth per projector pixel).
 2. per pose: the axes' depth change per projector pixel (columns, rows, both), the
    reprojection RMS of camera and projector in the five-pose calibration, and the RMS with
    which the calibration made without the pose predicts its corners in the projector
@@ -35,9 +36,15 @@ Prints four tables:
    calibrated alone, ``calibrateCameraExtended``), the spread over the five leave-one-out
    calibrations (standard deviation, min..max) and kamino410's value.
 4. the projector principal point: ours against kamino410's, held on the same corners.
+5. is the board bent? The leave-one-out points against the board's plane as the camera alone
+   sees it (its pose from the corners), as a quadratic over the board (mm at the outer
+   corners), per pose: the offset says whether the range map and the camera agree on where
+   the board is; a bend of the board is the same quadratic in every pose (so is an error of
+   the calibration common to these poses, which are all nearly facing the camera at
+   3.0-3.7 m: the quadratic cannot tell the two apart here).
 
 The data folder is ``slscan.data.shared_data_dir()`` (``$SLSCAN_DATA`` or ``../shared/data``)
-unless ``--data`` is given. About 6 minutes on two cores (``--no-folds``: about 2).
+unless ``--data`` is given. About 6 minutes on two idle cores (``--no-folds``: about 2).
 """
 
 from __future__ import annotations
@@ -55,7 +62,7 @@ import numpy as np
 from slscan.calibrate.diagnostics import held_out_errors, intrinsics_uncertainty, refit_inverse_camera
 from slscan.calibrate.io import Calibration, calibration_planes, import_opencv_xml
 from slscan.calibrate.pipeline import CalibrationConfig, CalibrationRun, calibrate_session
-from slscan.calibrate.target import Board
+from slscan.calibrate.target import Board, board_image_id, board_pose
 from slscan.capture.kamino410 import import_kamino410
 from slscan.data import ENV_VAR, shared_data_dir
 from slscan.decode.graycode import decode as gray_decode
@@ -69,16 +76,24 @@ REFERENCE_SCALE = 0.5  # kamino410's projector pixels are half the patterns' (do
 
 @dataclass(frozen=True)
 class Flatness:
+    """One pose triangulated one way: plane-fit RMS and p95 (mm), the RMS about a quadratic
+    surface, the RMS of the points away from the print's edges (about the same plane), the
+    points inside the board, the expected depth noise (mm), and the points and their pixels."""
+
     rms: float
     p95: float
     quadratic_rms: float
+    away_rms: float
     points: int
     expected: float
+    xyz: np.ndarray
+    pixels: np.ndarray
 
 
-def plane_flatness(points: np.ndarray) -> tuple[float, float, float]:
+def plane_flatness(points: np.ndarray, away: np.ndarray) -> tuple[float, float, float, float]:
     """RMS and 95th percentile of the distances (mm) of ``points`` (k, 3) to their
-    least-squares plane, and the RMS left about a quadratic surface over that plane."""
+    least-squares plane, the RMS left about a quadratic surface over that plane, and the RMS
+    of the distances of the points ``away`` (k,) bool."""
     centre = points.mean(axis=0)
     _, _, vt = np.linalg.svd(points - centre, full_matrices=False)
     local = (points - centre) @ vt.T
@@ -87,25 +102,43 @@ def plane_flatness(points: np.ndarray) -> tuple[float, float, float]:
     design = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=1)
     coef, *_ = np.linalg.lstsq(design, d, rcond=None)
     return (float(np.sqrt(np.mean(d**2))), float(np.percentile(np.abs(d), 95)),
-            float(np.sqrt(np.mean((d - design @ coef) ** 2))))
+            float(np.sqrt(np.mean((d - design @ coef) ** 2))), float(np.sqrt(np.mean(d[away] ** 2))))
 
 
-def inside(quad: np.ndarray, pixels: np.ndarray) -> np.ndarray:
-    """(k,) bool: camera ``pixels`` (k, 2) inside the quadrilateral ``quad`` (4, 2)."""
-    path = np.asarray(quad, np.float64)
-    x, y = pixels[:, 0], pixels[:, 1]
-    sign = []
-    for i in range(4):
-        (x0, y0), (x1, y1) = path[i], path[(i + 1) % 4]
-        sign.append((x1 - x0) * (y - y0) - (y1 - y0) * (x - x0) > 0)
-    sign = np.stack(sign)
-    return sign.all(axis=0) | (~sign).all(axis=0)
+def print_edges(white: np.ndarray, reach: int = 3) -> np.ndarray:
+    """(h, w) bool: pixels within ``reach`` px of an edge of the print (the chessboard's
+    squares): the white frame's gradient over its local level above 5 %. Stripe edges there
+    are found where the albedo changes within the blur, which moves them."""
+    import cv2
+
+    img = np.asarray(white, np.float64)
+    img = img.mean(axis=2) if img.ndim == 3 else img
+    level = np.maximum(cv2.blur(img, (5, 5)), 1e-6)
+    grad = np.hypot(cv2.Sobel(img, cv2.CV_64F, 1, 0, ksize=3), cv2.Sobel(img, cv2.CV_64F, 0, 1, ksize=3)) / 8
+    edge = (grad / level > 0.05).astype(np.uint8)
+    return cv2.dilate(edge, np.ones((2 * reach + 1, 2 * reach + 1), np.uint8)).astype(bool)
 
 
-def flatness(decoded, quad: np.ndarray, calibration: Calibration, source: str, axes: str) -> Flatness:
+def bends(xyz: np.ndarray, camera_from_board: np.ndarray) -> tuple[np.ndarray, float]:
+    """The points' departure from the board's plane as the camera alone sees it (the pose from
+    its corners), as a quadratic over the board: ``(offset, tilt x, tilt y, xx, xy, yy)`` mm,
+    x and y normalised to +-1 at the outer corners, and the RMS about it (mm)."""
+    inv = np.linalg.inv(camera_from_board)
+    b = xyz @ inv[:3, :3].T + inv[:3, 3]
+    b = b[np.abs(b[:, 2]) < 30]  # on the board
+    half = np.array([(BOARD.columns - 1) * BOARD.square / 2, (BOARD.rows - 1) * BOARD.square / 2])
+    centre = half + BOARD.square
+    x, y = (b[:, 0] - centre[0]) / half[0], (b[:, 1] - centre[1]) / half[1]
+    design = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=1)
+    coef, *_ = np.linalg.lstsq(design, b[:, 2], rcond=None)
+    return coef, float(np.sqrt(np.mean((b[:, 2] - design @ coef) ** 2)))
+
+
+def flatness(decoded, quad: np.ndarray, edges: np.ndarray, calibration: Calibration, source: str,
+             axes: str) -> Flatness:
     """Triangulate a view's samples as ``decode_view`` does (``decoded``: the Gray-code
     decode with ``projector_axes`` = ``axes``), with ``calibration``'s ``source`` model, and
-    fit a plane inside the board."""
+    fit a plane inside the board (``edges``: the print's edges, :func:`print_edges`)."""
     planes = calibration_planes(calibration, source=source)
     samples = decoded.samples
     noise = (decoded.stats.get("column_noise_px", np.nan), decoded.stats.get("row_noise_px", np.nan))
@@ -113,9 +146,13 @@ def flatness(decoded, quad: np.ndarray, calibration: Calibration, source: str, a
     points = triangulate(samples, calibration.camera, planes, sigma=sigma)
     report = triangulation_report(samples, points, calibration.camera, calibration.rig().projector, planes,
                                   sigma=noise)
-    keep = np.isfinite(points[:, 2]) & inside(quad, samples.pixels())
-    rms, p95, quad_rms = plane_flatness(points[keep])
-    return Flatness(rms, p95, quad_rms, int(keep.sum()), report.depth_noise_mm)
+    pixels = samples.pixels()
+    keep = np.isfinite(points[:, 2]) & inside(quad, pixels)
+    h, w = edges.shape
+    at = np.clip(np.rint(pixels[keep]).astype(np.int64), 0, [w - 1, h - 1])
+    rms, p95, quad_rms, away_rms = plane_flatness(points[keep], ~edges[at[:, 1], at[:, 0]])
+    return Flatness(rms, p95, quad_rms, away_rms, int(keep.sum()), report.depth_noise_mm, points[keep],
+                    pixels[keep])
 
 
 def held_out_calibration(run: CalibrationRun, pp: tuple[float, float] | None) -> Calibration:
@@ -191,23 +228,27 @@ def main() -> None:
             ("ours, 5 poses, kamino410's pp held", {n: held_out_calibration(full, ref_pp) for n in shown},
              "inverse-camera", "both"),
         ]
-        results = {label: {n: flatness(decoded[n, axes], quads[n], cals[n], source, axes) for n in shown}
+        white_id = board_image_id(session)
+        edges = {n: print_edges(session.read_image(session.view(n), session.view(n).image_for(white_id)))
+                 for n in shown}
+        results = {label: {n: flatness(decoded[n, axes], quads[n], edges[n], cals[n], source, axes) for n in shown}
                    for label, cals, source, axes in rows}
     elapsed = time.perf_counter() - t0
 
     print(f"kamino410 boards ({len(names)} poses, {BOARD.describe()}): calibrations {t_cal:.0f} s, "
           f"decoding {t_dec:.0f} s, total {elapsed:.0f} s")
-    print("\n(1) flatness inside the board: plane-fit RMS / p95 mm per pose; mean RMS, mean p95, "
-          "mean RMS about a quadratic, mean expected depth noise")
+    print("\n(1) flatness inside the board: plane-fit RMS / p95 mm per pose; means of the RMS, the p95, "
+          "the RMS about a quadratic, the RMS away from the print's edges (3 px), the expected depth noise")
     head = f"{'calibration, projector model':<40}" + "".join(f"{n:>13}" for n in shown) + \
-        f"{'RMS':>7}{'p95':>7}{'quad':>7}{'exp.':>7}"
+        f"{'RMS':>7}{'p95':>7}{'quad':>7}{'away':>7}{'exp.':>7}"
     print(head)
     print("-" * len(head))
     for label, per_view in results.items():
         cells = "".join(f"{f'{f.rms:.2f} / {f.p95:.2f}':>13}" for f in per_view.values())
         v = list(per_view.values())
         print(f"{label:<40}{cells}{np.mean([f.rms for f in v]):>7.2f}{np.mean([f.p95 for f in v]):>7.2f}"
-              f"{np.mean([f.quadratic_rms for f in v]):>7.2f}{np.nanmean([f.expected for f in v]):>7.2f}")
+              f"{np.mean([f.quadratic_rms for f in v]):>7.2f}{np.mean([f.away_rms for f in v]):>7.2f}"
+              f"{np.nanmean([f.expected for f in v]):>7.2f}")
 
     print("\n(2) per pose: depth mm per projector px (columns / rows / both); five-pose calibration's "
           "reprojection RMS px (camera, projector); projector RMS px of the pose predicted without it "
@@ -278,8 +319,29 @@ def main() -> None:
           f"{np.array2string(inv.view_errors[:, 1], precision=3)})")
     if folds:
         mean = {label: np.mean([f.rms for f in results[label].values()]) for label in results}
-        print(f"leave-one-out flatness, mean RMS: ours {mean['ours, inverse camera, rows+cols (LOO)']:.2f} mm, "
+        loo = "ours, inverse camera, rows+cols (LOO)"
+        print(f"leave-one-out flatness, mean RMS: ours {mean[loo]:.2f} mm, "
               f"kamino410's pp held {mean[LOO_HELD]:.2f} mm")
+
+    label = "ours, inverse camera, rows+cols (LOO)" if folds else "ours, 5 poses, rows+cols"
+    print(f"\n(5) is the board bent? {label}: the points against the board's plane as the camera alone "
+          "sees it (pose from its corners), as a quadratic over the board (mm at the outer corners)")
+    head = f"{'pose':<11}{'offset':>8}{'tilt x':>8}{'tilt y':>8}{'xx':>7}{'xy':>7}{'yy':>7}{'RMS':>7}"
+    print(head)
+    print("-" * len(head))
+    board_q = []
+    for n, det in zip(names, full.detections):
+        if n not in shown:
+            continue
+        cal_n = folds[n].calibration if folds else full.calibration
+        coef, rms = bends(results[label][n].xyz, board_pose(cal_n.camera, det, BOARD))
+        board_q.append(coef[3:])
+        print(f"{n:<11}" + "".join(f"{c:>8.2f}" for c in coef[:3]) + "".join(f"{c:>7.2f}" for c in coef[3:])
+              + f"{rms:>7.2f}")
+    if len(board_q) > 1:
+        bq = np.array(board_q)
+        print(f"{'mean, std':<35}" + "".join(f"{m:>+7.2f}" for m in bq.mean(axis=0)) + "\n" + " " * 35
+              + "".join(f"{v:>7.2f}" for v in bq.std(axis=0, ddof=1)))
 
 
 if __name__ == "__main__":
