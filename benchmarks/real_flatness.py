@@ -134,6 +134,18 @@ def bends(xyz: np.ndarray, camera_from_board: np.ndarray) -> tuple[np.ndarray, f
     return coef, float(np.sqrt(np.mean((b[:, 2] - design @ coef) ** 2)))
 
 
+def inside(quad: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    """(k,) bool: camera ``pixels`` (k, 2) inside the quadrilateral ``quad`` (4, 2)."""
+    path = np.asarray(quad, np.float64)
+    x, y = pixels[:, 0], pixels[:, 1]
+    sign = []
+    for i in range(4):
+        (x0, y0), (x1, y1) = path[i], path[(i + 1) % 4]
+        sign.append((x1 - x0) * (y - y0) - (y1 - y0) * (x - x0) > 0)
+    sign = np.stack(sign)
+    return sign.all(axis=0) | (~sign).all(axis=0)
+
+
 def flatness(decoded, quad: np.ndarray, edges: np.ndarray, calibration: Calibration, source: str,
              axes: str) -> Flatness:
     """Triangulate a view's samples as ``decode_view`` does (``decoded``: the Gray-code
