@@ -36,12 +36,13 @@ MIN_RAY_PLANE_ANGLE_DEG = 0.5
 
 
 class RigPlanes:
-    """Light planes from the rig's known calibration: the projector as an inverse pinhole.
+    """The projector as a calibrated inverse camera (the rig's, or a measured calibration's).
 
-    Implements :class:`slscan.decode.samples.LightPlanes` with
-    :meth:`slscan.rig.Projector.column_planes` (exact when the projector lens has no
-    distortion; with distortion a projector column is not a plane and this is the plane
-    of its undistorted model).
+    :func:`triangulate` uses its whole model (:meth:`triangulate`: lens distortion, and the
+    projector rows where the samples have them). As :class:`slscan.decode.samples.LightPlanes`
+    its :meth:`planes` are :meth:`slscan.rig.Projector.column_planes`, exact when the lens
+    has no distortion (with distortion, the planes of its undistorted model: the starting
+    point of the solution, never the answer).
     """
 
     def __init__(self, projector: Projector) -> None:
