@@ -27,7 +27,7 @@ import numpy as np
 
 from slscan.decode.samples import LightPlanes, StripeSamples
 from slscan.errors import SlscanError
-from slscan.rig import PinholeModel, Projector
+from slscan.rig import PinholeModel, Projector, distort
 
 log = logging.getLogger(__name__)
 
@@ -111,10 +111,14 @@ def intersect_rays_planes(
 
 def _project_depth(projector: Projector, rays: np.ndarray, depth: np.ndarray) -> np.ndarray:
     """Projector pixels (k, 2) of the points ``depth * rays`` (rays with z = 1), NaN behind it."""
-    pts = rays * depth[:, None]
-    local = (pts - projector.center) @ projector.rig_from_projector[:3, :3]
-    uv = projector.lens.project_local(local)
-    uv[local[:, 2] <= 0] = np.nan
+    # column by column: (k, 3) products cost several times more
+    rot, c, lens = projector.rig_from_projector[:3, :3], projector.center, projector.lens
+    d = [rays[:, 0] * depth - c[0], rays[:, 1] * depth - c[1], depth - c[2]]
+    lx, ly, lz = (rot[0, i] * d[0] + rot[1, i] * d[1] + rot[2, i] * d[2] for i in range(3))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xd, yd = distort(lx / lz, ly / lz, lens.dist_array)
+    uv = np.stack([lens.fx * xd + lens.cx, lens.fy * yd + lens.cy], axis=1)
+    uv[lz <= 0] = np.nan
     return uv
 
 
@@ -231,8 +235,11 @@ def depth_along_rays(
         ru = np.where(has_u, p0[:, 0] - tu, 0.0)
         rv = np.where(has_v, p0[:, 1] - tv, 0.0)
         with np.errstate(divide="ignore", invalid="ignore"):
-            step = (wu * du * ru + wv * dv * rv) / (wu * du * du + wv * dv * dv)
-        z = z - np.clip(step, -0.5 * z, 0.5 * z)
+            step = np.clip((wu * du * ru + wv * dv * rv) / (wu * du * du + wv * dv * dv), -0.5 * z, 0.5 * z)
+        z = z - step
+        moving = np.isfinite(step) & (np.abs(step) > 1e-8 * np.abs(z))
+        if not moving.any():  # converged (from the planes' start, in two or three steps)
+            break
     p0 = _project_depth(projector, rays, z)
     h = np.maximum(1e-4 * z, 1e-3)
     p1 = _project_depth(projector, rays, z + h)
