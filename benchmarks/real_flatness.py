@@ -44,7 +44,7 @@ Prints five tables:
    3.0-3.7 m: the quadratic cannot tell the two apart here).
 
 The data folder is ``slscan.data.shared_data_dir()`` (``$SLSCAN_DATA`` or ``../shared/data``)
-unless ``--data`` is given. About 6 minutes on two idle cores (``--no-folds``: about 2).
+unless ``--data`` is given. About 5 minutes on two cores (``--no-folds``: 1.5).
 """
 
 from __future__ import annotations
