@@ -144,3 +144,19 @@ def test_kamino410_reference_imports(shared_data):
     assert cal.residuals["imported"]["stereo_rms_px"] == pytest.approx(0.8566, abs=1e-4)
     # translation (85.7, -630.5, -100.8) takes camera to projector points: the projector is below
     assert cal.projector.center[1] > 600 and 600 < np.linalg.norm(cal.projector.center) < 700
+
+
+def test_auto_takes_the_inverse_camera_where_rows_pin_depth(calibration):
+    from dataclasses import replace
+
+    from slscan.virtual.rigs import RigParams
+
+    # the paper's rig (projector beside the camera): the light planes, as before
+    assert isinstance(calibration_planes(calibration), MeasuredPlanes)
+    # the projector mostly above the camera: its rows pin depth ~5x better than the columns
+    # that are all light planes have, so "auto" takes the inverse camera (explicit choices stay)
+    above = RigParams(baseline_direction_deg=80.0).rig()
+    vertical = replace(calibration, projector=Projector(calibration.projector.lens,
+                                                        above.projector.rig_from_projector))
+    assert isinstance(calibration_planes(vertical), RigPlanes)
+    assert isinstance(calibration_planes(vertical, source="planes"), MeasuredPlanes)

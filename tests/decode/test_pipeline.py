@@ -52,6 +52,11 @@ def test_range_maps_lie_on_the_true_surface(figurine, tmp_path, method):
     # vertices; neutral 0.1 %), where the paint shifts the green lines (issue 18, item 0)
     assert np.mean(d < 1.0) > (0.975 if method == "hybrid" else 0.99)
     assert results[0].metrics["samples"] == len(results[0].samples)
+    # the paper's rig: the projector beside the camera, so columns, reported per view
+    tri = summary["views"][0]["triangulation"]
+    assert tri["axes"] == "columns" and tri["model"] == "inverse camera"
+    assert tri["depth_mm_per_px"]["rows"] > 20 * tri["depth_mm_per_px"]["columns"]
+    assert results[0].metrics["rows_used"] == 0.0
 
 
 def test_trimming_line_ends_drops_the_samples_without_two_neighbours(figurine):
@@ -65,7 +70,8 @@ def test_trimming_line_ends_drops_the_samples_without_two_neighbours(figurine):
     for bad in (-1, 1.5):
         with pytest.raises(SlscanError, match="trim_line_ends"):
             DecodeConfig(trim_line_ends=bad)
-    for field, bad in (("max_edge_factor", 0.0), ("max_gap_columns", -2.0), ("max_view_angle_deg", 95.0)):
+    for field, bad in (("max_edge_factor", 0.0), ("max_gap_columns", -2.0), ("max_view_angle_deg", 95.0),
+                       ("projector_axes", "rows")):
         with pytest.raises(SlscanError, match=field):
             DecodeConfig(**{field: bad})
 

@@ -192,10 +192,11 @@ def row_family(session: Session, wanted: str = "auto") -> Family:
     )
 
 
-PLANE_DECODE = DecodeConfig(gray_smooth=False)
+PLANE_DECODE = DecodeConfig(gray_smooth=False, projector_axes="columns")
 """The decode settings the planes method measures features with: the decode stage's
 defaults, but Gray-code edges as found in each row (not averaged along the edge), as the
-light planes were fitted before edge averaging existed."""
+light planes were fitted before edge averaging existed, and the columns only (planes have
+no rows)."""
 
 
 def _plane_samples(session: Session, view, pattern: str):

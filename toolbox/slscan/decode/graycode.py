@@ -1481,19 +1481,11 @@ def decode_gray_axes(session: Session, view: ViewRecord) -> GrayAxes:
     white, black = read(flat[(255, 255, 255)]), read(flat[(0, 0, 0)])
     # lossy (JPEG) RGB captures read as luma, as decode_gray reads them
     columns = decode_gray_images(images, descs, white, black, where=where, luma=session.lossy)
-    swap = {"rows": "columns", "columns": "rows"}
-    descs_t = [replace(d, axis=swap[d.axis], width=d.height, height=d.width) for d in descs]
-
-    def t(image: np.ndarray) -> np.ndarray:
-        """The capture transposed (rows for columns), channels and values as they are, so
-        the decoder reads it as it read the capture."""
-        return np.ascontiguousarray(np.swapaxes(image, 0, 1))
-
     rows = decode_gray_images(
-        {k: t(v) for k, v in images.items()},
-        descs_t,
-        t(white),
-        t(black),
+        {k: _transposed(v) for k, v in images.items()},
+        _swap_axes(descs),
+        _transposed(white),
+        _transposed(black),
         where=where,
         noise=columns.noise,
         luma=session.lossy,
@@ -1506,16 +1498,174 @@ def decode_gray_axes(session: Session, view: ViewRecord) -> GrayAxes:
     )
 
 
+def _transposed(image: np.ndarray) -> np.ndarray:
+    """A capture transposed (camera rows for columns), channels and values as they are, so
+    the decoder reads it as it read the capture."""
+    return np.ascontiguousarray(np.swapaxes(image, 0, 1))
+
+
+def _swap_axes(descs: Sequence[PatternImage]) -> list[PatternImage]:
+    """Pattern descriptions with rows and columns swapped, for the transposed captures."""
+    swap = {"rows": "columns", "columns": "rows"}
+    return [replace(d, axis=swap[d.axis], width=d.height, height=d.width) for d in descs]
+
+
+def decode_gray_transposed(session: Session, view: ViewRecord | str, **options) -> GrayResult:
+    """:func:`decode_gray` on the transposed captures with rows and columns swapped: its
+    ``edges`` are the sub-pixel edges of the projector **rows** (``projector_column`` is the
+    row ``r + 0.5``), in the transposed frame: a sample's ``row`` is a camera column and ``x``
+    a camera row (found along camera columns), or, with ``along_columns``, ``x`` a camera
+    row and ``y`` a camera column (found along camera rows). Read as :func:`decode_gray`
+    reads (in linear light unless ``threshold="opencv"``), streamed."""
+    if isinstance(view, str):
+        view = session.view(view)
+    descs = [p for p in session.patterns if p.family == "gray"]
+    if not any(d.axis == "rows" for d in descs):
+        raise SlscanError(f"{session.root}: the session has no Gray-code row patterns")
+    white_id, black_id = session.flat_frame_ids("Gray-code decoding")
+    pairs = gray_pairs(descs, "rows") + gray_pairs(descs, "columns")  # read in the transposed decode's order
+    ids = [white_id, black_id, *(p for pair in pairs for p in pair)]
+    records = {pid: view.image_for(pid) for pid in ids}
+    linear = options.get("threshold", "adaptive") != "opencv"
+    with _Streamed(lambda pid: _transposed(session.read_image(view, records[pid], linear=linear)), ids) as images:
+        white, black = images[white_id], images[black_id]
+        options.setdefault("luma", session.lossy)
+        return decode_gray_images(images, _swap_axes(descs), white, black,
+                                  where=str(session.root / view.name), **options)
+
+
+EDGE_BIAS_PX = 0.034
+"""Camera px: the error of a stripe edge located by linear interpolation of the blurred
+pattern - inverse, which depends on the edge's sub-pixel phase (virtual tile, noise-free:
+RMS 0.034 px, up to 0.045; ``tests/decode/test_triangulate.py``). It changes slowly along
+an edge, so neighbouring rows do not show it (:func:`edge_noise`) and averaging along the
+edge does not remove it: the floor of an edge's error in the axis weights."""
+SMOOTHED_NOISE = 0.612
+"""Noise left in an edge position averaged ``[1, 2, 1] / 4`` along its edge (``sqrt(6) / 4``)."""
+INTERPOLATED_NOISE = 0.816
+"""Noise left in a value interpolated linearly between two edges, each with unit noise, at
+a uniformly random place between them (``sqrt(2 / 3)``)."""
+
+
+def edge_noise(edges: StripeSamples) -> tuple[float, float]:
+    """The position noise of stripe edges and their spacing, camera px: the robust standard
+    deviation (1.4826 MAD) of each edge's position about the mean of its neighbours on the
+    lines before and after it, over ``sqrt(1.5)`` (independent noise; a straight or slanted
+    edge cancels), and the median distance between consecutive edges along a line. The
+    noise over the spacing is the edges' noise in projector px. NaN where too few."""
+    if len(edges) < 10:
+        return float("nan"), float("nan")
+    before, after = edges._along_feature(2.0)
+    line, pos = edges.lines()
+    inner = np.isfinite(before) & np.isfinite(after)
+    resid = pos[inner] - 0.5 * (before[inner] + after[inner])
+    noise = 1.4826 * float(np.median(np.abs(resid))) / np.sqrt(1.5) if len(resid) >= 10 else float("nan")
+    order = np.lexsort((pos, line))
+    same = (line[order][1:] == line[order][:-1]) & (np.abs(np.diff(edges.stripe[order].astype(np.int64))) == 1)
+    gaps = np.diff(pos[order])[same]
+    spacing = float(np.median(gaps)) if len(gaps) else float("nan")
+    return noise, spacing
+
+
+def _bracket(line: np.ndarray, pos: np.ndarray, value: np.ndarray, q_line: np.ndarray, q_pos: np.ndarray,
+             max_step: float) -> np.ndarray:
+    """(q,) the value at ``q_pos`` on line ``q_line``, interpolated linearly between the edges
+    ``(line, pos, value)`` (sorted by line, then pos) just before and after it, where those
+    are 1 or 2 rows apart and at most ``max_step`` px per row apart; NaN elsewhere."""
+    n = len(line)
+    out = np.full(len(q_pos), np.nan)
+    if n < 2 or len(q_pos) == 0:
+        return out
+    span = float(max(np.max(pos), np.max(q_pos)) + 2.0)
+    key = line * span + pos
+    i = np.searchsorted(key, q_line * span + q_pos, side="right")
+    a, b = np.clip(i - 1, 0, n - 1), np.clip(i, 0, n - 1)
+    dv, dp = value[b] - value[a], pos[b] - pos[a]
+    ok = (i > 0) & (i < n) & (line[a] == q_line) & (line[b] == q_line)
+    ok &= (np.abs(dv) > 0.5) & (np.abs(dv) < 2.5) & (dp > 0) & (dp <= max_step * np.abs(dv))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        v = value[a] + (q_pos - pos[a]) / dp * dv
+    out[ok] = v[ok]
+    return out
+
+
+def _between_lines(line, pos, value, q_across, q_along, max_step) -> np.ndarray:
+    """The value at ``(q_across, q_along)`` from the lines ``floor(q_across)`` and the next,
+    weighted linearly (one line alone where the other has none and it is the nearer)."""
+    base = np.floor(q_across)
+    t = q_across - base
+    v0 = _bracket(line, pos, value, base, q_along, max_step)
+    v1 = _bracket(line, pos, value, base + 1, q_along, max_step)
+    both = (1 - t) * v0 + t * v1
+    return np.where(np.isfinite(both), both, np.where(t <= 0.5, v0, v1))
+
+
+def rows_at(row_edges: StripeSamples, x: np.ndarray, y: np.ndarray, *, max_step: float) -> np.ndarray:
+    """(k,) the continuous projector row at camera points ``(x, y)`` (k,) px, interpolated
+    between the row edges (:func:`decode_gray_transposed`'s, transposed frame) on the camera
+    columns (rows) either side: first from the edges found along camera columns, else from
+    those found along camera rows; NaN where no two consecutive edges bracket the point
+    within ``max_step`` camera px per projector row."""
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    e = row_edges
+    along_rows = np.zeros(len(e), bool) if e.along_columns is None else np.asarray(e.along_columns, bool)
+    value = np.asarray(e.projector_column, np.float64)
+    out = np.full(len(x), np.nan)
+    for sel, across, along in ((~along_rows, x, y), (along_rows, y, x)):
+        if not sel.any():
+            continue
+        if along is x:  # found along camera rows: line = the camera row, pos = the camera x
+            line, pos = np.rint(np.asarray(e.x, np.float64)[sel]), e.camera_y[sel]
+        else:  # along camera columns: line = the camera column, pos = the camera y
+            line, pos = np.asarray(e.row, np.float64)[sel], np.asarray(e.x, np.float64)[sel]
+        order = np.lexsort((pos, line))
+        todo = ~np.isfinite(out)
+        out[todo] = _between_lines(line[order], pos[order], value[sel][order], across[todo], along[todo], max_step)
+    return out
+
+
 def decode(session: Session, view: ViewRecord | str, config) -> FamilyDecode:
     """The Gray-code family's decode for a range map (:mod:`slscan.decode.family`): the
     sub-pixel stripe edges, averaged along their edge when ``config.gray_smooth``, with the
-    mesh's bridge widened for sets missing low bits or pixels dropping them."""
+    mesh's bridge widened for sets missing low bits or pixels dropping them.
+
+    With row codes and a calibrated projector whose rows pin depth better than its columns
+    (``config.projector_axes``, :func:`slscan.decode.triangulate.choose_axes`), each column
+    edge also gets its continuous projector row, interpolated from the row edges
+    (:func:`rows_at`; the captures decoded a second time, transposed), so triangulation
+    uses both axes, each weighted by its noise (``stats``: ``column_noise_px``,
+    ``row_noise_px``, projector px: the edges' noise measured along them, :func:`edge_noise`,
+    with the estimator's bias :data:`EDGE_BIAS_PX` as a floor, over the edges' spacing);
+    column edges whose row cannot be interpolated are left out
+    (``stats["rows_missing_share"]``)."""
     from slscan.decode.codes import codes_from_gray, valid_share
 
     view = session.view(view) if isinstance(view, str) else view
-    res = decode_gray(session, view, threshold=config.gray_threshold, robust=config.gray_robust_applied,
-                      drop_bits=config.gray_drop_bits)
+    options = dict(threshold=config.gray_threshold, robust=config.gray_robust_applied,
+                   drop_bits=config.gray_drop_bits)
+    res = decode_gray(session, view, **options)
     samples = res.edges.smoothed() if config.gray_smooth else res.edges
+    factor = SMOOTHED_NOISE if config.gray_smooth else 1.0
+    noise, spacing = edge_noise(res.edges)
+    stats = {"column_noise_px": float(np.hypot(factor * np.nan_to_num(noise), EDGE_BIAS_PX) / spacing)}
+    axes = _axes_for(session, res, samples, getattr(config, "projector_axes", "auto"))
+    if axes == "both":
+        rows = decode_gray_transposed(session, view, noise=res.noise, **options)
+        row_edges = rows.edges.smoothed() if config.gray_smooth else rows.edges
+        r_noise, r_spacing = edge_noise(rows.edges)
+        if not np.isfinite(r_spacing):
+            log.warning("%s: too few projector row edges (%d) to use the rows; triangulating the columns",
+                        session.root / view.name, len(rows.edges))
+            axes = "columns"
+    if axes == "both":
+        v = rows_at(row_edges, samples.x, samples.camera_y, max_step=2.0 * r_spacing)
+        # a column edge without its row would fall back on the column alone, the axis the
+        # geometry (or the user) turned away from: left out (kamino410 capture_0: those 6 %
+        # of the samples were 5.8 mm RMS from the board's plane, the others 0.47 mm)
+        has_row = np.isfinite(v)
+        samples = replace(samples, projector_row=v).subset(has_row)
+        stats["row_noise_px"] = float(INTERPOLATED_NOISE * np.hypot(factor * np.nan_to_num(r_noise), EDGE_BIAS_PX) / r_spacing)
+        stats["rows_missing_share"] = float(1.0 - has_row.mean()) if len(has_row) else 0.0
     used, bits = res.bits_used.get("columns", (0, 0))
     # a set missing low bits has edges 2**missing columns apart, and pixels with dropped bits
     # 2**dropped: bridge one such spacing and a half (the default 6 columns already span blocks of 4)
@@ -1524,7 +1674,30 @@ def decode(session: Session, view: ViewRecord | str, config) -> FamilyDecode:
         samples=samples, mask=res.mask, codes=res.column, code_max=session.projector_size[0],
         saturated=res.saturated, white=res.white, max_gap_columns=gap,
         projector_codes=codes_from_gray(res, session, view.name), valid_share=valid_share(res),
+        stats=stats,
     )
+
+
+def _axes_for(session: Session, res: GrayResult, samples: StripeSamples, wanted: str) -> str:
+    """"both" when the view has row codes, the session a projector and ``wanted`` asks for
+    rows ("both", or "auto" where they pin depth better: :func:`choose_axes` at the depths
+    of the decoded rows' planes), else "columns"."""
+    from slscan.decode.triangulate import axis_conditioning, choose_axes, plane_start
+
+    rig = session.calibration
+    if wanted == "columns" or res.row is None or len(samples) == 0:
+        return "columns"
+    if wanted == "both":
+        return "both"
+    if rig is None:
+        return "columns"
+    take = np.linspace(0, len(samples) - 1, min(len(samples), 4000)).astype(np.int64)
+    pick = samples.subset(take)
+    h, w = res.row.shape
+    r = res.row[np.clip(pick.row, 0, h - 1), np.clip(np.rint(pick.x).astype(np.int64), 0, w - 1)]
+    rays = rig.camera.rays_local(pick.pixels())
+    depth = plane_start(rays, rig.projector, pick.projector_column, np.where(r >= 0, r, np.nan))
+    return choose_axes(axis_conditioning(rays, rig.projector, depth), wanted)
 
 
 def projector_codes(session: Session, view: ViewRecord | str, config=None):

@@ -49,7 +49,7 @@ from slscan.decode.rangemap import (
     write_ply,
 )
 from slscan.decode.samples import LightPlanes, StripeSamples
-from slscan.decode.triangulate import RigPlanes, triangulate
+from slscan.decode.triangulate import AXES, RigPlanes, TriangulationReport, triangulate, triangulation_report
 from slscan.errors import SlscanError
 from slscan.executor import LOCAL, Executor
 from slscan.fsio import atomic_output_dir, write_json
@@ -127,6 +127,16 @@ class DecodeConfig:
     washes out the finest stripes) keeps the coarser code of its leading run of good bits
     when at most this many are dropped (``decode.graycode``, ``drop_bits``); its edges come
     only between blocks of ``2**dropped`` columns, which the mesh bridges. 0: every bit or none."""
+    projector_axes: str = "auto"
+    """{"auto", "columns", "both"}: the projector coordinates triangulated with a calibrated
+    inverse-camera projector. "both": each sample's column and row, least squares, each
+    axis weighted by its measured noise (phase shifting with row fringes; Gray code with
+    row codes, each column edge given its row interpolated from the row edges, which
+    costs a second decode of the captures). "auto": both where the geometry makes the
+    rows worth it (``decode.triangulate.choose_axes``: the median depth noise at least
+    1.25x smaller than with the columns alone; a projector above or below the camera),
+    else the columns. Light planes have only columns. The choice and the depth noise per
+    projector pixel of each axis are reported per view (``range_maps.json``)."""
     phase_min_modulation: float = 0.15
     """Phase shifting: a pixel's fringe amplitude ``2 B`` must exceed this share of its white
     minus black (defocus, subsurface scattering and global light lower it; below, the phase
@@ -156,6 +166,10 @@ class DecodeConfig:
             raise SlscanError(
                 f"unknown gray_threshold {self.gray_threshold!r}: expected one of "
                 f"{', '.join(THRESHOLD_MODES)}"
+            )
+        if self.projector_axes not in AXES:
+            raise SlscanError(
+                f"unknown projector_axes {self.projector_axes!r}: expected one of {', '.join(AXES)}"
             )
         if isinstance(self.gray_drop_bits, bool) or not isinstance(self.gray_drop_bits, int) \
                 or self.gray_drop_bits < 0:
@@ -204,6 +218,8 @@ class ViewDecode:
         them only until then)
     stats : further per-view numbers of the family's decoder (in ``metrics``)
     features : the samples are features drawn as stripe axes (False: one per pixel)
+    triangulation : the projector model and axes that triangulated the view, and how well
+        each axis pins depth there (in ``metrics`` and ``range_maps.json``)
     """
 
     view: str
@@ -222,12 +238,14 @@ class ViewDecode:
     maps: dict[str, DisplayMap] = field(default_factory=dict)
     stats: dict[str, float] = field(default_factory=dict)
     features: bool = True
+    triangulation: TriangulationReport | None = None
 
     @property
     def metrics(self) -> dict[str, float]:
         n = len(self.samples)
         return {
             **self.stats,
+            **({} if self.triangulation is None else self.triangulation.metrics()),
             "samples": float(n),
             "vertices": float(len(self.range_map.vertices)),
             "faces": float(len(self.range_map.faces)),
@@ -319,7 +337,9 @@ def decode_view(
     method = choose_method(session, config.method)
     seconds = {}
     t = time.perf_counter()
-    res = family(method).decode_module().decode(session, view, config)
+    # light planes have no rows: the decoder need not find them
+    fam_config = config if isinstance(planes, RigPlanes) else replace(config, projector_axes="columns")
+    res = family(method).decode_module().decode(session, view, fam_config)
     samples = res.samples
     if config.trim_line_ends:
         samples = samples.trim_line_ends(config.trim_line_ends)
@@ -329,8 +349,13 @@ def decode_view(
         projector_codes = decode_codes(session, view, config)
         share = projector_codes.valid_share
     t = time.perf_counter()
-    points = triangulate(samples, rig.camera, planes)
+    noise = (res.stats.get("column_noise_px", float("nan")), res.stats.get("row_noise_px", float("nan")))
+    # each axis weighted by its measured noise (equal weights where not measured)
+    sigma = tuple(float(n) if np.isfinite(n) and n > 0 else 1.0 for n in noise)
+    points = triangulate(samples, rig.camera, planes, sigma=sigma)
     seconds["triangulate"] = time.perf_counter() - t
+    report = triangulation_report(samples, points, rig.camera, rig.projector, planes, sigma=noise,
+                                  rows_missing=float(res.stats.get("rows_missing_share", 0.0)))
     t = time.perf_counter()
     range_map = build_range_map(
         samples,
@@ -349,8 +374,7 @@ def decode_view(
         view=view.name, method=method, samples=samples, points=points, range_map=range_map,
         mask=res.mask, codes=res.codes, code_max=res.code_max, saturated=res.saturated, white=res.white,
         seconds=seconds, projector_codes=projector_codes, valid_share=share, maps=dict(res.maps),
-        features=res.features,
-        stats=dict(res.stats),
+        features=res.features, stats=dict(res.stats), triangulation=report,
     )
 
 
@@ -446,6 +470,7 @@ def decode_session(
                 "view": view.name, "file": f"{view.name}.ply", "method": result.method,
                 "rig_from_object": None if view.rig_from_object is None else view.rig_from_object.tolist(),
                 "metrics": result.metrics, "seconds": result.seconds,
+                **({} if result.triangulation is None else {"triangulation": result.triangulation.to_dict()}),
             })
             results.append(result)
         if codes:

@@ -9,8 +9,10 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from slscan.errors import SlscanError
-from slscan.rig import Rig, default_rig
+from slscan.rig import Projector, Rig, default_rig, look_at
 
 
 @dataclass(frozen=True)
@@ -32,6 +34,14 @@ class RigParams:
     camera's right): the triangulation angle."""
     camera_distortion: tuple[float, float, float, float, float] = (-0.06, 0.04, 0.0, 0.0, 0.0)
     """Camera lens distortion, OpenCV's (k1, k2, p1, p2, k3)."""
+    projector_distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    """Projector lens distortion, OpenCV's (k1, k2, p1, p2, k3); none by default (kamino410's
+    projector, calibrated: about (-0.11, 0.15, 0.006, -0.001, 0))."""
+    baseline_direction_deg: float = 0.0
+    """Where the projector sits seen from the camera, degrees in the camera's image plane from
+    its right (+x) towards up (-y): 0 beside the camera on its right (the paper's rig), 90
+    above it (its columns then nearly contain the camera centre: rows pin depth). The
+    projector is turned to look at the same point, its columns kept upright."""
     lights: int = 6
     """Ring lights around the camera (for the albedo images)."""
     light_ring_radius: float = 250.0
@@ -49,17 +59,35 @@ class RigParams:
         if not 1.0 <= self.axes_angle_deg <= 80.0:
             raise SlscanError(f"axes_angle_deg: expected 1 to 80 degrees (the projector must see what the "
                               f"camera sees, from aside), got {self.axes_angle_deg}")
+        if len(self.projector_distortion) != 5 or not all(math.isfinite(v) for v in self.projector_distortion):
+            raise SlscanError(f"projector_distortion: expected 5 finite numbers (k1, k2, p1, p2, k3), "
+                              f"got {list(self.projector_distortion)}")
+        if not (math.isfinite(self.baseline_direction_deg) and -180 <= self.baseline_direction_deg <= 360):
+            raise SlscanError(f"baseline_direction_deg: expected -180 to 360 degrees, got {self.baseline_direction_deg}")
         if not 0 <= self.lights <= 64:
             raise SlscanError(f"lights: expected 0 to 64 ring lights, got {self.lights}")
 
     def rig(self, *, scale: float = 1.0, projector_scale: float = 1.0) -> Rig:
         """The rig, its sensors scaled by ``scale`` (camera) and ``projector_scale``."""
-        return default_rig(
+        from dataclasses import replace
+
+        rig = default_rig(
             scale=scale, projector_scale=projector_scale, working_distance=self.working_distance,
             axes_angle_deg=self.axes_angle_deg, n_lights=self.lights, light_ring_radius=self.light_ring_radius,
             camera_size=self.camera_size, projector_size=self.projector_size, sampling_mm=self.sampling_mm,
             camera_distortion=self.camera_distortion,
         )
+        if not any(self.projector_distortion) and self.baseline_direction_deg == 0:
+            return rig
+        lens = replace(rig.projector.lens, dist=tuple(float(v) for v in self.projector_distortion))
+        pose = rig.projector.rig_from_projector
+        if self.baseline_direction_deg != 0:
+            a, phi = math.radians(self.axes_angle_deg), math.radians(self.baseline_direction_deg)
+            target = np.array([0.0, 0.0, self.working_distance])
+            eye = target + self.working_distance * np.array(
+                [math.sin(a) * math.cos(phi), -math.sin(a) * math.sin(phi), -math.cos(a)])
+            pose = look_at(eye, target)
+        return replace(rig, projector=Projector(lens, pose))
 
 
 def load_rig_file(path: str | os.PathLike, *, scale: float = 1.0, projector_scale: float = 1.0) -> Rig:
