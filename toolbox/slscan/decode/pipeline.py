@@ -341,6 +341,8 @@ def decode_view(
     fam_config = config if isinstance(planes, RigPlanes) else replace(config, projector_axes="columns")
     res = family(method).decode_module().decode(session, view, fam_config)
     samples = res.samples
+    if fam_config.projector_axes == "columns" and samples.projector_row is not None:
+        samples = replace(samples, projector_row=None)  # rows decoded (phase shifting) but not wanted
     if config.trim_line_ends:
         samples = samples.trim_line_ends(config.trim_line_ends)
     seconds["decode"] = time.perf_counter() - t
