@@ -239,14 +239,22 @@ def test_gamma_fit_recovers_a_known_exponent():
     assert g == pytest.approx(1.8, rel=0.01) and rms < 0.005
 
 
-def test_virtual_response_capture_measures_the_projector_gamma(tmp_path):
-    from slscan.decode.phase_gamma import estimate_gamma
-    from slscan.virtual.device import VirtualCaptureConfig, capture_session
-    from slscan.virtual.render import Optics
+def test_virtual_response_capture_measures_the_projector_gamma(tmp_path, capsys):
+    """Through the commands a user runs: capture the response set through a projector of
+    known gamma, measure it, write it."""
+    import json
 
-    config = VirtualCaptureConfig(scene="tile", patterns="phase-response", camera_scale=0.25, projector_scale=0.25,
-                                  lit_images=False, optics=Optics(projector_gamma=1.8))
-    session = capture_session(config, tmp_path / "response")
-    found = estimate_gamma(session)
-    assert found.gamma == pytest.approx(1.8, rel=0.03) and found.spread < 0.05
-    assert [round(gp, 2) for gp, *_ in found.per_set] == [0.75, 1.25]
+    from slscan.cli import main
+
+    session = tmp_path / "response"
+    assert main(["capture", "--scene", "tile", "--patterns", "phase-response", "--projector-response", "1.8",
+                 "--scale", "0.25", "--no-lit", "--out", str(session), "--quiet"]) == 0
+    assert main(["response", str(session), "--out", str(tmp_path / "gamma.json")]) == 0
+    found = json.loads((tmp_path / "gamma.json").read_text())
+    assert found["gamma"] == pytest.approx(1.8, rel=0.03)
+    assert [round(s["pre_distortion"], 2) for s in found["sets"]] == [0.75, 1.25]
+    assert max(s["gamma"] for s in found["sets"]) - min(s["gamma"] for s in found["sets"]) < 0.05
+    assert f"decode with --projector-gamma {found['gamma']:.3f}" in capsys.readouterr().err
+    # a second write needs --overwrite; a session with no response set says what to capture
+    assert main(["response", str(session), "--out", str(tmp_path / "gamma.json")]) == 2
+    assert "already exists" in capsys.readouterr().err

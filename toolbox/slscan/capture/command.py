@@ -126,6 +126,9 @@ def add_placement_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--effects", default=None, metavar="NAMES",
                    help="light-transport effects to render, comma-separated, or all (default: direct light "
                         "only; an unknown name lists the known ones; docs/virtual-rig.md)")
+    p.add_argument("--projector-response", type=float, default=None, metavar="GAMMA",
+                   help="the virtual projector's response: pattern value v emits v ** GAMMA (default 1: linear; "
+                        "the tone effect sets 2.2); for testing a response capture (slscan response) against truth")
     p.add_argument("--rig", type=Path, default=None, metavar="RIG.json",
                    help="the virtual rig's camera, projector and lights as Rig.to_dict writes them (or a "
                         "session.json: its calibration); default: the paper's rig")
@@ -140,9 +143,16 @@ def placement_settings(args: argparse.Namespace) -> dict:
     check_pose_text(args.scene_pose, "--scene-pose")
     from slscan.virtual.effects import parse_effects
 
-    return {"scene_units": args.scene_units, "scene_pose": args.scene_pose,
-            "rig_file": None if args.rig is None else str(args.rig),
-            "effects": parse_effects(args.effects, "--effects")}
+    settings = {"scene_units": args.scene_units, "scene_pose": args.scene_pose,
+                "rig_file": None if args.rig is None else str(args.rig),
+                "effects": parse_effects(args.effects, "--effects")}
+    if getattr(args, "projector_response", None) is not None:
+        from slscan.virtual.render import Optics
+
+        if not 0.2 <= args.projector_response <= 5:
+            raise SlscanError(f"--projector-response must be in [0.2, 5], got {args.projector_response}")
+        settings["optics"] = Optics(projector_gamma=args.projector_response)
+    return settings
 
 
 # --- devices --------------------------------------------------------------------------------
