@@ -216,8 +216,8 @@ def test_virtual_tile_range_map_is_flat_and_true(tile):
 
 @pytest.mark.parametrize("steps,gamma", [(3, 2.2), (4, 1.645), (3, 0.6)])
 def test_phase_correction_inverts_the_response(steps, gamma):
-    from slscan.patterns.phase import generate
     from slscan.decode.phase_gamma import measured_phase, phase_correction, phase_error
+    from slscan.patterns.phase import generate
 
     shifts = [d.params["shift"] for d in generate(64, 8, steps=steps) if d.params["kind"] == "sine"]
     theta = np.linspace(0, 2 * np.pi, 997, endpoint=False)

@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 
 from slscan.errors import SlscanError
-from slscan.patterns import family, families_in, profile, render, set_families, standard_set
-from slscan.patterns import phase
+from slscan.patterns import families_in, family, phase, profile, render, set_families, standard_set
 from slscan.patterns.graycode import inverse_gray
 
 

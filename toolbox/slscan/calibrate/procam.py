@@ -45,7 +45,6 @@ import numpy as np
 
 from slscan.calibrate.camera import distortion_flags, lens_from_opencv
 from slscan.calibrate.target import MIN_CORNERS, Board, CornerDetection, pose_matrix
-from slscan.capture.session import Session, ViewRecord
 from slscan.decode.family import ProjectorConstraints
 from slscan.decode.graycode import GrayAxes, decode_gray_axes  # noqa: F401 (moved there; imported from here)
 from slscan.errors import SlscanError

@@ -56,6 +56,7 @@ from typing import Self
 import numpy as np
 
 from slscan.capture.session import Session, ViewRecord
+from slscan.decode.family import FamilyDecode, ProjectorConstraints
 from slscan.decode.masks import (
     channel_max,
     channel_mean,
@@ -64,7 +65,6 @@ from slscan.decode.masks import (
     lit_bounds,
     uncrop,
 )
-from slscan.decode.family import FamilyDecode, ProjectorConstraints
 from slscan.decode.samples import StripeSamples
 from slscan.errors import SlscanError
 from slscan.patterns import PatternImage
@@ -1641,8 +1641,8 @@ def decode(session: Session, view: ViewRecord | str, config) -> FamilyDecode:
     from slscan.decode.codes import codes_from_gray, valid_share
 
     view = session.view(view) if isinstance(view, str) else view
-    options = dict(threshold=config.gray_threshold, robust=config.gray_robust_applied,
-                   drop_bits=config.gray_drop_bits)
+    options = {"threshold": config.gray_threshold, "robust": config.gray_robust_applied,
+               "drop_bits": config.gray_drop_bits}
     res = decode_gray(session, view, **options)
     samples = res.edges.smoothed() if config.gray_smooth else res.edges
     factor = SMOOTHED_NOISE if config.gray_smooth else 1.0

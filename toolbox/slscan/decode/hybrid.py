@@ -94,6 +94,7 @@ import cv2
 import numpy as np
 
 from slscan.capture.session import ImageRecord, Session, ViewRecord
+from slscan.decode.family import FamilyDecode
 from slscan.decode.masks import (
     DEFAULT_MIN_CONTRAST,
     SaturationReport,
@@ -108,7 +109,6 @@ from slscan.decode.masks import (
     warn_saturation,
 )
 from slscan.decode.options import DEFAULT_ESTIMATOR, ESTIMATORS
-from slscan.decode.family import FamilyDecode
 from slscan.decode.samples import StripeSamples
 from slscan.errors import SlscanError
 from slscan.patterns import PatternImage

@@ -40,7 +40,14 @@ import numpy as np
 
 from slscan.capture.session import Session, ViewRecord
 from slscan.decode.family import FamilyDecode, ProjectorConstraints
-from slscan.decode.masks import channel_max, channel_mean, full_scale, lit_bounds, noise_sigma, uncrop
+from slscan.decode.masks import (
+    channel_max,
+    channel_mean,
+    full_scale,
+    lit_bounds,
+    noise_sigma,
+    uncrop,
+)
 from slscan.decode.samples import StripeSamples
 from slscan.errors import SlscanError
 from slscan.patterns import PatternImage

@@ -227,7 +227,7 @@ def estimate_gamma(session: Session, view: ViewRecord | str | None = None, *, ma
     lit = (white - black) > 0.1
     per_set = []
     used = 0
-    for axis, s in sets.items():
+    for s in sets.values():
         if s.gray is None or s.gray.cell > min(f.period for f in s.fringes) / 4:
             continue
         bits = [grey(read(pat), pat) > (grey(read(inv), inv) if inv is not None else 0.5 * (white + black))
@@ -235,7 +235,7 @@ def estimate_gamma(session: Session, view: ViewRecord | str | None = None, *, ma
         x = s.gray.origin + s.gray.cell * (gray_order(bits) + 0.5)
         idx = np.flatnonzero(lit.ravel())
         if len(idx) > max_pixels:
-            idx = idx[:: int(math.ceil(len(idx) / max_pixels))]
+            idx = idx[:: math.ceil(len(idx) / max_pixels)]
         stacks = [np.stack([grey(read(i), i).ravel()[idx] for i in f.ids]) for f in s.fringes]
         swing = np.min([st.max(axis=0) - st.min(axis=0) for st in stacks], axis=0)
         keep = swing > min_modulation * (white - black).ravel()[idx]

@@ -49,7 +49,13 @@ from slscan.decode.rangemap import (
     write_ply,
 )
 from slscan.decode.samples import LightPlanes, StripeSamples
-from slscan.decode.triangulate import AXES, RigPlanes, TriangulationReport, triangulate, triangulation_report
+from slscan.decode.triangulate import (
+    AXES,
+    RigPlanes,
+    TriangulationReport,
+    triangulate,
+    triangulation_report,
+)
 from slscan.errors import SlscanError
 from slscan.executor import LOCAL, Executor
 from slscan.fsio import atomic_output_dir, write_json

@@ -50,6 +50,7 @@ References
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Sequence
 
@@ -89,7 +90,7 @@ def joint_period(periods: Sequence[float]) -> float:
     level = sorted(float(p) for p in periods)
     while len(level) > 1:
         beats = []
-        for a, b in zip(level, level[1:]):
+        for a, b in itertools.pairwise(level):
             if abs(b - a) < 1e-9 * b:
                 return math.inf
             beats.append(a * b / abs(b - a))
