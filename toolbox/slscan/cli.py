@@ -397,7 +397,7 @@ def _stereo_config(args: argparse.Namespace):
     return StereoConfig(
         subpixel=args.stereo_refine == "plane",
         max_epipolar_px=auto_or("--stereo-epipolar", args.stereo_epipolar, float),
-        max_ray_gap_mm=args.stereo_ray_gap,
+        max_ray_gap_mm=auto_or("--stereo-ray-gap", args.stereo_ray_gap, float),
         mesh_step=auto_or("--stereo-mesh-step", args.stereo_mesh_step, int),
         gray_threshold=args.gray_threshold,
         gray_drop_bits=args.gray_drop_bits,
@@ -804,8 +804,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="multi-camera matching: largest symmetric epipolar distance of a match, camera px "
                         "(default auto: the view's median plus 4 robust deviations, at least 1 px, so the "
                         "calibration's own residual is measured; the limit used is printed)")
-    p.add_argument("--stereo-ray-gap", type=float, default=2.0, metavar="MM",
-                   help="multi-camera matching: largest distance between the two rays of a match, mm (default 2)")
+    p.add_argument("--stereo-ray-gap", default="auto", metavar="auto|MM",
+                   help="multi-camera matching: largest distance between the two rays of a match, mm "
+                        "(default auto: the same rule on the view's ray gaps, at least 2 mm)")
     p.add_argument("--stereo-mesh-step", default="auto", metavar="auto|N",
                    help="multi-camera matching: the mesh's grid step, projector px (default auto: follows the "
                         "codes' real step, 2 or 4 where Gray-code bits are dropped (--gray-drop-bits) or "

@@ -77,7 +77,8 @@ robust standard deviations of them (1.4826 MAD): the calibration's residual, mea
 the matches themselves (for a half-normal distribution, the 99.8th percentile)."""
 
 MAX_RAY_GAP_MM = 2.0
-"""Default: matches whose two rays pass further apart than this (mm) are rejected."""
+"""The fixed ray-gap limit slscan used before ``"auto"``, and the floor of ``"auto"`` (mm):
+matches whose two rays pass further apart than this are rejected."""
 
 OUTLIER_PX = 3.0
 """Default: pixels this far (camera px) from their cell's median position are left out of
@@ -117,8 +118,10 @@ class StereoConfig:
     at least :data:`EPIPOLAR_FLOOR_PX`: a calibration whose residual is 1.8 px (a real
     two-camera set) is not held to a limit for an exact one. The limit used is reported in
     the match counts (``epipolar_limit_px``)."""
-    max_ray_gap_mm: float = MAX_RAY_GAP_MM
-    """Largest distance between the two rays of a match, mm."""
+    max_ray_gap_mm: float | str = "auto"
+    """Largest distance between the two rays of a match, mm; ``"auto"`` (default): the same
+    rule on the view's ray gaps, at least :data:`MAX_RAY_GAP_MM` (the gap is the epipolar
+    distance in mm at the point's depth: a calibration residual widens both)."""
     outlier_px: float = OUTLIER_PX
     """Pixels further than this from their cell's median position do not count, camera px
     (cells covering a block of pixels allow :data:`OUTLIER_SPREAD` times their spread)."""
@@ -152,12 +155,13 @@ class StereoConfig:
     its code then marks a block of 2 or 4 projector pixels."""
 
     def __post_init__(self) -> None:
-        for name in ("max_ray_gap_mm", "outlier_px", "max_edge_factor"):
+        for name in ("outlier_px", "max_edge_factor"):
             if not getattr(self, name) > 0:
                 raise SlscanError(f"stereo {name} must be positive, got {getattr(self, name)!r}")
-        epi = self.max_epipolar_px
-        if not (epi == "auto" or (isinstance(epi, (int, float)) and not isinstance(epi, bool) and epi > 0)):
-            raise SlscanError(f"stereo max_epipolar_px must be 'auto' or a positive number of px, got {epi!r}")
+        for name, unit in (("max_epipolar_px", "px"), ("max_ray_gap_mm", "mm")):
+            v = getattr(self, name)
+            if not (v == "auto" or (isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0)):
+                raise SlscanError(f"stereo {name} must be 'auto' or a positive number of {unit}, got {v!r}")
         if not (isinstance(self.code_step, int) and self.code_step >= 1):
             raise SlscanError(f"stereo code_step must be a whole number >= 1, got {self.code_step!r}")
         step = self.mesh_step
@@ -475,7 +479,8 @@ def epipolar_limit(distances: np.ndarray, *, floor: float = EPIPOLAR_FLOOR_PX,
     """The ``"auto"`` epipolar limit, camera px, from the matches' own epipolar distances
     (k,): ``max(floor, median + sigmas * 1.4826 * MAD)`` over the finite ones (``floor``
     when there are none). A calibration's residual shows as a shift of the whole
-    distribution (the good matches' median), wrong matches as its far tail."""
+    distribution (the good matches' median), wrong matches as its far tail. (The
+    ``"auto"`` ray-gap limit is the same rule on the ray gaps, mm.)"""
     d = np.asarray(distances, float)
     d = d[np.isfinite(d)]
     if not len(d):
@@ -497,9 +502,10 @@ class StereoMatch:
     stats : counts: cells seen by each camera (``codes_a``, ``codes_b``) and how many of
         them were plane-fitted (``refined_a``, ``refined_b``; the others are centroids),
         common to both, rejected (``rejected_epipolar``, ``rejected_ray_gap``,
-        ``rejected_behind``), kept (``matched``); and, px, the epipolar limit used
+        ``rejected_behind``), kept (``matched``); the epipolar limit used
         (``epipolar_limit_px``) and the median epipolar distance of the common cells in
-        front of both cameras (``epipolar_median_px``, NaN when none)
+        front of both cameras (``epipolar_median_px``, absent when none), px; the ray-gap
+        limit used (``ray_gap_limit_mm``)
     """
 
     points: np.ndarray
@@ -522,13 +528,15 @@ def match_codes(
     projector_height: int,
     code_step: int = 1,
     max_epipolar_px: float | str = "auto",
-    max_ray_gap_mm: float = MAX_RAY_GAP_MM,
+    max_ray_gap_mm: float | str = "auto",
 ) -> StereoMatch:
     """Triangulate the cells seen by both cameras; points in camera a's frame.
 
     a_from_b : (4, 4) mm, camera b's pose in camera a's frame
     max_epipolar_px : px, or ``"auto"`` (:func:`epipolar_limit` of the common cells in
         front of both cameras)
+    max_ray_gap_mm : mm, or ``"auto"`` (the same rule on their ray gaps, at least
+        :data:`MAX_RAY_GAP_MM`)
     """
     common, ia, ib = np.intersect1d(a.codes, b.codes, assume_unique=True, return_indices=True)
     xa = lens_a.rays_local(a.xy[ia])
@@ -540,8 +548,10 @@ def match_codes(
     epi = epipolar_distance(xa, xb, a_from_b, lens_a.fx, lens_b.fx)
     front = (s > 0) & (t > 0)
     limit = epipolar_limit(epi[front]) if max_epipolar_px == "auto" else float(max_epipolar_px)
+    gap_limit = (epipolar_limit(gap[front], floor=MAX_RAY_GAP_MM) if max_ray_gap_mm == "auto"
+                 else float(max_ray_gap_mm))
     epi_ok = epi <= limit
-    gap_ok = gap <= max_ray_gap_mm
+    gap_ok = gap <= gap_limit
     keep = front & epi_ok & gap_ok
     rows_per = -(-int(projector_height) // code_step)
     half = (code_step - 1) // 2
@@ -553,6 +563,7 @@ def match_codes(
         "rejected_ray_gap": int((front & epi_ok & ~gap_ok).sum()),
         "matched": int(keep.sum()),
         "epipolar_limit_px": float(limit),
+        "ray_gap_limit_mm": float(gap_limit),
     }
     if front.any():
         stats["epipolar_median_px"] = float(np.median(epi[front]))
@@ -716,7 +727,8 @@ class StereoView:
             med = f"; median {median:.2f} px" if median is not None else ""
             parts.append(
                 f"rejected {st['rejected_epipolar']:,} by the epipolar limit ({st['epipolar_limit_px']:.2f} px{med}), "
-                f"{st['rejected_ray_gap']:,} by the ray gap, {st['rejected_behind']:,} behind a camera; "
+                f"{st['rejected_ray_gap']:,} by the ray gap ({st['ray_gap_limit_mm']:.2f} mm), "
+                f"{st['rejected_behind']:,} behind a camera; "
                 f"{st['matched']:,} matched")
         if st["matched"]:
             m = self.mesh
