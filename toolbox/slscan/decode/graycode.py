@@ -29,10 +29,14 @@ images as an OpenCV user loads them (RGB through ``cv2.cvtColor``; never lineari
 with nothing else rejecting pixels, so the mask is OpenCV's; 16-bit captures: the same
 share of full scale (thresholds times 257).
 
-Memory: a view keeps, per column bit, only ``pattern - inverse`` (int16 for 8-bit
-captures); row bits are folded into the row code as they are read, the noise is
-estimated on a subsample while reading, and edges are searched in bands, so a 16 MP,
-42-image view decodes in about 1 GB (``benchmarks/decode_memory.py``).
+Memory: a view keeps, per column bit, both captures' grey levels (1 byte a pixel each for
+8-bit grey captures) or, for float levels (float or linearised sRGB captures), only
+``pattern - inverse``; row bits are folded into the row code as they are read, the noise
+is estimated on a subsample while reading, and edges are searched in bands. Captures are
+read as stored, one JPEG decode each, by a thread that turns each into the grey plane
+kept of it while the decoder works. A 16 MP, 42-image view decodes in about 1 GB (grey
+PNG, ``benchmarks/decode_memory.py``) to 2 GB (colour JPEG through an sRGB curve, lit
+across the frame, ``benchmarks/decode_16mp.py``).
 
 References
 ----------

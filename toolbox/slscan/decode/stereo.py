@@ -617,7 +617,8 @@ def mesh_matches(
         neighbour of either (:func:`_axis_links`), so codes 2 or 4 apart (Gray-code bits
         dropped) mesh at their own step while a missing code among codes 1 apart stays a
         hole. A point, its right and lower neighbours and their common neighbour give two
-        triangles (a full grid square); without the fourth, the one triangle that exists.
+        triangles (a full grid square); with the right, lower or far corner missing, the
+        one triangle that is left.
     Long-edged and grazing triangles are cut as in
     :func:`slscan.decode.rangemap.build_range_map` (edge lengths expected from the median
     length per projector pixel of the links), and points in no triangle are left out
@@ -650,15 +651,16 @@ def _mesh(
         right = _axis_links(row, col, allowed)
         down = _axis_links(col, row, allowed)
         has_r, has_d = right >= 0, down >= 0
+        r_of_d = np.where(has_d, right[np.where(has_d, down, 0)], -1)  # the far corner, two ways
+        d_of_r = np.where(has_r, down[np.where(has_r, right, 0)], -1)
         both = has_r & has_d
-        r_of_d = np.where(both, right[np.where(has_d, down, 0)], -1)
-        d_of_r = np.where(both, down[np.where(has_r, right, 0)], -1)
-        corner = np.where(both & (r_of_d == d_of_r), r_of_d, -1)
+        corner = np.where(both, np.where(r_of_d == d_of_r, r_of_d, -1), np.maximum(r_of_d, d_of_r))
         p00 = np.arange(k)
-        full = corner >= 0
+        has_c = corner >= 0
+        # a grid square's two triangles, or with one corner missing the one left
         tri = np.concatenate([
-            np.stack([p00, right, corner], 1)[full], np.stack([p00, corner, down], 1)[full],
-            np.stack([p00, right, down], 1)[both & ~full],
+            np.stack([p00, right, corner], 1)[has_r & has_c], np.stack([p00, corner, down], 1)[has_d & has_c],
+            np.stack([p00, right, down], 1)[both & ~has_c],
         ])
         depth = np.linalg.norm(points, axis=1)
 
