@@ -166,9 +166,9 @@ def test_stereo_recovers_the_virtual_figurine(two_cameras, subpixel, median_mm, 
 
     Half size: a camera pixel spans 1.4 mm at 1.3 m, and a projector pixel about one camera
     pixel, so the plain centroid of a code averages one or two pixel centres and is off by
-    up to half a pixel in each camera (measured 0.32 / 0.91 mm): tolerances a third of a
+    up to half a pixel in each camera (measured 0.31 / 0.90 mm): tolerances a third of a
     pixel's footprint (median) and one footprint (95th percentile). The sub-pixel
-    refinement (measured 0.25 / 0.72 mm; the camera-projector edges: 0.09 / 0.29 mm) is
+    refinement (measured 0.25 / 0.70 mm; the camera-projector edges: 0.09 / 0.29 mm) is
     held to a quarter and to 0.7 of a footprint.
     """
     view = two_cameras.sessions[0].views[0]
@@ -177,10 +177,10 @@ def test_stereo_recovers_the_virtual_figurine(two_cameras, subpixel, median_mm, 
     assert st["matched"] > 0.35 * st["codes_a"]
     assert st["matched"] + st["rejected_epipolar"] + st["rejected_ray_gap"] + st["rejected_behind"] == st["common"]
     rm = result.range_map
-    # 5789 vertices and 5266 faces measured at the default camera blur σ 0.6 px (4392 and
-    # 4202 before cells fell back to centroids and the mesh linked codes 2 apart): at half
-    # size a projector pixel is about a camera pixel, and many of the finest Gray-code
-    # cells drown in the blur (the matches' median spacing is 2 projector px)
+    # 4412 vertices and 4233 faces measured at the default camera blur σ 0.6 px (5706 and
+    # 5514 at σ 0.5, the colour model changes nothing; the centroids: 6593 and 6533, their
+    # codes 2 apart meshed): at half size a projector pixel is about a camera pixel, and
+    # more of the finest Gray-code cells drown in the blur
     assert len(rm.vertices) > 4000 and len(rm.faces) > 4000
     d = _true_distance(rm.vertices, view.rig_from_object)
     assert np.median(d) < median_mm
@@ -312,15 +312,20 @@ def _distances(result, pose, scene: str) -> np.ndarray:
 def test_block_codes_fall_back_to_centroids(blocks):
     """Codes covering blocks of pixels wider than the plane fit's 7 x 7 window (2 bits
     missing: 16 x 16 camera px) leave every fit degenerate; the cells fall back to their
-    centroids instead of being lost (before: 0 cells kept), and triangulate as accurately."""
+    centroids instead of being lost (before: 0 cells kept)."""
     view = blocks.sessions[0].views[0]
     coarse = _without_fine_bits(blocks, 2)
     fitted = reconstruct_view(coarse, view.name, StereoConfig())
     plain = reconstruct_view(coarse, view.name, StereoConfig(subpixel=False))
     st = fitted.match.stats
     assert st["refined_a"] == st["refined_b"] == 0  # no fit succeeds on 16-px blocks...
-    assert st["codes_a"] == plain.match.stats["codes_a"] > 150  # ...and no cell is lost (measured 232)
-    np.testing.assert_allclose(fitted.match.points, plain.match.points)
+    # ...and no block is lost: measured 231 of the 232 cells of the centroids (one, cut by
+    # the tile's edge, covers fewer than 9 pixels), placed at the same centroids
+    assert st["codes_a"] >= plain.match.stats["codes_a"] - 3 and st["codes_a"] > 150
+    assert st["matched"] >= plain.match.stats["matched"] - 3
+    both, i, j = np.intersect1d(fitted.match.column * 1000 + fitted.match.row,
+                                plain.match.column * 1000 + plain.match.row, return_indices=True)
+    np.testing.assert_allclose(fitted.match.points[i], plain.match.points[j])
     # measured: median 0.11 mm, 95 % 1.1 mm (a camera pixel spans 1.4 mm, a block 22 mm)
     d = _distances(fitted, view.rig_from_object, "tile")
     assert np.median(d) < 0.25 and np.percentile(d, 95) < 2.0

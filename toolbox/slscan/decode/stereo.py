@@ -95,8 +95,14 @@ fits the decoded codes by planes."""
 
 MIN_REFINED_SHARE = 0.5
 """A cell takes the mean of its plane-fitted pixels when at least this share of its pixels
-could be fitted, else the centroid of all its pixels (the fit is degenerate where a code
-covers a block wider than the window: constant codes, no gradient)."""
+could be fitted..."""
+
+MIN_BLOCK_PIXELS = 9
+"""...else, when it covers a block of at least this many pixels (3 x 3), the centroid of
+its pixels: the fit is degenerate where a code covers a block wider than the window
+(constant codes, no gradient), and a block's centroid is sub-pixel by itself. A smaller
+cell whose fits failed (the decoded region's border, a depth step, a wrong decode) is
+dropped."""
 
 REFINE_BAND = 128
 """Camera rows per band of :func:`subpixel_positions`' plane fits (bounds their memory)."""
@@ -128,12 +134,15 @@ class StereoConfig:
     subpixel: bool = True
     """Refine each pixel onto its cell's centre by plane fits of the decoded codes around
     it (:func:`subpixel_positions`) before averaging; a cell whose fits are degenerate
-    (fewer than ``min_refined_share`` of its pixels fitted) takes the centroid of its pixels.
+    (fewer than ``min_refined_share`` of its pixels fitted) takes the centroid of its pixels
+    when it covers a block of at least ``min_block_pixels``, and is dropped otherwise.
     False: every cell its centroid. On the half-size virtual rig the refinement takes the
-    median error from 0.32 to 0.25 mm on the figurine; with 4 x 4 camera pixels per
+    median error from 0.31 to 0.25 mm on the figurine; with 4 x 4 camera pixels per
     projector pixel, from 0.30 to 0.065 mm on the flat tile (``tests/decode/test_stereo.py``,
     ``benchmarks/stereo.py``)."""
     min_refined_share: float = MIN_REFINED_SHARE
+    """See ``subpixel``."""
+    min_block_pixels: int = MIN_BLOCK_PIXELS
     """See ``subpixel``."""
     code_step: int = 1
     """Match blocks of ``code_step`` x ``code_step`` projector pixels (1: every pixel). A
@@ -170,6 +179,8 @@ class StereoConfig:
                                    and step % self.code_step == 0)):
             raise SlscanError(
                 f"stereo mesh_step must be 'auto' or a whole multiple of code_step ({self.code_step}), got {step!r}")
+        if not (isinstance(self.min_block_pixels, int) and self.min_block_pixels >= 1):
+            raise SlscanError(f"stereo min_block_pixels must be a whole number >= 1, got {self.min_block_pixels!r}")
         if not 0 <= self.min_refined_share <= 1:
             raise SlscanError(f"stereo min_refined_share must be in [0, 1], got {self.min_refined_share!r}")
         if not 0 < self.max_view_angle_deg <= 90:
@@ -387,6 +398,7 @@ def code_centroids(
     outlier_px: float = OUTLIER_PX,
     subpixel: bool = False,
     min_refined_share: float = MIN_REFINED_SHARE,
+    min_block_pixels: int = MIN_BLOCK_PIXELS,
     radius: int = SUBPIXEL_RADIUS,
 ) -> CodeCentroids:
     """The position of each projector cell seen by one camera.
@@ -402,7 +414,9 @@ def code_centroids(
         their median distance from it, when larger); a cell left with none is dropped
     subpixel : each cell the mean of its pixels' estimates of the cell's centre
         (:func:`subpixel_positions`), when at least ``min_refined_share`` of its pixels
-        could be refined; the centroid of its pixels otherwise (and always when False)
+        could be refined; else the centroid of its pixels when they are at least
+        ``min_block_pixels`` (a block, whose fits are degenerate), else the cell is dropped.
+        False: every cell the centroid of its pixels
     """
     column, row = np.asarray(column), np.asarray(row)
     valid = _valid_codes(column, row, mask)
@@ -426,7 +440,8 @@ def code_centroids(
         fitted = np.bincount(inv[ok], minlength=len(codes))
         rxc, ryc, rn = _robust_centroids(rx[ok], ry[ok], inv[ok], len(codes), outlier_px, 0.0)
         refined = (rn > 0) & (fitted >= min_refined_share * total)
-        cx, cy, n = np.where(refined, rxc, cx), np.where(refined, ryc, cy), np.where(refined, rn, n)
+        block = n >= min_block_pixels
+        cx, cy, n = np.where(refined, rxc, cx), np.where(refined, ryc, cy), np.where(refined, rn, np.where(block, n, 0))
     good = n > 0
     return CodeCentroids(codes[good], np.stack([cx[good], cy[good]], axis=1), n[good].astype(np.int32),
                          refined[good])
@@ -848,7 +863,7 @@ def reconstruct_view(
         t = time.perf_counter()
         centroids.append(code_centroids(codes.column, codes.row, codes.mask, outlier_px=config.outlier_px,
                                         subpixel=config.subpixel, min_refined_share=config.min_refined_share,
-                                        **opts))
+                                        min_block_pixels=config.min_block_pixels, **opts))
         bits.append(codes.bits)
         seconds["match"] += time.perf_counter() - t
         del codes
