@@ -797,9 +797,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "each camera alone")
     p.add_argument("--stereo-refine", choices=("plane", "centroid"), default="plane",
                    help="multi-camera matching: where each camera sees a projector cell: plane (default: plane "
-                        "fits of the decoded codes move every pixel onto its cell's centre; a cell whose fits "
-                        "are degenerate, a code covering a block of pixels, takes its pixels' centroid) or "
-                        "centroid (the centroid of every cell's pixels)")
+                        "fits of the decoded codes move every pixel onto its cell's centre; a cell covering a "
+                        "block of pixels, whose fits are degenerate, takes its pixels' centroid) or centroid "
+                        "(the centroid of every cell's pixels)")
     p.add_argument("--stereo-epipolar", default="auto", metavar="auto|PX",
                    help="multi-camera matching: largest symmetric epipolar distance of a match, camera px "
                         "(default auto: the view's median plus 4 robust deviations, at least 1 px, so the "

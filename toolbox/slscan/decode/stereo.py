@@ -93,16 +93,16 @@ SUBPIXEL_RADIUS = 3
 """Default half-width (camera px) of the window over which :func:`subpixel_positions`
 fits the decoded codes by planes."""
 
-MIN_REFINED_SHARE = 0.5
-"""A cell takes the mean of its plane-fitted pixels when at least this share of its pixels
-could be fitted..."""
-
 MIN_BLOCK_PIXELS = 9
-"""...else, when it covers a block of at least this many pixels (3 x 3), the centroid of
-its pixels: the fit is degenerate where a code covers a block wider than the window
-(constant codes, no gradient), and a block's centroid is sub-pixel by itself. A smaller
-cell whose fits failed (the decoded region's border, a depth step, a wrong decode) is
-dropped."""
+"""A cell covering a block of at least this many pixels (3 x 3) takes the centroid of its
+pixels when fewer than :data:`MIN_REFINED_SHARE` of them could be plane-fitted: the fit
+is degenerate where a code covers a block wider than the window (constant codes, no
+gradient), and a block's centroid is sub-pixel by itself. A smaller cell takes the mean of
+its fitted pixels, and is dropped when none could be fitted (the decoded region's border,
+a depth step, a wrong decode)."""
+
+MIN_REFINED_SHARE = 0.5
+"""See :data:`MIN_BLOCK_PIXELS`."""
 
 REFINE_BAND = 128
 """Camera rows per band of :func:`subpixel_positions`' plane fits (bounds their memory)."""
@@ -133,10 +133,10 @@ class StereoConfig:
     (cells covering a block of pixels allow :data:`OUTLIER_SPREAD` times their spread)."""
     subpixel: bool = True
     """Refine each pixel onto its cell's centre by plane fits of the decoded codes around
-    it (:func:`subpixel_positions`) before averaging; a cell whose fits are degenerate
-    (fewer than ``min_refined_share`` of its pixels fitted) takes the centroid of its pixels
-    when it covers a block of at least ``min_block_pixels``, and is dropped otherwise.
-    False: every cell its centroid. On the half-size virtual rig the refinement takes the
+    it (:func:`subpixel_positions`) before averaging; a cell covering a block of at least
+    ``min_block_pixels`` whose fits are degenerate (fewer than ``min_refined_share`` of its
+    pixels fitted) takes the centroid of its pixels; a smaller cell none of whose pixels
+    fitted is dropped. False: every cell its centroid. On the half-size virtual rig the refinement takes the
     median error from 0.31 to 0.25 mm on the figurine; with 4 x 4 camera pixels per
     projector pixel, from 0.30 to 0.065 mm on the flat tile (``tests/decode/test_stereo.py``,
     ``benchmarks/stereo.py``)."""
@@ -413,10 +413,10 @@ def code_centroids(
         before averaging (cells covering a block of pixels: :data:`OUTLIER_SPREAD` times
         their median distance from it, when larger); a cell left with none is dropped
     subpixel : each cell the mean of its pixels' estimates of the cell's centre
-        (:func:`subpixel_positions`), when at least ``min_refined_share`` of its pixels
-        could be refined; else the centroid of its pixels when they are at least
-        ``min_block_pixels`` (a block, whose fits are degenerate), else the cell is dropped.
-        False: every cell the centroid of its pixels
+        (:func:`subpixel_positions`); a cell of at least ``min_block_pixels`` (a block)
+        of which fewer than ``min_refined_share`` could be refined (the fits degenerate)
+        the centroid of its pixels; a smaller cell none of whose pixels could be refined
+        is dropped. False: every cell the centroid of its pixels
     """
     column, row = np.asarray(column), np.asarray(row)
     valid = _valid_codes(column, row, mask)
@@ -439,8 +439,8 @@ def code_centroids(
         total = np.bincount(inv, minlength=len(codes))
         fitted = np.bincount(inv[ok], minlength=len(codes))
         rxc, ryc, rn = _robust_centroids(rx[ok], ry[ok], inv[ok], len(codes), outlier_px, 0.0)
-        refined = (rn > 0) & (fitted >= min_refined_share * total)
         block = n >= min_block_pixels
+        refined = (rn > 0) & ((fitted >= min_refined_share * total) | ~block)
         cx, cy, n = np.where(refined, rxc, cx), np.where(refined, ryc, cy), np.where(refined, rn, np.where(block, n, 0))
     good = n > 0
     return CodeCentroids(codes[good], np.stack([cx[good], cy[good]], axis=1), n[good].astype(np.int32),
