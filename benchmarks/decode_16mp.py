@@ -6,11 +6,12 @@
 The view (unless ``--session`` names a capture session to decode instead): the five
 kamino410/procam-calibration captures' first (1280x1024 grey, real photographs of a wall
 and a board, lit across the whole frame: 10 + 10 Gray-code bits with inverses, white and
-black, 42 images) upscaled (bilinear) to ``--size`` and saved as colour JPEG at
-``--quality``, with a camera's warm white balance (R, G, B gains 1.00, 0.93, 0.82, so the
-channels differ), as a 3DUNDERWORLD-style camera would, then imported with
-``import_graycode`` (preset kamino410) as an sRGB camera (``response="srgb"``): what
-``slscan import`` makes of such a folder, lossy, read as luma in linear light.
+black, 42 images; a linear camera) upscaled (bilinear) to ``--size`` and saved as colour
+JPEG at ``--quality`` as an sRGB camera would save them (a warm white balance, R, G, B
+gains 1.00, 0.93, 0.82 in linear light so that the channels differ, then the sRGB curve),
+then imported with ``import_graycode`` (preset kamino410), which measures the sRGB
+response from the captures: what ``slscan import`` makes of a 3DUNDERWORLD-style camera
+folder, lossy, read as luma in linear light.
 
 Each decoder runs in a child process, one after the other; the child reports its peak
 resident memory (``VmHWM``, the interpreter and imports included), wall and CPU seconds
@@ -117,11 +118,15 @@ def make_session(size: tuple[int, int], quality: int, data: Path, folder: Path) 
         raise SystemExit(f"kamino410 captures not found at {src} (--session, or $SLSCAN_DATA)")
     shots = folder / "jpeg" / "capture_0"
     shots.mkdir(parents=True)
+    from slscan.virtual.sensor import srgb_oetf
+
     for f in sorted(src.glob("graycode_*.png")):
         grey = cv2.resize(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE), size, interpolation=cv2.INTER_LINEAR)
-        bgr = np.stack([np.clip(grey * g, 0, 255).astype(np.uint8) for g in GAINS[::-1]], axis=-1)
+        linear = grey.astype(np.float32) / 255
+        bgr = np.stack([np.rint(srgb_oetf(np.clip(linear * g, 0, 1)) * 255).astype(np.uint8) for g in GAINS[::-1]],
+                       axis=-1)
         cv2.imwrite(str(shots / f"{f.stem}.jpg"), bgr, [cv2.IMWRITE_JPEG_QUALITY, quality])
-    session = import_graycode(folder / "jpeg", folder / "session", preset="kamino410", response="srgb")
+    session = import_graycode(folder / "jpeg", folder / "session", preset="kamino410")
     return Path(session.root)
 
 
