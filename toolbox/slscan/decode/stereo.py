@@ -107,9 +107,6 @@ MIN_REFINED_SHARE = 0.5
 REFINE_BAND = 128
 """Camera rows per band of :func:`subpixel_positions`' plane fits (bounds their memory)."""
 
-REFINE_MODES = ("plane", "centroid")
-"""How each camera's cell positions are found (:attr:`StereoConfig.refine`)."""
-
 STEREO_FOLDER = "stereo_{a}_{b}"
 """Folder, inside the decode output, of the range maps from camera ``a`` matched with ``b``."""
 
@@ -187,11 +184,6 @@ class StereoConfig:
             raise SlscanError(f"stereo max_view_angle_deg must be in (0, 90], got {self.max_view_angle_deg!r}")
         if not (isinstance(self.gray_drop_bits, int) and self.gray_drop_bits >= 0):
             raise SlscanError(f"stereo gray_drop_bits must be a whole number >= 0, got {self.gray_drop_bits!r}")
-
-    @property
-    def refine(self) -> str:
-        """{"plane", "centroid"}: ``subpixel`` as the CLI names it."""
-        return "plane" if self.subpixel else "centroid"
 
 
 @dataclass(frozen=True)
