@@ -113,3 +113,54 @@ def test_lossy_sessions_decode_gray_code_from_luma(tone_sessions, tmp_path):
     assert not (len(as_luma) == len(as_mean) and np.array_equal(as_luma.x, as_mean.x))  # the tint differs
     np.testing.assert_array_equal(decode_gray(lossy, view).edges.x, as_luma.x)
     np.testing.assert_array_equal(decode_gray(lossy, view, luma=False).edges.x, as_mean.x)
+
+
+@pytest.mark.parametrize("luma", [True, False])
+def test_streamed_srgb_read_equals_decoding_linearised_captures(tone_sessions, luma: bool):
+    """``decode_gray`` reads each sRGB capture as stored, straight into the linear grey plane
+    the decoder keeps (one lookup table per channel, no float RGB copy): bit for bit what
+    decoding the linearised captures gives, clipping included, and the white as stored."""
+    from slscan.decode.graycode import decode_gray_images
+
+    srgb = tone_sessions["srgb"]
+    view = srgb.views[0]
+    # one clipped pixel in one channel of the white frame, so that clipping is compared too
+    stored = {d.id: srgb.read_image(view, view.image_for(d.id)) for d in srgb.patterns if d.family in ("flat", "gray")}
+    stored["white"] = stored["white"].copy()
+    stored["white"][10, 10, 1] = 255
+    linear = {k: linearise(v, "srgb") for k, v in stored.items()}
+    new = decode_gray_images(stored, srgb.patterns, stored["white"], stored["black"], luma=luma, response="srgb")
+    old = decode_gray_images(linear, srgb.patterns, linear["white"], linear["black"], luma=luma)
+    for name in ("column", "mask", "contrast", "saturated", "direct", "global_light"):
+        np.testing.assert_array_equal(getattr(new, name), getattr(old, name), err_msg=name)
+    assert new.noise == old.noise and new.diagnostics == old.diagnostics and new.saturated[10, 10]
+    for name in ("row", "x", "projector_column", "contrast", "saturated"):
+        np.testing.assert_array_equal(getattr(new.edges, name), getattr(old.edges, name), err_msg=name)
+    res = decode_gray(srgb, view, luma=luma)
+    assert res.white.dtype == np.uint8 and np.array_equal(res.white, srgb.read_image(view, view.image_for("white")))
+
+
+def test_keeping_bit_differences_changes_nothing(tone_sessions, monkeypatch):
+    """Float column levels are kept as ``pattern - inverse`` (half the memory), with the
+    noise subsample's sums and the finest bits' extremes for the direct/global split taken
+    as the captures are read: the decode is bit for bit the one keeping both captures."""
+    import slscan.decode.graycode as graycode
+
+    srgb = tone_sessions["srgb"]
+    view = srgb.views[0]
+    results = []
+    for keep in (True, False):
+        monkeypatch.setattr(graycode, "_KEEP_DIFFERENCES", keep)
+        # the split takes bits 4-6 of 8 here (the finest lacks contrast); bits 5-7 when the
+        # finest is never skipped; every bit with 9
+        runs = [decode_gray(srgb, view, drop_bits=drop, separation_bits=bits) for drop, bits in ((0, 3), (2, 3), (0, 9))]
+        with monkeypatch.context() as m:
+            m.setattr(graycode, "SEPARATION_MIN_CONTRAST", 0.0)
+            runs.append(decode_gray(srgb, view))
+        results.append(runs)
+    for new, old in zip(*results):
+        for name in ("column", "mask", "contrast", "saturated", "direct", "global_light"):
+            np.testing.assert_array_equal(getattr(new, name), getattr(old, name), err_msg=name)
+        assert new.noise == old.noise and new.diagnostics == old.diagnostics
+        for name in ("row", "x", "projector_column", "contrast", "stripe"):
+            np.testing.assert_array_equal(getattr(new.edges, name), getattr(old.edges, name), err_msg=name)

@@ -4,7 +4,10 @@ reconstruction by matching projector codes between the cameras, against ground t
 from __future__ import annotations
 
 import json
+import math
+import re
 import shutil
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -14,15 +17,19 @@ from slscan.cli import main
 from slscan.decode.rangemap import read_ply
 from slscan.decode.stereo import (
     StereoConfig,
+    StereoMatch,
     code_centroids,
     epipolar_distance,
+    epipolar_limit,
+    mesh_matches,
+    reconstruct_multicam,
     reconstruct_view,
     subpixel_positions,
     triangulate_midpoint,
 )
 from slscan.errors import SlscanError
 from slscan.fsio import read_png
-from slscan.rig import look_at, transform_points
+from slscan.rig import look_at, rotation_about_axis, transform_points
 from slscan.virtual.device import VirtualCaptureConfig, capture_session
 from slscan.virtual.multicam import capture_multicam
 from slscan.virtual.scenes import scene_by_name
@@ -45,10 +52,10 @@ def small_two(tmp_path_factory):
     return capture_multicam(_config(0.25), tmp_path_factory.mktemp("stereo_small") / "two")
 
 
-def _true_distance(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+def _true_distance(points: np.ndarray, pose: np.ndarray, scene: str = "object") -> np.ndarray:
     import open3d as o3d
 
-    scene = scene_by_name("object")
+    scene = scene_by_name(scene)
     rs = o3d.t.geometry.RaycastingScene()
     rs.add_triangles(o3d.core.Tensor(transform_points(pose, scene.vertices).astype(np.float32)),
                      o3d.core.Tensor(scene.triangles.astype(np.uint32)))
@@ -159,9 +166,9 @@ def test_stereo_recovers_the_virtual_figurine(two_cameras, subpixel, median_mm, 
 
     Half size: a camera pixel spans 1.4 mm at 1.3 m, and a projector pixel about one camera
     pixel, so the plain centroid of a code averages one or two pixel centres and is off by
-    up to half a pixel in each camera (measured 0.34 / 0.95 mm): tolerances a third of a
+    up to half a pixel in each camera (measured 0.31 / 0.90 mm): tolerances a third of a
     pixel's footprint (median) and one footprint (95th percentile). The sub-pixel
-    refinement (measured 0.24 / 0.70 mm; the camera-projector edges: 0.09 / 0.29 mm) is
+    refinement (measured 0.25 / 0.70 mm; the camera-projector edges: 0.09 / 0.29 mm) is
     held to a quarter and to 0.7 of a footprint.
     """
     view = two_cameras.sessions[0].views[0]
@@ -170,9 +177,10 @@ def test_stereo_recovers_the_virtual_figurine(two_cameras, subpixel, median_mm, 
     assert st["matched"] > 0.35 * st["codes_a"]
     assert st["matched"] + st["rejected_epipolar"] + st["rejected_ray_gap"] + st["rejected_behind"] == st["common"]
     rm = result.range_map
-    # 4392 vertices and 4202 faces measured at the default camera blur σ 0.6 px (5706 and
-    # 5514 at σ 0.5, the colour model changes nothing): at half size a projector pixel is
-    # about a camera pixel, and more of the finest Gray-code cells drown in the blur
+    # 4412 vertices and 4233 faces measured at the default camera blur σ 0.6 px (5706 and
+    # 5514 at σ 0.5, the colour model changes nothing; the centroids: 6593 and 6533, their
+    # codes 2 apart meshed): at half size a projector pixel is about a camera pixel, and
+    # more of the finest Gray-code cells drown in the blur
     assert len(rm.vertices) > 4000 and len(rm.faces) > 4000
     d = _true_distance(rm.vertices, view.rig_from_object)
     assert np.median(d) < median_mm
@@ -265,5 +273,269 @@ def test_camera_without_calibration(small_two, tmp_path, capsys):
 def test_no_row_codes(tmp_path):
     config = VirtualCaptureConfig(patterns="gray", lit_images=False, camera_scale=0.25, projector_scale=0.25)
     multi = capture_multicam(config, tmp_path / "norows")
-    with pytest.raises(SlscanError, match="no Gray-code row patterns"):
+    with pytest.raises(SlscanError, match="'cam0' has no gray row patterns"):
         reconstruct_view(multi, "view_000")
+
+
+# --- real captures' conditions, at reduced size --------------------------------------------
+
+SPACING_1M = 2 * math.degrees(math.asin(500 / 1300))
+"""Camera spacing (45.2°) that puts the two cameras 1 m apart at the rig's 1.3 m."""
+
+
+def _long_lens(scene: str = "tile", patterns: str = "gray") -> VirtualCaptureConfig:
+    """720x480 cameras (f 929 px) and a 128x96 projector (f 232 px): a projector pixel covers
+    a block of about 4 x 4 camera pixels, as it does for a 4896-px camera at f ≈ 12,000 px
+    and a 1024-px projector at f ≈ 1,900 px (6.5 x 6.5)."""
+    return VirtualCaptureConfig(scene=scene, patterns=patterns, gray_rows=True, lit_images=False,
+                                camera_scale=0.5, projector_scale=0.125)
+
+
+@pytest.fixture(scope="module")
+def blocks(tmp_path_factory):
+    """The flat tile seen through long lenses by two cameras 1 m apart (Gray code, noise on)."""
+    return capture_multicam(_long_lens(), tmp_path_factory.mktemp("blocks") / "two", spacing_deg=SPACING_1M)
+
+
+def _without_fine_bits(multi, missing: int):
+    """``multi`` as if its Gray-code sets lacked the ``missing`` finest bits of each axis (a
+    set captured with fewer bits, or bits dropped: codes then mark blocks of 2**missing)."""
+    sessions = tuple(replace(s, patterns=tuple(p for p in s.patterns if not (
+        p.family == "gray" and p.params["bit"] >= p.params["bits"] - missing))) for s in multi.sessions)
+    return replace(multi, sessions=sessions)
+
+
+def _distances(result, pose, scene: str) -> np.ndarray:
+    return _true_distance(result.range_map.vertices, pose, scene)
+
+
+def test_block_codes_fall_back_to_centroids(blocks):
+    """Codes covering blocks of pixels wider than the plane fit's 7 x 7 window (2 bits
+    missing: 16 x 16 camera px) leave every fit degenerate; the cells fall back to their
+    centroids instead of being lost (before: 0 cells kept)."""
+    view = blocks.sessions[0].views[0]
+    coarse = _without_fine_bits(blocks, 2)
+    fitted = reconstruct_view(coarse, view.name, StereoConfig())
+    plain = reconstruct_view(coarse, view.name, StereoConfig(subpixel=False))
+    st = fitted.match.stats
+    assert st["refined_a"] == st["refined_b"] == 0  # no fit succeeds on 16-px blocks...
+    # ...and no block is lost: measured 231 of the 232 cells of the centroids (one, cut by
+    # the tile's edge, covers fewer than 9 pixels), placed at the same centroids
+    assert st["codes_a"] >= plain.match.stats["codes_a"] - 3 and st["codes_a"] > 150
+    assert st["matched"] >= plain.match.stats["matched"] - 3
+    both, i, j = np.intersect1d(fitted.match.column * 1000 + fitted.match.row,
+                                plain.match.column * 1000 + plain.match.row, return_indices=True)
+    np.testing.assert_allclose(fitted.match.points[i], plain.match.points[j])
+    # measured: median 0.11 mm, 95 % 1.1 mm (a camera pixel spans 1.4 mm, a block 22 mm)
+    d = _distances(fitted, view.rig_from_object, "tile")
+    assert np.median(d) < 0.25 and np.percentile(d, 95) < 2.0
+    # with every bit, codes cover 4 x 4 px: the fits work, and beat the centroids
+    full = reconstruct_view(blocks, view.name, StereoConfig())
+    full_plain = reconstruct_view(blocks, view.name, StereoConfig(subpixel=False))
+    assert full.match.stats["refined_a"] > 0.9 * full.match.stats["codes_a"]
+    # measured: median 0.065 mm plane-fitted, 0.30 mm centroids
+    assert np.median(_distances(full, view.rig_from_object, "tile")) < 0.5 * np.median(
+        _distances(full_plain, view.rig_from_object, "tile"))
+
+
+def test_mesh_follows_the_codes_step(blocks, tmp_path):
+    """With bits missing, codes step by 4: the mesh links them at that step (before: no
+    neighbouring codes, no faces, and "no view gave stereo matches")."""
+    view = blocks.sessions[0].views[0]
+    coarse = _without_fine_bits(blocks, 2)
+    result = reconstruct_view(coarse, view.name, StereoConfig())
+    assert result.mesh["spacing_px"] == 4 and 4 in result.mesh["steps"]
+    assert len(result.range_map.faces) > 1.2 * result.match.stats["matched"]  # measured 394 for 230
+    assert len(result.range_map.vertices) > 0.9 * result.match.stats["matched"]
+    # a fixed step of 1 finds no neighbours: the error says so, with every test's count
+    with pytest.raises(SlscanError) as err:
+        reconstruct_multicam(coarse, tmp_path / "o", StereoConfig(mesh_step=1))
+    text = str(err.value)
+    assert "\n" not in text and "the matches did not mesh" in text and "0 triangles from 0 grid links" in text
+    assert f"{result.match.stats['matched']:,} matched" in text and "matches 4 projector px apart" in text
+
+
+def _triangle_overlap(rm) -> int:
+    """Points of a fine grid of the projector plane covered by more than one triangle."""
+    uv = np.stack([rm.stripe, rm.row], 1).astype(np.float64)[rm.faces]  # (f, 3, 2)
+    lo, hi = uv.min(axis=(0, 1)), uv.max(axis=(0, 1))
+    g = np.stack(np.meshgrid(np.arange(lo[0], hi[0], 0.25) + 0.11, np.arange(lo[1], hi[1], 0.25) + 0.07), -1)
+    g = g.reshape(-1, 2)
+    count = np.zeros(len(g), np.int32)
+    for a, b, c in uv:  # barycentric test, triangle by triangle (a few thousand)
+        near = np.flatnonzero((g[:, 0] >= min(a[0], b[0], c[0])) & (g[:, 0] <= max(a[0], b[0], c[0]))
+                              & (g[:, 1] >= min(a[1], b[1], c[1])) & (g[:, 1] <= max(a[1], b[1], c[1])))
+        m = np.array([[b[0] - a[0], c[0] - a[0]], [b[1] - a[1], c[1] - a[1]]])
+        lam = np.linalg.solve(m, (g[near] - a).T).T
+        inside = (lam[:, 0] > 0) & (lam[:, 1] > 0) & (lam.sum(axis=1) < 1)
+        count[near[inside]] += 1
+    return int((count > 1).sum())
+
+
+def test_mesh_steps_on_a_synthetic_grid():
+    """Known answers: a 4-px lattice meshes in full; a missing code among codes 1 apart stays
+    a hole; a lattice stepping by 1 on the left and by 2 on the right meshes both halves
+    without triangles overlapping."""
+    def match(cols, rows):
+        cols, rows = np.asarray(cols), np.asarray(rows)
+        pts = np.stack([cols * 0.7 - 100, rows * 0.7 - 80, 1300 + 0.1 * cols], 1).astype(np.float64)
+        xy = np.stack([cols, rows], 1).astype(np.float64)
+        return StereoMatch(pts, cols.astype(np.int32), rows.astype(np.int32), xy, xy, np.zeros(len(cols)),
+                           np.zeros(len(cols)))
+
+    white = np.full((300, 300), 200, np.uint8)
+    c, r = np.meshgrid(np.arange(10) * 4 + 2, np.arange(8) * 4 + 2)
+    rm = mesh_matches(match(c.ravel(), r.ravel()), white_image=white, steps=(1, 2, 4))
+    assert len(rm.faces) == 2 * 9 * 7
+    assert len(mesh_matches(match(c.ravel(), r.ravel()), white_image=white).faces) == 0  # steps (1,)
+    c, r = np.meshgrid(np.arange(12), np.arange(10))
+    keep = ~((c == 5) & (r == 5))
+    rm = mesh_matches(match(c[keep], r[keep]), white_image=white, steps=(1, 2, 4))
+    span = np.abs(np.diff(np.stack([rm.stripe, rm.row], 1)[rm.faces][:, [0, 1, 2, 0]], axis=1)).max()
+    assert span == 1 and len(rm.faces) == 2 * 11 * 9 - 8 + 3  # the hole's four squares, three triangles back
+    left = [(x, y) for x in range(0, 10) for y in range(0, 20)]
+    right = [(x, y) for x in range(11, 31, 2) for y in range(1, 20, 2)]
+    cols, rows = np.array(left + right).T
+    rm = mesh_matches(match(cols, rows), white_image=white, steps=(1, 2))
+    assert (rm.stripe > 10).sum() == len(right) and len(rm.faces) > 2 * (9 * 19 + 9 * 9)
+    assert _triangle_overlap(rm) == 0
+
+
+def test_mixed_code_steps_from_dropped_bits(blocks, tmp_path):
+    """Per-pixel bit dropping: the finest column and row bits washed out on the right half
+    of both cameras' images (pattern = inverse there); with ``gray_drop_bits=1`` those pixels
+    keep codes 2 apart, the left half codes 1 apart, and the mesh covers both."""
+    import cv2
+
+    dst = tmp_path / "washed"
+    shutil.copytree(blocks.root, dst)
+    multi = load_multicam(dst)
+    for s in multi.sessions:
+        view = s.views[0]
+        for axis in ("col", "row"):
+            bits = max(p.params["bit"] for p in s.patterns if p.id.startswith(f"gray-{axis}-"))
+            pid = f"gray-{axis}-{bits:02d}"
+            a, b = (s.image_path(view, view.image_for(i)) for i in (pid, pid + "-inv"))
+            ia, ib = read_png(a), read_png(b)
+            mean = ((ia.astype(np.uint16) + ib) // 2).astype(ia.dtype)
+            half = ia.shape[1] // 2
+            for path, img in ((a, ia), (b, ib)):
+                img[:, half:] = mean[:, half:]
+                cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_RGB2BGR) if img.ndim == 3 else img)
+    name = multi.view_names[0]
+    strict = reconstruct_view(multi, name, StereoConfig())
+    dropped = reconstruct_view(multi, name, StereoConfig(gray_drop_bits=1))
+    assert dropped.mesh["steps"] == (1, 2)
+    rm = dropped.range_map
+    xa = dropped.match.xy_a[:, 0]
+    w = multi.sessions[0].camera_size[0]
+    # the right half: nothing without dropping bits, codes 2 apart with it
+    assert (strict.match.xy_a[:, 0] > 0.6 * w).sum() < 0.1 * (xa > 0.6 * w).sum()
+    right = dropped.match.column[xa > 0.6 * w]
+    assert np.all(right % 2 == 1)  # block centres of 2-column blocks
+    assert (rm.stripe % 2 == 1).sum() > 100 and (rm.stripe % 2 == 0).sum() > 100
+    assert _triangle_overlap(rm) == 0
+    d = _true_distance(rm.vertices, multi.sessions[0].views[0].rig_from_object, "tile")
+    assert np.median(d) < 0.3
+
+
+def test_epipolar_limit_follows_the_calibrations_residual(two_cameras):
+    """A calibration off by 1.8 px (camera 1 turned by 1.8 px about its x axis: as the
+    real two-camera set's residual): the fixed 1.5 px limit rejects most good matches, the
+    "auto" limits measure the residual and keep them, and say which limits they used (at
+    half size 1.8 px is 2.5 mm at 1.3 m: the ray gaps grow past the old fixed 2 mm too)."""
+    cam1 = two_cameras.cameras[1]
+    turn = np.eye(4)
+    turn[:3, :3] = rotation_about_axis([1.0, 0.0, 0.0], 1.8 / cam1.lens.fy)
+    off = replace(two_cameras, cameras=(two_cameras.cameras[0], replace(cam1, rig_from_camera=cam1.rig_from_camera @ turn)))
+    view = two_cameras.sessions[0].views[0]
+    exact = reconstruct_view(two_cameras, view.name, StereoConfig())
+    fixed = reconstruct_view(off, view.name, StereoConfig(max_epipolar_px=1.5, max_ray_gap_mm=2.0))
+    auto = reconstruct_view(off, view.name, StereoConfig())
+    sf, sa = fixed.match.stats, auto.match.stats
+    assert sf["rejected_epipolar"] > 0.3 * sf["common"] and sf["matched"] < 0.5 * sa["matched"]
+    assert sa["ray_gap_limit_mm"] > 2.0 and exact.match.stats["ray_gap_limit_mm"] == 2.0
+    assert 1.5 < sa["epipolar_median_px"] < 2.2 and sa["epipolar_limit_px"] > sa["epipolar_median_px"] + 0.3
+    assert sa["matched"] > 0.95 * (sa["common"] - sa["rejected_behind"])
+    assert sa["matched"] > 0.95 * exact.match.stats["matched"]
+    # an exact calibration: the limit is the 1 px floor
+    assert exact.match.stats["epipolar_limit_px"] == pytest.approx(1.0)
+    assert epipolar_limit(np.array([1.7, 1.75, 1.8, 1.8, 1.85, 1.9, 40.0])) == pytest.approx(
+        1.8 + 4 * 1.4826 * 0.05)
+    assert epipolar_limit(np.array([0.1, 0.2, 0.3])) == 1.0 and epipolar_limit(np.zeros(0)) == 1.0
+
+
+def test_failure_message_counts_each_test(small_two, tmp_path, capsys):
+    """A limit nothing passes: one error line with each camera's cells, the common ones,
+    what each test rejected, and the test that rejected the most; no guess."""
+    err = _one_error_line(capsys, ["decode", str(small_two.root), "--out", str(tmp_path / "o"), "--stereo", "only",
+                                   "--stereo-epipolar", "0.001", "--quiet"])
+    assert "no view gave a stereo range map (the epipolar test rejected the most matches (--stereo-epipolar): " in err
+    assert "view_000: cells seen cam0 " in err and "by the epipolar limit (0.00 px; median " in err
+    assert re.search(r"0 by the ray gap \(\d+\.\d\d mm\), 0 behind a camera", err)
+    assert "is the object seen by both cameras" not in err
+
+
+def test_cli_stereo_options(small_two, tmp_path, capsys):
+    maps = tmp_path / "maps"
+    assert main(["decode", str(small_two.root), "--out", str(maps), "--stereo", "only", "--quiet",
+                 "--stereo-refine", "centroid", "--stereo-epipolar", "2.5", "--stereo-ray-gap", "3",
+                 "--stereo-mesh-step", "2", "--gray-drop-bits", "1"]) == 0
+    meta = json.loads((maps / "stereo_cam0_cam1" / "range_maps.json").read_text())
+    assert meta["config"]["subpixel"] is False and meta["config"]["max_epipolar_px"] == 2.5
+    assert meta["config"]["max_ray_gap_mm"] == 3 and meta["config"]["mesh_step"] == 2
+    assert meta["config"]["gray_drop_bits"] == 1
+    assert meta["views"][0]["metrics"]["epipolar_limit_px"] == 2.5
+    assert "epipolar > 2.50 px" in capsys.readouterr().err
+    err = _one_error_line(capsys, ["decode", str(small_two.root), "--out", str(tmp_path / "x"),
+                                   "--stereo-mesh-step", "fine"])
+    assert "--stereo-mesh-step must be auto or a whole number" in err
+
+
+# --- phase codes -------------------------------------------------------------------------------
+
+
+def test_subpixel_positions_on_sub_pixel_codes():
+    """Float (phase) maps of a known affine map, with 0.02 px noise: each pixel lands on the
+    centre of the projector pixel its code falls in."""
+    h, w = 60, 80
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    jac = np.array([[0.37, 0.05], [-0.04, 0.41]])
+    rng = np.random.default_rng(3)
+    u = jac[0, 0] * x + jac[0, 1] * y + 3.3 + rng.normal(0, 0.02, (h, w))
+    v = jac[1, 0] * x + jac[1, 1] * y + 1.6 + rng.normal(0, 0.02, (h, w))
+    u[:, :4] = np.nan  # not decoded
+    px, py, ok = subpixel_positions(u, v, np.isfinite(u))
+    assert ok[5:-5, 9:-5].all() and not ok[:, :4].any()
+    target = np.stack([np.rint(u) - 3.3, np.rint(v) - 1.6], -1) @ np.linalg.inv(jac).T
+    err = np.hypot(px - target[..., 0], py - target[..., 1])[ok]
+    assert np.median(err) < 0.03 and np.percentile(err, 95) < 0.08  # 0.02 projector px ~ 0.05 camera px
+    c = code_centroids(u, v, np.isfinite(u), projector_height=40, subpixel=True)
+    assert len(c) > 0.9 * len(np.unique(np.rint(u[np.isfinite(u)]) * 40 + np.rint(v[np.isfinite(u)])))
+
+
+@pytest.fixture(scope="module")
+def phase_two(tmp_path_factory):
+    """The figurine at half size with phase-shifting columns and rows, two cameras."""
+    config = VirtualCaptureConfig(patterns="phase", gray_rows=True, lit_images=False, camera_scale=0.5,
+                                  projector_scale=0.5)
+    return capture_multicam(config, tmp_path_factory.mktemp("phase") / "two")
+
+
+def test_stereo_with_phase_codes(phase_two, two_cameras):
+    """Phase codes are matched by projector position: every projector pixel both cameras see
+    (their sub-pixel codes fitted by planes onto its centre), denser and at least as accurate
+    as the Gray-code cells of the same rig."""
+    from slscan.decode.codes import codes_family
+
+    assert codes_family(phase_two.sessions[0]).name == "phase"
+    view = phase_two.sessions[0].views[0]
+    result = reconstruct_view(phase_two, view.name, StereoConfig())
+    gray = reconstruct_view(two_cameras, view.name, StereoConfig())
+    st = result.match.stats
+    assert st["refined_a"] > 0.9 * st["codes_a"]
+    assert st["matched"] > 1.5 * gray.match.stats["matched"]
+    d = _true_distance(result.range_map.vertices, view.rig_from_object)
+    g = _true_distance(gray.range_map.vertices, view.rig_from_object)
+    assert np.median(d) < np.median(g) and np.percentile(d, 95) < np.percentile(g, 95) * 1.1
+    assert len(result.range_map.faces) > len(gray.range_map.faces)

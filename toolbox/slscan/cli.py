@@ -390,11 +390,34 @@ def _decode_config(args: argparse.Namespace):
                         projector_axes=getattr(args, "projector_axes", "auto"))
 
 
+def _stereo_config(args: argparse.Namespace):
+    """The :class:`~slscan.decode.stereo.StereoConfig` of ``slscan decode``'s options."""
+    from slscan.decode.stereo import StereoConfig
+
+    def auto_or(name: str, value: str, kind: type):
+        if value == "auto":
+            return value
+        try:
+            return kind(value)
+        except ValueError:
+            raise SlscanError(f"{name} must be auto or a {'number' if kind is float else 'whole number'}, "
+                              f"got {value!r}") from None
+
+    return StereoConfig(
+        subpixel=args.stereo_refine == "plane",
+        max_epipolar_px=auto_or("--stereo-epipolar", args.stereo_epipolar, float),
+        max_ray_gap_mm=auto_or("--stereo-ray-gap", args.stereo_ray_gap, float),
+        mesh_step=auto_or("--stereo-mesh-step", args.stereo_mesh_step, int),
+        gray_threshold=args.gray_threshold,
+        gray_drop_bits=args.gray_drop_bits,
+    )
+
+
 def _decode_multicam(args: argparse.Namespace) -> int:
     """``slscan decode`` on a multi-camera folder: camera 0 matched with each other camera
     through the projector codes, and each calibrated camera's own range maps."""
     from slscan.capture.multicam import load_multicam
-    from slscan.decode.stereo import STEREO_FOLDER, StereoConfig, reconstruct_multicam
+    from slscan.decode.stereo import STEREO_FOLDER, reconstruct_multicam
     from slscan.fsio import atomic_output_dir
     from slscan.viewer.layouts import decode_blueprint
     from slscan.viewer.recording import recording_from_args
@@ -408,6 +431,7 @@ def _decode_multicam(args: argparse.Namespace) -> int:
     per_camera = [] if args.stereo == "only" else [
         (cam, s) for cam, s in zip(multi.cameras, multi.sessions) if s.calibration is not None]
     config = _decode_config(args)
+    stereo_config = _stereo_config(args)
     pairs = [] if args.stereo == "off" else [(0, k) for k in range(1, len(multi.cameras))]
     if not pairs and not per_camera:
         raise SlscanError(f"{args.session}: no camera session has a projector calibration; decode with --stereo auto")
@@ -419,14 +443,16 @@ def _decode_multicam(args: argparse.Namespace) -> int:
             folder = STEREO_FOLDER.format(a=multi.cameras[a].name, b=multi.cameras[b].name)
             with _ProgressBar(len(multi.view_names), f"matching {folder}", args.quiet) as bar:
                 results = reconstruct_multicam(multi, tmp / folder, pair=(a, b), rec=rec, progress=bar.step,
-                                               config=StereoConfig(gray_threshold=args.gray_threshold))
+                                               config=stereo_config)
             stats = [r.match.stats for r in results]
+            limits = sorted(s["epipolar_limit_px"] for s in stats)
+            limit = f"{limits[0]:.2f}" + (f"-{limits[-1]:.2f}" if limits[-1] > limits[0] + 0.005 else "")
             console.print(
                 f"[green]{folder}[/]: {sum(s['matched'] for s in stats):,} points from "
-                f"{sum(s['common'] for s in stats):,} codes both cameras see (rejected: "
-                f"{sum(s['rejected_epipolar'] for s in stats):,} epipolar, {sum(s['rejected_ray_gap'] for s in stats):,} "
-                f"ray gap, {sum(s['rejected_behind'] for s in stats):,} behind), "
-                f"{sum(len(r.range_map.faces) for r in results):,} faces", highlight=False,
+                f"{sum(s['common'] for s in stats):,} cells both cameras see (rejected: "
+                f"{sum(s['rejected_epipolar'] for s in stats):,} epipolar > {limit} px, "
+                f"{sum(s['rejected_ray_gap'] for s in stats):,} ray gap, {sum(s['rejected_behind'] for s in stats):,} "
+                f"behind), {sum(len(r.range_map.faces) for r in results):,} faces", highlight=False,
             )
         for cam, session in per_camera:
             _decode(session, tmp / cam.name, config, False, None, args.quiet, executor=executor_from_args(args),
@@ -845,6 +871,22 @@ def build_parser() -> argparse.ArgumentParser:
                         "other camera through the projector codes (OUT/stereo_cam0_camK/) and decodes each camera "
                         "with a projector calibration alone (OUT/camK/); only: just the matching; off: just "
                         "each camera alone")
+    p.add_argument("--stereo-refine", choices=("plane", "centroid"), default="plane",
+                   help="multi-camera matching: where each camera sees a projector cell: plane (default: plane "
+                        "fits of the decoded codes move every pixel onto its cell's centre; a cell covering a "
+                        "block of pixels, whose fits are degenerate, takes its pixels' centroid) or centroid "
+                        "(the centroid of every cell's pixels)")
+    p.add_argument("--stereo-epipolar", default="auto", metavar="auto|PX",
+                   help="multi-camera matching: largest symmetric epipolar distance of a match, camera px "
+                        "(default auto: the view's median plus 4 robust deviations, at least 1 px, so the "
+                        "calibration's own residual is measured; the limit used is printed)")
+    p.add_argument("--stereo-ray-gap", default="auto", metavar="auto|MM",
+                   help="multi-camera matching: largest distance between the two rays of a match, mm "
+                        "(default auto: the same rule on the view's ray gaps, at least 2 mm)")
+    p.add_argument("--stereo-mesh-step", default="auto", metavar="auto|N",
+                   help="multi-camera matching: the mesh's grid step, projector px (default auto: follows the "
+                        "codes' real step, 2 or 4 where Gray-code bits are dropped (--gray-drop-bits) or "
+                        "missing; N: link codes exactly N apart)")
     add_recording_arguments(p)
     add_executor_arguments(p)
     p.set_defaults(func=_cmd_decode)

@@ -29,10 +29,14 @@ images as an OpenCV user loads them (RGB through ``cv2.cvtColor``; never lineari
 with nothing else rejecting pixels, so the mask is OpenCV's; 16-bit captures: the same
 share of full scale (thresholds times 257).
 
-Memory: a view keeps, per column bit, only ``pattern - inverse`` (int16 for 8-bit
-captures); row bits are folded into the row code as they are read, the noise is
-estimated on a subsample while reading, and edges are searched in bands, so a 16 MP,
-42-image view decodes in about 1 GB (``benchmarks/decode_memory.py``).
+Memory: a view keeps, per column bit, both captures' grey levels (1 byte a pixel each for
+8-bit grey captures) or, for float levels (float or linearised sRGB captures), only
+``pattern - inverse``; row bits are folded into the row code as they are read, the noise
+is estimated on a subsample while reading, and edges are searched in bands. Captures are
+read as stored, one JPEG decode each, by a thread that turns each into the grey plane
+kept of it while the decoder works. A 16 MP, 42-image view decodes in about 1 GB (grey
+PNG, ``benchmarks/decode_memory.py``) to 2 GB (colour JPEG through an sRGB curve, lit
+across the frame, ``benchmarks/decode_16mp.py``).
 
 References
 ----------
@@ -100,6 +104,10 @@ EDGE_BAND = 256
 
 PREFETCH = 2
 """Captures :func:`decode_gray` reads ahead of the decoder (each is dropped once used)."""
+
+_KEEP_DIFFERENCES = True
+"""Keep float column levels of plain Gray codes as their differences (:class:`_BitDiffs`);
+False: both captures' levels, as before (the tests compare the two)."""
 
 SEPARATION_BITS = 3
 """How many column bits (with their inverses) split the light into direct and global
@@ -332,6 +340,18 @@ LUMA_WEIGHTS = (77, 150, 29)
 0.299, 0.587, 0.114, the Y that JPEG keeps at full resolution (its chroma is halved)."""
 
 
+@dataclass(frozen=True)
+class _Read:
+    """One capture already read into what :class:`_Reader` keeps of it (by the thread that
+    reads ahead, :func:`decode_gray`): its levels and clipping over the whole frame, and the
+    capture's own shape and pixel type (checked against the white frame's)."""
+
+    levels: np.ndarray
+    clipped: np.ndarray
+    shape: tuple[int, ...]
+    dtype: np.dtype
+
+
 class _Reader:
     """Reads captures of one view: grey levels, their fractions of full scale and clipping.
 
@@ -340,24 +360,44 @@ class _Reader:
         and whose colour errors the channel mean would add to the stripes.
     opencv : read as OpenCV ``GrayCodePattern`` users do (:func:`opencv_grey`): RGB
         captures through ``cv2.cvtColor`` to grey of the same depth, rounded; grey ones as
-        they are. The levels are then the grey DN themselves."""
+        they are. The levels are then the grey DN themselves.
+    response : the integer captures' tone curve (``Session.response``): other than
+        ``"linear"``, each capture is read (as stored) straight into the float32 grey of
+        its linearised channels, exactly what :func:`~slscan.capture.session.linearise`
+        then the channel mean (or luma) give, through one lookup table per channel: no
+        float RGB copy of a capture is made, and clipping is found on the stored values."""
 
-    def __init__(self, white: np.ndarray, where: str, luma: bool = False, opencv: bool = False) -> None:
+    def __init__(self, white: np.ndarray, where: str, luma: bool = False, opencv: bool = False,
+                 response: str = "linear") -> None:
         self.white, self.where = white, where
-        self.scale = full_scale(np.empty(0, white.dtype), where)
+        self.clip = self.scale = full_scale(np.empty(0, white.dtype), where)
         self.channels = 1 if white.ndim == 2 else white.shape[2]
         self.opencv = opencv and self.channels == 3
         self.weights = LUMA_WEIGHTS if luma and self.channels == 3 and not opencv else None
         self.saturated = np.zeros(white.shape[:2], bool)
         self.box = (slice(None), slice(None))  # the part of each image returned
+        self.curve = None
+        if response != "linear" and white.dtype in (np.uint8, np.uint16):
+            from slscan.capture.session import linearise
+
+            # the linearised captures are float fractions of full scale: read as such
+            self.curve = linearise(np.arange(int(self.clip) + 1, dtype=white.dtype), response)
+            self.scale = 1.0
+            if self.weights is not None:
+                total = float(sum(self.weights))
+                self.channel_curves = [self.curve * np.float32(w / total) for w in self.weights]
+            else:
+                self.channel_curves = [self.curve] * self.channels
         # integer captures are kept as levels (the channel sum, or the weighted sum for
         # luma, in the smallest integer type that holds it: 1 byte a pixel for 8-bit grey)
         # and turned into the same float32 fractions as channel_mean (or the luma) gives
-        # through a lookup table; float captures are kept as their float32 fractions (lut None)
+        # through a lookup table; float (and linearised) captures are kept as their float32
+        # fractions (lut None)
         self.lut = None
         self.level_dtype = np.float32
-        self.dn = self.scale if white.dtype != np.float32 and white.dtype != np.float64 else 255.0
-        if white.dtype in (np.uint8, np.uint16):
+        integer = white.dtype not in (np.float32, np.float64) and self.curve is None
+        self.dn = self.scale if integer else 255.0
+        if integer and white.dtype in (np.uint8, np.uint16):
             per_level = sum(self.weights) if self.weights else 1 if self.opencv else self.channels
             self.per_level = per_level
             top = int(self.scale) * per_level
@@ -370,6 +410,23 @@ class _Reader:
 
     def _grey(self, image: np.ndarray) -> np.ndarray:
         """float32 channel mean (or luma, or OpenCV's grey) of a checked capture."""
+        if self.curve is not None:  # linearised channels, weighted, summed in channel order
+            if image.ndim == 2:
+                return self.curve[image]
+            if image.dtype == np.uint8:  # OpenCV's lookup and add: the same float32 sums, faster
+                import cv2
+
+                planes = cv2.split(np.ascontiguousarray(image))
+                grey = cv2.LUT(planes[0], self.channel_curves[0])
+                for c in range(1, len(planes)):
+                    cv2.add(grey, cv2.LUT(planes[c], self.channel_curves[c]), dst=grey)
+            else:
+                grey = self.channel_curves[0][image[..., 0]]
+                for c in range(1, image.shape[2]):
+                    grey += self.channel_curves[c][image[..., c]]
+            if self.weights is None:
+                grey *= np.float32(1.0 / image.shape[2])
+            return grey
         if self.opencv and image.ndim == 3:
             return opencv_grey(image).astype(np.float32)
         if self.weights is None or image.ndim == 2:
@@ -380,23 +437,44 @@ class _Reader:
             grey += image[..., c].astype(np.float32) * np.float32(self.weights[c] / total)
         return grey
 
-    def check(self, image: np.ndarray, name: str) -> np.ndarray:
+    def check(self, image: np.ndarray | _Read, name: str) -> np.ndarray | _Read:
         """``image`` cropped to the box, its clipping recorded (an error naming it when
-        it does not match the white frame)."""
+        it does not match the white frame); a :class:`_Read` capture as it is."""
+        if isinstance(image, _Read):
+            like_white(np.broadcast_to(np.zeros((), image.dtype), image.shape), self.white, name, self.where)
+            self.saturated[self.box] |= image.clipped[self.box]
+            return image
         image = like_white(image, self.white, name, self.where)[self.box]
-        self.saturated[self.box] |= channel_max(image) >= self.scale
+        self.saturated[self.box] |= channel_max(image) >= self.clip
         return image
 
-    def __call__(self, image: np.ndarray, name: str) -> np.ndarray:
+    def read_ahead(self, image: np.ndarray) -> _Read | np.ndarray:
+        """``image`` read into its levels over the whole frame, and its clipping (what
+        :meth:`levels` and :meth:`check` take from it later, on any box); an image unlike
+        the white frame as it is (for :meth:`check` to name)."""
+        image = np.asarray(image)
+        if image.shape != self.white.shape or image.dtype != self.white.dtype:
+            return image
+        return _Read(self._levels(image), channel_max(image) >= self.clip, image.shape, image.dtype)
+
+    def __call__(self, image: np.ndarray | _Read, name: str) -> np.ndarray:
         """Grey float32 image in fractions of full scale."""
+        if isinstance(image, _Read):
+            return np.array(self.fraction(self.levels(image, name)), np.float32)
         grey = self._grey(self.check(image, name))
         grey *= np.float32(1.0 / self.scale)
         return grey
 
-    def levels(self, image: np.ndarray, name: str) -> np.ndarray:
+    def levels(self, image: np.ndarray | _Read, name: str) -> np.ndarray:
         """Levels of a capture on the box: channel sums (integer captures, ``level_dtype``)
         or grey fractions (float captures); :meth:`fraction` turns them into fractions."""
         image = self.check(image, name)
+        if isinstance(image, _Read):
+            return image.levels[self.box]
+        return self._levels(image)
+
+    def _levels(self, image: np.ndarray) -> np.ndarray:
+        """:meth:`levels` of a checked capture."""
         if self.lut is None:
             grey = self._grey(image)
             grey *= np.float32(1.0 / self.scale)
@@ -450,11 +528,18 @@ class _BitDiffs:
     XOR codes (``base`` set): the difference of bit ``k < base`` comes with the sign of
     the Gray bit it encodes, ``(pattern - inverse) * sign(base pattern - base inverse)``:
     positive where the Gray bit is 1, zero crossings only at that bit's own boundaries
-    (the base bit is constant across them, so the crossing is the captured one)."""
+    (the base bit is constant across them, so the crossing is the captured one).
+
+    Float levels of plain Gray codes are stored as the differences themselves (half the
+    memory): ``pattern`` holds ``pattern - inverse`` and ``inverse`` zeros (a broadcast
+    view, no memory), which every use (bits, thresholds, reliability, edges) reads exactly
+    as before; ``sums`` then holds each bit's ``pattern + inverse`` on the noise subsample
+    (:func:`estimate_noise`)."""
 
     def __init__(self, read: _Reader, pattern: np.ndarray, inverse: np.ndarray,
-                 base: int | None = None) -> None:
+                 base: int | None = None, sums: list[np.ndarray] | None = None) -> None:
         self.read, self.pattern, self.inverse, self.base = read, pattern, inverse, base
+        self.sums = sums
 
     def __len__(self) -> int:
         return len(self.pattern)
@@ -499,11 +584,9 @@ def _grid_bits(diffs: _BitDiffs, iy: np.ndarray, ix: np.ndarray, radius: int) ->
     at the 8 points ``radius`` px away on a 3 x 3 grid around it (clipped to the image);
     the pixel itself is grid point 4."""
     h, w = diffs.pattern.shape[1:]
-    at = np.stack([np.clip(iy + dy, 0, h - 1) * w + np.clip(ix + dx, 0, w - 1)
-                   for dy in (-radius, 0, radius) for dx in (-radius, 0, radius)])
-    n = len(diffs)
-    pattern, inverse = diffs.pattern.reshape(n, -1), diffs.inverse.reshape(n, -1)
-    return np.stack([pattern[k][at] > inverse[k][at] for k in range(n)])
+    ys = np.stack([np.clip(iy + dy, 0, h - 1) for dy in (-radius, 0, radius) for _ in range(3)])
+    xs = np.stack([np.clip(ix + dx, 0, w - 1) for _ in range(3) for dx in (-radius, 0, radius)])
+    return np.stack([diffs.pattern[k][ys, xs] > diffs.inverse[k][ys, xs] for k in range(len(diffs))])
 
 
 def _same_light(a: np.ndarray, b: np.ndarray | None = None) -> np.ndarray:
@@ -544,7 +627,7 @@ def estimate_noise(diffs: _BitDiffs, flat_sum: np.ndarray, iy: np.ndarray, ix: n
     if not len(iy):
         return 0.0
     f = diffs.read.fraction
-    sums = [f(diffs.pattern[k, iy, ix]) + f(diffs.inverse[k, iy, ix]) for k in range(len(diffs))]
+    sums = diffs.sums or [f(diffs.pattern[k, iy, ix]) + f(diffs.inverse[k, iy, ix]) for k in range(len(diffs))]
     for r in range(radius, 0, -1):
         grid = _grid_bits(diffs, iy, ix, r)
         resid = []
@@ -559,6 +642,40 @@ def estimate_noise(diffs: _BitDiffs, flat_sum: np.ndarray, iy: np.ndarray, ix: n
         if len(resid) >= min_residuals:
             return _mad_sigma(resid)
     return _mad_sigma(np.concatenate([s - flat_sum for s in sums]))
+
+
+class _FineExtremes:
+    """The per-pixel maximum and minimum of the captures of every column bit the
+    direct/global split may use (:func:`_separation_bits`: the ``count`` finest, or the
+    ``count`` before the finest), gathered while the bits are read when only their
+    differences are kept: the planes :func:`separate_light` gives the same split from."""
+
+    def __init__(self, bits: int, count: int) -> None:
+        self.last = bits - 1
+        self.common = range(max(0, bits - count), bits - 1)  # in both candidates
+        self.early = bits - count - 1 if bits > count else None  # only when the finest is skipped
+        self.hi = self.lo = self.early_hi = self.early_lo = None
+
+    def add(self, k: int, p: np.ndarray, q: np.ndarray) -> None:
+        if k in self.common:
+            if self.hi is None:
+                self.hi, self.lo = np.maximum(p, q), np.minimum(p, q)
+            else:
+                for v in (p, q):
+                    np.maximum(self.hi, v, out=self.hi)
+                    np.minimum(self.lo, v, out=self.lo)
+        elif k == self.early:
+            self.early_hi, self.early_lo = np.maximum(p, q), np.minimum(p, q)
+
+    def planes(self, fine: range, p_last: np.ndarray, q_last: np.ndarray) -> list[np.ndarray]:
+        """Planes whose per-pixel maximum and minimum are those of bits ``fine``'s captures
+        (``p_last``, ``q_last``: the finest bit's)."""
+        out = [] if self.hi is None else [self.hi, self.lo]
+        if self.last in fine:
+            out += [p_last, q_last]
+        if self.early is not None and self.early in fine:
+            out += [self.early_hi, self.early_lo]
+        return out
 
 
 def separate_light(highs: Sequence[np.ndarray], black: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -911,6 +1028,7 @@ def decode_gray_images(
     consistency_radius: int = CONSISTENCY_RADIUS,
     drop_bits: int = 0,
     luma: bool = False,
+    response: str = "linear",
     where: str = "",
 ) -> GrayResult:
     """Decode one view's Gray-code captures into projector columns (rows) and stripe edges.
@@ -920,7 +1038,9 @@ def decode_gray_images(
     images : mapping of pattern id to (h, w) or (h, w, 3) uint8/uint16 captures
         At least every Gray-code pattern of ``descs`` that is used; other entries are
         ignored, and each is read once, in the order column bits then row bits (pattern,
-        inverse), so a mapping that reads on demand and forgets keeps memory bounded.
+        inverse), so a mapping that reads on demand and forgets keeps memory bounded
+        (:func:`decode_gray`'s also turns each capture into the grey plane kept of it as
+        it reads ahead).
         RGB captures are read as the mean of their channels (or their luma: ``luma``;
         with ``threshold="opencv"`` as OpenCV's grey, :func:`opencv_grey`).
     descs : the session's pattern descriptions; only ``family == "gray"`` ones are used.
@@ -980,6 +1100,11 @@ def decode_gray_images(
         Read RGB captures as their luma (BT.601 weights, :data:`LUMA_WEIGHTS`) instead of
         the mean of their channels: what :func:`decode_gray` does for lossy (JPEG) sessions,
         whose chroma is stored at half resolution. (``"opencv"`` reads OpenCV's grey.)
+    response : {"linear", "srgb"}
+        The integer captures' tone curve (``Session.response``): ``"srgb"`` captures,
+        passed as stored, are linearised as they are read, giving exactly what decoding
+        :func:`~slscan.capture.session.linearise`-d captures gives, without a float copy of
+        each (:func:`decode_gray` does this). Float captures are taken as linear.
     where : str
         Prefix for error messages (e.g. the view folder).
 
@@ -1046,7 +1171,7 @@ def decode_gray_images(
             f"{where}white: expected an (h, w) or (h, w, 3) image, got shape {white.shape}"
         )
     full_scale(white, f"{where}white")
-    read = _Reader(white, where, luma, opencv=threshold == "opencv")
+    read = _Reader(white, where, luma, opencv=threshold == "opencv", response=response)
     if robust is None:
         robust = threshold == "adaptive"
     w_img, b_img = read(white, "white"), read(black, "black")
@@ -1072,13 +1197,33 @@ def decode_gray_images(
     del b_img
 
     # column bits: both captures' levels kept (1 byte a pixel each for 8-bit grey), for
-    # the thresholds once the noise is known, for the noise estimate and for the edges
+    # the thresholds once the noise is known, for the noise estimate and for the edges;
+    # float levels of plain Gray codes (float or linearised captures) as their difference,
+    # with what the noise estimate and the direct/global split take from each capture
     shape = (len(col_pairs),) + contrast.shape
-    col_diffs = _BitDiffs(read, np.empty(shape, read.level_dtype), np.empty(shape, read.level_dtype),
-                          col_bits.base)
+    as_diff = _KEEP_DIFFERENCES and read.lut is None and col_bits.base is None
+    split = extremes = None
+    if as_diff:
+        col_diffs = _BitDiffs(read, np.empty(shape, np.float32), np.broadcast_to(np.float32(0), shape), None, [])
+        extremes = _FineExtremes(len(col_pairs), separation_bits) if robust else None
+    else:
+        col_diffs = _BitDiffs(read, np.empty(shape, read.level_dtype), np.empty(shape, read.level_dtype),
+                              col_bits.base)
     for k, (pid, inv) in enumerate(col_pairs):
-        col_diffs.pattern[k] = read.levels(images[pid], pid)
-        col_diffs.inverse[k] = read.levels(images[inv], inv)
+        if not as_diff:
+            col_diffs.pattern[k] = read.levels(images[pid], pid)
+            col_diffs.inverse[k] = read.levels(images[inv], inv)
+            continue
+        p, q = read.levels(images[pid], pid), read.levels(images[inv], inv)
+        np.subtract(p, q, out=col_diffs.pattern[k])
+        col_diffs.sums.append(p[iy, ix] + q[iy, ix])
+        if extremes is not None:
+            extremes.add(k, p, q)
+            if k == len(col_pairs) - 1:  # every bit read: split the light now, the finest in hand
+                fine = _separation_bits(col_diffs, contrast, iy, ix, False, separation_bits)
+                split = separate_light(extremes.planes(fine, p, q), black_box)
+                extremes = black_box = None
+        del p, q
     estimated = estimate_noise(col_diffs, flat_sub, iy, ix)
     del flat_sub
     if noise is not None:
@@ -1111,9 +1256,13 @@ def decode_gray_images(
     if robust:  # direct/global split from the finest column bits (Nayar et al. 2006)
         # XOR codes: every image is high-frequency, and the more phases the closer the
         # per-pixel maximum and minimum come to fully lit and fully unlit under blur
-        fine = _separation_bits(col_diffs, contrast, iy, ix, col_bits.base is not None, separation_bits)
-        direct, global_light = separate_light(
-            (read.fraction(lv[k]) for k in fine for lv in (col_diffs.pattern, col_diffs.inverse)), black_box)
+        if split is not None:
+            direct, global_light = split
+        else:
+            fine = _separation_bits(col_diffs, contrast, iy, ix, col_bits.base is not None, separation_bits)
+            direct, global_light = separate_light(
+                (read.fraction(lv[k]) for k in fine for lv in (col_diffs.pattern, col_diffs.inverse)), black_box)
+        del split
         min_direct = float(noise_sigmas * sigma)
 
     def start(bits: GrayBits) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -1257,7 +1406,7 @@ def decode_gray_images(
     if len(levels) > 1:
         edges = StripeSamples.concatenate([e.with_y() for e in levels])
         edges = edges.subset(np.lexsort((edges.x, edges.row)))
-    del col_diffs
+    del col_diffs, diffs_d  # the column planes, before the maps are put together
     edges = _coarse_edges(edges, col_bits.coarse).shifted(y0, x0)
 
     def to_map(value: np.ndarray, valid: np.ndarray, coarse: int, size: int) -> np.ndarray:
@@ -1398,11 +1547,12 @@ class _Streamed(Mapping):
 def decode_gray(session: Session, view: ViewRecord | str, **options) -> GrayResult:
     """Read and decode the Gray-code images of ``view`` in ``session``.
 
-    ``options`` are passed to :func:`decode_gray_images`. The images are read by a
-    background thread a couple ahead of the decoder, and dropped once used: in linear light
-    (the camera's curve, ``session.response``, undone), but as stored for
-    ``threshold="opencv"``, whose DN thresholds apply to the images as OpenCV users load
-    them.
+    ``options`` are passed to :func:`decode_gray_images`. The images are read as stored
+    (a JPEG decoded once) by a background thread a couple ahead of the decoder, and
+    dropped once used; the decoder reads each into the grey plane it keeps in linear light
+    (the camera's curve, ``session.response``, undone through lookup tables), but as
+    stored for ``threshold="opencv"``, whose DN thresholds apply to the images as OpenCV
+    users load them.
 
     Raises
     ------
@@ -1420,16 +1570,27 @@ def decode_gray(session: Session, view: ViewRecord | str, **options) -> GrayResu
     pairs = gray_pairs(descs, "columns") + gray_pairs(descs, "rows")
     ids = [white_id, black_id, *(p for pair in pairs for p in pair)]
     records = {pid: view.image_for(pid) for pid in ids}
-    # in linear light: an sRGB camera's curve undone (float fractions of full scale then);
-    # OpenCV's rule: as stored
-    linear = options.get("threshold", "adaptive") != "opencv"
-    with _Streamed(lambda pid: session.read_image(view, records[pid], linear=linear), ids) as images:
+    # read as stored; in linear light (an sRGB camera's curve undone as the decoder reads
+    # each capture), but for OpenCV's rule
+    opencv = options.get("threshold", "adaptive") == "opencv"
+    if not opencv:
+        options.setdefault("response", session.response)
+    options.setdefault("luma", session.lossy)
+    ahead: list[_Reader] = []  # the reading thread's reader, made from the white frame
+
+    def read(pid: str) -> np.ndarray | _Read:
+        image = session.read_image(view, records[pid])
+        if pid == white_id:
+            ahead.append(_Reader(image, where, options["luma"], opencv=opencv,
+                                 response=options.get("response", "linear")))
+        if pid in (white_id, black_id) or not ahead:
+            return image
+        return ahead[0].read_ahead(image)  # the pattern's levels, made while the decoder works
+
+    with _Streamed(read, ids) as images:
         white, black = images[white_id], images[black_id]
-        options.setdefault("luma", session.lossy)
         result = decode_gray_images(images, descs, white, black, where=where, **options)
-    if linear and session.response != "linear":  # colour downstream from the capture as saved
-        white = session.read_image(view, records[white_id])
-    return replace(result, white=white)
+    return replace(result, white=white)  # colour downstream from the capture as saved
 
 
 # --- the Gray-code family's decoder (slscan.patterns.graycode.FAMILY) ---------------------------
