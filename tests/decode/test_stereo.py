@@ -539,3 +539,17 @@ def test_stereo_with_phase_codes(phase_two, two_cameras):
     g = _true_distance(gray.range_map.vertices, view.rig_from_object)
     assert np.median(d) < np.median(g) and np.percentile(d, 95) < np.percentile(g, 95) * 1.1
     assert len(result.range_map.faces) > len(gray.range_map.faces)
+
+
+def test_codes_are_coarsened_to_the_bits_both_cameras_read():
+    from slscan.decode.codes import ProjectorCodes, ValidShare
+    from slscan.decode.stereo import coarsened
+
+    col = np.array([[0, 5, 6, 255, -1]], np.int32)
+    row = np.array([[3, 4, 7, 8, 9]], np.int32)
+    share = ValidShare(1.0, 1.0, 0.0, 0.0, 0.0, None, "decoder")
+    codes = ProjectorCodes("v", col, row, col >= 0, (256, 192), (8, 8), share)
+    out = coarsened(codes, (8, 6))  # the other camera lacks the last two row bits: blocks of 4
+    np.testing.assert_array_equal(out.column, col)
+    np.testing.assert_array_equal(out.row, [[2, 6, 6, 10, 10]])  # each block's centre, as a coarse set decodes it
+    assert out.bits == (8, 6) and coarsened(out, (8, 6)) is out

@@ -140,12 +140,38 @@ def _camera_entry(d: object, i: int, meta: Path) -> CameraEntry:
     )
 
 
+def _missing_gray_bits_only(p0: list[dict], p1: list[dict]) -> bool:
+    """Whether two cameras' pattern sets differ only by the last Gray-code bits (pattern and
+    inverse) one of them lacks (bits a camera never captured, imported with
+    ``--missing-bits drop``): the cameras are then matched on the bits both have
+    (:func:`slscan.decode.stereo.coarsened`)."""
+    a = {p["id"]: p for p in p0}
+    b = {p["id"]: p for p in p1}
+    common = a.keys() & b.keys()
+    if any(a[k] != b[k] for k in common):
+        return False
+    for extra in (a.keys() - common, b.keys() - common):
+        found: dict[tuple[str, int], set[bool]] = {}
+        for k in extra:
+            p = (a | b)[k]
+            if p.get("family") != "gray" or "bit" not in p:
+                return False
+            found.setdefault((p["axis"], int(p["bit"])), set()).add(bool(p.get("inverse")))
+        for (axis, bit), kinds in found.items():
+            kept = [int(p["bit"]) for k, p in (a | b).items() if k in common and p.get("family") == "gray"
+                    and p.get("axis") == axis and "bit" in p]
+            if kinds != {False, True} or (kept and bit <= max(kept)):
+                return False  # a bit without its inverse, or a bit missing before one present
+    return True
+
+
 def _check_same_set(meta: Path, first: tuple[str, Session], other: tuple[str, Session]) -> None:
-    """Every camera's session must hold the same pattern set and the same view names."""
+    """Every camera's session must hold the same pattern set and the same view names (one
+    camera may lack Gray-code bits the other has)."""
     (name0, s0), (name1, s1) = first, other
     p0 = [p.to_dict() for p in s0.patterns]
     p1 = [p.to_dict() for p in s1.patterns]
-    if p0 != p1:
+    if p0 != p1 and not _missing_gray_bits_only(p0, p1):
         ids0, ids1 = [p["id"] for p in p0], [p["id"] for p in p1]
         diff = sorted(set(ids0) ^ set(ids1)) or [a for a, b in zip(p0, p1) if a != b][:1]
         raise SlscanError(

@@ -796,6 +796,40 @@ def _decode(session: Session, view: str, config: StereoConfig):
     return decode_codes(session, view, dconf, threshold=config.gray_threshold, drop_bits=config.gray_drop_bits)
 
 
+def _bits_read(session: Session) -> tuple[int, int] | None:
+    """The Gray-code bits a camera's set lets decoding read per axis (its leading run of
+    bits present), or None when its codes are not Gray code (phase shifting: sub-pixel)."""
+    from slscan.decode.codes import codes_family
+    from slscan.decode.graycode import gray_pairs
+
+    fam = codes_family(session)
+    if fam is None or fam.name != "gray":
+        return None
+    return len(gray_pairs(session.patterns, "columns")), len(gray_pairs(session.patterns, "rows"))
+
+
+def coarsened(codes, bits: tuple[int, int]):
+    """``codes`` (:class:`~slscan.decode.codes.ProjectorCodes` of Gray code) read to
+    ``bits`` per axis at most: a finer code is replaced by the centre of its block of
+    ``2**(read - bits)`` columns (rows), as a set missing those bits decodes it, so that a
+    camera whose set lacks bits the other has is matched on the bits both have."""
+    from dataclasses import replace
+
+    from slscan.decode.graycode import _block_centres
+
+    maps = {}
+    for name, value, read, want in (("column", codes.column, codes.bits[0], bits[0]),
+                                    ("row", codes.row, codes.bits[1], bits[1])):
+        if value is None or read <= want:
+            continue
+        ok = value >= 0
+        drop = np.full(value.shape, read - want, np.uint8)
+        maps[name] = np.where(ok, _block_centres(np.where(ok, value, 0), drop), value).astype(value.dtype)
+    if not maps:
+        return codes
+    return replace(codes, **maps, bits=tuple(min(r, w) for r, w in zip(codes.bits, bits)))
+
+
 def _row_spacing(column: np.ndarray, row: np.ndarray) -> float:
     """Median distance, projector px, between a point and the next one on its projector row
     (NaN when no row has two)."""
@@ -848,14 +882,23 @@ def reconstruct_view(
     opts = {"projector_height": height, "code_step": config.code_step}
     seconds = {"decode": 0.0, "match": 0.0}
     centroids, bits = [], []
+    read = [_bits_read(s) for s in (sa, sb)]
+    common = tuple(map(min, *read)) if None not in read else None  # a camera missing bits the other has
+    # codes missing low bits name blocks of 2**missing projector pixels: every such cell is a
+    # block by construction, whose plane fits degenerate, so it falls back to its centroid
+    # whatever its size in the camera
+    full = tuple(max(1, math.ceil(math.log2(n))) for n in sa.projector_size)
+    min_block = 1 if common is not None and any(c < f for c, f in zip(common, full)) else config.min_block_pixels
     for s in (sa, sb):
         t = time.perf_counter()
         codes = _decode(s, view, config)
+        if common is not None:
+            codes = coarsened(codes, common)
         seconds["decode"] += time.perf_counter() - t
         t = time.perf_counter()
         centroids.append(code_centroids(codes.column, codes.row, codes.mask, outlier_px=config.outlier_px,
                                         subpixel=config.subpixel, min_refined_share=config.min_refined_share,
-                                        min_block_pixels=config.min_block_pixels, **opts))
+                                        min_block_pixels=min_block, **opts))
         bits.append(codes.bits)
         seconds["match"] += time.perf_counter() - t
         del codes
