@@ -28,6 +28,9 @@ resident memory (``VmHWM``, the interpreter and imports included), wall and CPU 
   of that revision's toolbox (exported with ``git archive``).
 - **slscan**: ``decode_gray`` of this tree: adaptive thresholds from the measured noise,
   the direct/global split and consistency test, sub-pixel stripe edges along both axes.
+- **slscan, rule**: the same with OpenCV's rule for the mask (``--gray-threshold opencv``:
+  the captures as stored, no noise estimate, no global-light test), still finding the
+  sub-pixel edges: what the rule costs inside slscan.
 
 "maps" and "edges" are checksums of the decoded column, row and mask maps and of the edge
 samples: equal checksums mean equal results.
@@ -59,8 +62,9 @@ from slscan.capture.session import load_session
 from slscan.decode.graycode import decode_gray
 
 session = load_session(sys.argv[1], validate=False)
+options = {"threshold": sys.argv[2]} if len(sys.argv) > 2 else {}
 t, c = time.perf_counter(), time.process_time()
-res = decode_gray(session, session.views[0])
+res = decode_gray(session, session.views[0], **options)
 wall, cpu = time.perf_counter() - t, time.process_time() - c
 peak = next(int(l.split()[1]) * 1024 for l in Path("/proc/self/status").read_text().splitlines() if l.startswith("VmHWM:"))
 digest = lambda arrays: hashlib.sha1(b"".join(np.ascontiguousarray(a).tobytes() for a in arrays)).hexdigest()[:8]
@@ -130,8 +134,8 @@ def make_session(size: tuple[int, int], quality: int, data: Path, folder: Path) 
     return Path(session.root)
 
 
-def run(code: str, session: Path, label: str, toolbox: Path | None, repeat: int) -> dict:
-    runs = [run_json([sys.executable, "-c", code, str(session)], label, toolbox) for _ in range(repeat)]
+def run(code: str, session: Path, label: str, toolbox: Path | None, repeat: int, *extra: str) -> dict:
+    runs = [run_json([sys.executable, "-c", code, str(session), *extra], label, toolbox) for _ in range(repeat)]
     out = dict(runs[0])
     for key in ("peak_bytes", "wall_s", "cpu_s"):
         out[key] = statistics.median(r[key] for r in runs)
@@ -161,7 +165,8 @@ def main() -> None:
         old = export_toolbox(rev, tmp / "old")
         rows = [("OpenCV rule", run(OPENCV, session, "opencv", None, args.repeat)),
                 (f"slscan {rev[:7]}", run(SLSCAN, session, "slscan old", old, args.repeat)),
-                ("slscan", run(SLSCAN, session, "slscan", None, args.repeat))]
+                ("slscan", run(SLSCAN, session, "slscan", None, args.repeat)),
+                ("slscan, rule", run(SLSCAN, session, "slscan opencv", None, args.repeat, "opencv"))]
     cam = meta["camera"]
     print(f"one view of {session}: {cam['width']}x{cam['height']} ({cam['width'] * cam['height'] / 1e6:.1f} MP), "
           f"{len(meta['views'][0]['images'])} {'JPEG' if cam['lossy'] else 'lossless'} images, "
