@@ -76,6 +76,10 @@ EDGE_PX = 1
 depth step a pixel sees two surfaces, its phase is the lit one's but its ray is the pixel
 centre's, which may miss that surface (on the virtual tile at full size 0.7 % of the
 points were more than 0.5 mm off, all on the rim)."""
+STEP_FACTOR = 6.0
+"""A depth step: neighbouring pixels whose projector columns differ by more than this many
+times the view's median difference between neighbours (and at least :data:`MIN_STEP_PX`)."""
+MIN_STEP_PX = 3.0
 LUMA_WEIGHTS = np.array([0.299, 0.587, 0.114], np.float32)
 GAMMA_EVIDENCE = 0.03
 """``projector_gamma="auto"`` corrects for the exponent it estimates only when that lowers
@@ -712,7 +716,8 @@ def decode_phase_images(
     mask = np.isfinite(axes["columns"].coordinate)
     if "rows" in axes:
         mask &= np.isfinite(axes["rows"].coordinate)
-    if edge:  # mixed pixels: a pixel on the rim of the decoded region sees two surfaces
+    if edge:  # mixed pixels: a pixel on the rim of the decoded region, or beside a depth step, sees two surfaces
+        mask &= ~depth_steps(axes["columns"].coordinate, mask)
         mask = cv2.erode(mask.view(np.uint8), np.ones((2 * edge + 1, 2 * edge + 1), np.uint8)).view(bool)
     row = None
     if "rows" in axes:
@@ -752,6 +757,30 @@ def _projector_gamma(option: float | str | None, sets: dict[str, AxisSet], fits:
     log.info("%sprojector gamma %.2f estimated from the fringes (phase unevenness %.3f -> %.3f); phases "
              "corrected for it", f"{where}: " if where else "", gamma, before, after)
     return gamma
+
+
+def depth_steps(coord: np.ndarray, valid: np.ndarray, *, factor: float = STEP_FACTOR,
+                min_step: float = MIN_STEP_PX) -> np.ndarray:
+    """(h, w) bool: pixels beside a depth step, where the decoded coordinate jumps between
+    neighbours by more than ``factor`` times the view's median jump (and ``min_step`` px):
+    the arm in front of the body, a fold. Each such pixel integrates light from both
+    surfaces (the camera's blur spreads it over a pixel or two), and its phase, a mixture
+    of two fringes, is neither's; meshed, a band of them floats between the surfaces (the
+    phase demo's fused figurine: 115 specks). Taken out with the rim, one pixel each side."""
+    c = np.where(valid, coord, np.nan)
+    dx = np.abs(np.diff(c, axis=1))
+    dy = np.abs(np.diff(c, axis=0))
+    both = np.concatenate([dx[np.isfinite(dx)], dy[np.isfinite(dy)]])
+    if both.size == 0:
+        return np.zeros(valid.shape, bool)
+    limit = max(min_step, factor * float(np.median(both)))
+    step = np.zeros(valid.shape, bool)
+    jx, jy = dx > limit, dy > limit
+    step[:, :-1] |= jx
+    step[:, 1:] |= jx
+    step[:-1] |= jy
+    step[1:] |= jy
+    return step
 
 
 def _uncrop_axis(a: AxisDecode, box: tuple[slice, slice], shape: tuple[int, int]) -> AxisDecode:
