@@ -149,7 +149,9 @@ def _cmd_capture(args: argparse.Namespace) -> int:
 
 def _multicam_patterns(config):
     """A multi-camera capture's pattern set: Gray-code columns and rows, to match the cameras."""
-    patterns = "both" if config.patterns == "hybrid" else config.patterns
+    from slscan.patterns import with_rows
+
+    patterns = with_rows(config.patterns)
     if patterns != config.patterns or not config.gray_rows:
         logging.getLogger(__name__).info("multi-camera capture: adding Gray-code columns and rows")
     return dataclasses.replace(config, patterns=patterns, gray_rows=True)

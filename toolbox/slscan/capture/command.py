@@ -199,11 +199,11 @@ def _levels(args, width: int) -> int:
 
 
 def _pattern_set(args, width: int, height: int):
-    from slscan.patterns import pattern_options, standard_set
+    from slscan.patterns import pattern_options, standard_set, with_rows
 
     family, rows = args.patterns, args.gray_rows
-    if args.board:  # projector rows for the inverse camera; the hybrid's lines for the light planes
-        family, rows = ("both" if family == "hybrid" else family), True
+    if args.board:  # projector rows for the inverse camera; the hybrid's lines (if asked) for the light planes
+        family, rows = with_rows(family), True
     return standard_set(family, width=width, height=height, levels=_levels(args, width), rows=rows,
                         **pattern_options(args))
 

@@ -285,6 +285,13 @@ def set_families(name: str) -> tuple[str, ...]:
     return tuple(dict.fromkeys(f.name for f, _ in _selected(name)))
 
 
+def with_rows(name: str) -> str:
+    """A set name that codes the projector rows: ``name`` itself when one of its families
+    can (Gray code, phase shifting), else ``name`` plus Gray code ("hybrid" -> "hybrid+gray"):
+    what the inverse-camera calibration and two-camera matching need."""
+    return name if any(family(f).rows for f in set_families(name)) else f"{name}+gray"
+
+
 def families_in(patterns: Sequence[PatternImage]) -> tuple[Family, ...]:
     """The decodable families a pattern set holds, the highest "auto" priority first."""
     present = {p.family for p in patterns}
