@@ -241,7 +241,7 @@ def _refine(
     Returns ys, xs (k,) int the pixels, x, y (k,) float64 their refined positions (the
     pixel centre where not refined) and ok (k,) bool refined.
     """
-    h, w = valid.shape
+    h = valid.shape[0]
     ys, xs = np.nonzero(valid)
     x_out, y_out = xs.astype(np.float64), ys.astype(np.float64)
     ok_out = np.zeros(len(ys), bool)
