@@ -279,20 +279,16 @@ def codes_from_gray(result: GrayResult, session: Session, view: str) -> Projecto
     )
 
 
-def decode_codes(session: Session, view: ViewRecord | str, config=None, **options) -> ProjectorCodes:
+def decode_codes(session: Session, view: ViewRecord | str, config=None) -> ProjectorCodes:
     """Decode one view's projector codes (no calibration needed), with the family that
     gives them (:func:`codes_family`).
 
-    config : the decode stage's :class:`~slscan.decode.pipeline.DecodeConfig` (thresholds),
-        or None for the defaults; ``options`` go to :func:`~slscan.decode.graycode.decode_gray`
-        (Gray code only, when no ``config`` is given)
+    config : the decode stage's :class:`~slscan.decode.pipeline.DecodeConfig` (thresholds,
+        bit dropping), or None for the defaults
     """
     require_gray_codes(session)
     view = session.view(view) if isinstance(view, str) else view
-    fam = codes_family(session)
-    if options and fam.name == "gray":
-        return codes_from_gray(decode_gray(session, view, **options), session, view.name)
-    return fam.decode_module().projector_codes(session, view, config)
+    return codes_family(session).decode_module().projector_codes(session, view, config)
 
 
 # --- files -----------------------------------------------------------------------------------

@@ -1866,7 +1866,8 @@ def projector_codes(session: Session, view: ViewRecord | str, config=None):
     from slscan.decode.codes import codes_from_gray
 
     view = session.view(view) if isinstance(view, str) else view
-    options = {} if config is None else {"threshold": config.gray_threshold, "robust": config.gray_robust_applied}
+    options = {} if config is None else {"threshold": config.gray_threshold, "robust": config.gray_robust_applied,
+                                         "drop_bits": config.gray_drop_bits}
     return codes_from_gray(decode_gray(session, view, **options), session, view.name)
 
 

@@ -791,9 +791,8 @@ def _decode(session: Session, view: str, config: StereoConfig):
     from slscan.decode.codes import decode_codes
     from slscan.decode.pipeline import DecodeConfig
 
-    dconf = DecodeConfig(gray_threshold=config.gray_threshold, gray_drop_bits=config.gray_drop_bits)
-    # the Gray-code family reads its options (drop_bits is not in its projector_codes), others the config
-    return decode_codes(session, view, dconf, threshold=config.gray_threshold, drop_bits=config.gray_drop_bits)
+    return decode_codes(session, view, DecodeConfig(gray_threshold=config.gray_threshold,
+                                                    gray_drop_bits=config.gray_drop_bits))
 
 
 def _bits_read(session: Session) -> tuple[int, int] | None:
