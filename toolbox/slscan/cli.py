@@ -356,9 +356,9 @@ def _cmd_decode(args: argparse.Namespace) -> int:
         planes = calibration_planes(calibration, source=args.planes)
     codes_only = session.calibration is None and planes is None
     if codes_only:
-        from slscan.decode.codes import require_gray_codes
+        from slscan.decode.codes import require_codes
 
-        require_gray_codes(session)  # a hybrid set without calibration: nothing to write
+        require_codes(session)  # a hybrid set without calibration: nothing to write
         logging.getLogger(__name__).warning(
             "%s has no calibration: writing projector codes only, no range maps (for range maps, "
             "calibrate the rig with slscan calibrate, then pass --calibration CALIB.json)", args.session)

@@ -67,7 +67,7 @@ coordinates with NaN where not decoded (phase shifting: ``"encoding"`` says so).
 MIN_CONTRAST = 0.03
 NOISE_SIGMAS = 3.0
 """The defaults of :func:`~slscan.decode.graycode.decode_gray_images` the estimate assumes."""
-GRAY_ONLY = "projector codes are written for Gray-code and phase-shifting pattern sets only"
+CODES_ONLY = "projector codes are written for Gray-code and phase-shifting pattern sets only"
 
 
 @dataclass(frozen=True)
@@ -247,17 +247,17 @@ def codes_family(session: Session):
     return None
 
 
-def has_gray_codes(session: Session) -> bool:
+def has_codes(session: Session) -> bool:
     """Whether the session's patterns give per-pixel projector codes (Gray code, phase shifting)."""
     return codes_family(session) is not None
 
 
-def require_gray_codes(session: Session) -> None:
+def require_codes(session: Session) -> None:
     """Raise a clear error when ``session`` has no patterns to write codes from."""
-    if not has_gray_codes(session):
+    if not has_codes(session):
         found = sorted({p.family for p in session.patterns}) or ["none"]
         raise SlscanError(
-            f"{session.root / SESSION_FILE}: {GRAY_ONLY}; this session's patterns are "
+            f"{session.root / SESSION_FILE}: {CODES_ONLY}; this session's patterns are "
             f"{', '.join(found)} (decode hybrid sets to range maps with a calibration)"
         )
 
@@ -286,7 +286,7 @@ def decode_codes(session: Session, view: ViewRecord | str, config=None) -> Proje
     config : the decode stage's :class:`~slscan.decode.pipeline.DecodeConfig` (thresholds,
         bit dropping), or None for the defaults
     """
-    require_gray_codes(session)
+    require_codes(session)
     view = session.view(view) if isinstance(view, str) else view
     return codes_family(session).decode_module().projector_codes(session, view, config)
 
@@ -474,7 +474,7 @@ def decode_codes_session(
         session = load_session(session)
     if not session.views:
         raise SlscanError(f"{session.root / SESSION_FILE}: the session has no views; expected at least one")
-    require_gray_codes(session)
+    require_codes(session)
     warn_if_lossy(session)
     executor = fit_workers(executor, session)
     executor.start(len(session.views), [__name__])

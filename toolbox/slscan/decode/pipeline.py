@@ -27,7 +27,7 @@ from slscan.decode.codes import (
     ProjectorCodes,
     ValidShare,
     decode_codes,
-    require_gray_codes,
+    require_codes,
     write_codes_manifest,
     write_view_codes,
 )
@@ -438,7 +438,7 @@ def decode_session(
     if not session.views:
         raise SlscanError(f"{session.root / SESSION_FILE}: the session has no views; expected at least one")
     if codes:
-        require_gray_codes(session)
+        require_codes(session)
     executor = fit_workers(executor, session)
     warn_if_lossy(session)
     # the method chosen (and why, said) once here, not in every worker
