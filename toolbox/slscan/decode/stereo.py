@@ -797,14 +797,12 @@ def _decode(session: Session, view: str, config: StereoConfig):
 
 def _bits_read(session: Session) -> tuple[int, int] | None:
     """The Gray-code bits a camera's set lets decoding read per axis (its leading run of
-    bits present), or None when its codes are not Gray code (phase shifting: sub-pixel)."""
-    from slscan.decode.codes import codes_family
+    bits present), or None without Gray code. Sub-pixel codes (phase shifting) report no
+    bits read (``ProjectorCodes.bits`` 0), so :func:`coarsened` leaves them as they are."""
     from slscan.decode.graycode import gray_pairs
 
-    fam = codes_family(session)
-    if fam is None or fam.name != "gray":
-        return None
-    return len(gray_pairs(session.patterns, "columns")), len(gray_pairs(session.patterns, "rows"))
+    bits = len(gray_pairs(session.patterns, "columns")), len(gray_pairs(session.patterns, "rows"))
+    return bits if bits[0] else None
 
 
 def coarsened(codes, bits: tuple[int, int]):
