@@ -21,8 +21,8 @@ log = logging.getLogger(__name__)
 
 DESCRIPTION = """\
 Scan with a projector and a camera: every view projects white, black and the coded
-patterns (hybrid, Gray code or phase shifting), then switches the ring lights one at a time, and is
-written to the capture session as soon as it is complete. Between views you are asked to
+patterns (hybrid, Gray code or phase shifting), then switches the ring lights one at a
+time, and is written to the capture session as soon as it is complete. Between views you are asked to
 move the object (the virtual rig turns its turntable). After each view a quick decode
 shows its range map and its holes in Rerun, so you see what is missing before moving on.
 
