@@ -28,7 +28,8 @@ shows its range map and its holes in Rerun, so you see what is missing before mo
 
 device specs:
   --projector screen[:N]   borderless full-screen window on monitor N (pip install 'slscan[screen]')
-  --camera opencv[:N]      UVC/V4L2 webcam N, or opencv:FILE for a video or image sequence
+  --camera opencv[:N]      UVC/V4L2 webcam N, or opencv:FILE for a video or image sequence;
+                           opencv:N:WIDTHxHEIGHT@FPS asks for a mode, e.g. opencv:0:1920x1080@30
   --camera gphoto2[:PORT]  tethered still camera through libgphoto2 (pip install 'slscan[gphoto2]')
   --camera folder:DIR      a folder your tethering software saves each shot to
   --camera virtual         the virtual rig (projector, camera, lights and turntable simulated)
@@ -61,7 +62,7 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
     dev.add_argument("--projector", default=None, metavar="SPEC",
                      help="screen[:N] or virtual (default: virtual with --camera virtual, else screen:1)")
     dev.add_argument("--camera", default="virtual", metavar="SPEC",
-                     help="opencv[:N|:FILE], gphoto2[:PORT], folder:DIR, virtual (default) or loop")
+                     help="opencv[:N[:WxH@FPS]|:FILE], gphoto2[:PORT], folder:DIR, virtual (default) or loop")
     dev.add_argument("--lights", choices=("manual", "none", "virtual"), default=None,
                      help="ring lights for the albedo images: manual (you are asked to switch each), none; "
                           "default: virtual on the virtual rig, none on a real one")
