@@ -67,6 +67,15 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
                      help="ring lights for the albedo images: manual (you are asked to switch each), none; "
                           "default: virtual on the virtual rig, none on a real one")
     dev.add_argument("--light-count", type=int, default=6, help="manual lights: how many (default 6)")
+    add_stage_arguments(dev)
+    dev.add_argument("--turntable-axis", type=Path, default=None, metavar="AXIS.json",
+                     help="the turntable's axis (slscan turntable-axis): each view then records its pose, so "
+                          "registration starts from it")
+    dev.add_argument("--preview", action="store_true",
+                     help="before scanning, show the live camera in Rerun with focus, clipping and projector "
+                          "overlap (as slscan preview) until you press Enter or --preview-seconds pass")
+    dev.add_argument("--preview-seconds", type=float, default=None, metavar="S",
+                     help="with --preview: stop the preview after S seconds instead of waiting for Enter")
     pat = p.add_argument_group("patterns")
     from slscan.patterns import add_pattern_arguments
 
@@ -111,6 +120,56 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
     add_recording_arguments(p)
     p.set_defaults(func=run)
     return p
+
+
+def add_stage_arguments(p) -> None:
+    """``--stage`` and the turntable's settings (``slscan scan``, ``slscan stage``)."""
+    p.add_argument("--stage", default=None, metavar="SPEC",
+                   help="what turns the object between views: manual (you are asked; default on a real rig), "
+                        "serial:PORT[:grbl|marlin][:BAUD] (a stepper turntable speaking G-code, e.g. "
+                        "serial:/dev/ttyUSB0; pip install 'slscan[serial]'), or virtual (the virtual rig's)")
+    p.add_argument("--stage-axis", default="X", metavar="LETTER",
+                   help="the G-code axis the turntable's stepper is on (default X; A on 4-axis builds)")
+    p.add_argument("--stage-units-per-degree", type=float, default=1.0, metavar="U",
+                   help="G-code units per degree of table rotation (default 1: the firmware's steps per unit "
+                        "make one unit one degree)")
+    p.add_argument("--stage-home", action="store_true", help="home the turntable first ($H / G28)")
+    p.add_argument("--stage-sweep", type=float, default=360.0, metavar="DEG",
+                   help="the views' angles span this many degrees (default 360: a full turn in equal steps; "
+                        "less: from --stage-start to start + sweep, both included, e.g. 80 for a board)")
+    p.add_argument("--stage-start", type=float, default=0.0, metavar="DEG",
+                   help="the first view's turntable angle, degrees (default 0)")
+    p.add_argument("--stage-timeout", type=float, default=5.0, metavar="S",
+                   help="seconds the controller may take to answer a command (default 5)")
+
+
+def open_stage(args):
+    """The turntable of ``--stage serial:...`` opened with the ``--stage-*`` settings (and
+    ``--turntable-axis`` where the command has it)."""
+    from slscan.devices.turntable import SerialTurntable, parse_turntable_spec
+
+    spec = parse_turntable_spec(args.stage)
+    point = direction = None
+    if getattr(args, "turntable_axis", None) is not None:
+        from slscan.calibrate.turntable import load_turntable_axis
+
+        axis = load_turntable_axis(args.turntable_axis)
+        point, direction = axis.point, axis.direction
+    if not (math.isfinite(args.stage_timeout) and args.stage_timeout > 0):
+        raise SlscanError(f"--stage-timeout must be positive, got {args.stage_timeout}")
+    return SerialTurntable(spec.port, firmware=spec.firmware, baud=spec.baud, axis=args.stage_axis,
+                           units_per_degree=args.stage_units_per_degree, timeout_s=args.stage_timeout,
+                           sweep_deg=args.stage_sweep, start_deg=args.stage_start, axis_point=point,
+                           axis_direction=direction, home=args.stage_home)
+
+
+def _stage_kind(args) -> str:
+    text = (args.stage or "").strip().lower()
+    if text in ("", "manual", "virtual"):
+        return text or "default"
+    if text.startswith("serial:"):
+        return "serial"
+    raise SlscanError(f"--stage {args.stage!r}: expected manual, virtual or serial:PORT[:grbl|marlin][:BAUD]")
 
 
 def add_placement_arguments(p: argparse.ArgumentParser) -> None:
@@ -222,7 +281,9 @@ def _open_rig(args, camera_spec, projector_spec) -> _Rig:
     from slscan.capture.driver import ScanDevices
     from slscan.devices.base import NoLights
     from slscan.devices.specs import SIMULATED_CAMERAS, open_camera, open_projector
+    from slscan.devices.turntable import view_angles
     from slscan.virtual.device import VirtualCaptureConfig, scan_devices, virtual_devices
+    from slscan.virtual.devices import turntable_pose
     from slscan.virtual.sensor import Sensor
 
     board = _board(args)
@@ -237,14 +298,31 @@ def _open_rig(args, camera_spec, projector_spec) -> _Rig:
             scene=args.scene, camera_scale=args.scale, projector_scale=args.scale, seed=args.seed,
             lit_images=board is None, sensor=Sensor(exposure=args.exposure), **placement_settings(args),
         )
-        scene = poses = None
+        if _stage_kind(args) in ("serial", "manual"):
+            raise SlscanError(f"--stage {args.stage}: the virtual rig turns its own turntable (--stage virtual)")
+        if args.turntable_axis is not None:
+            raise SlscanError("--turntable-axis is for a real turntable: the virtual rig records its true poses")
+        scene = poses = angles = None
+        turned = args.stage_sweep != 360.0 or args.stage_start != 0.0
         if board is not None:
             from slscan.virtual.boards import board_poses, board_scene, default_edge_sigma
 
             rig = config.rig()
             scene = board_scene(board, edge_sigma=default_edge_sigma(rig))
-            poses = board_poses(rig, board, args.views)
+            if turned:  # the board stands on the turntable: captures for slscan turntable-axis
+                from slscan.calibrate.turntable import board_on_turntable
+
+                angles = view_angles(args.views, sweep_deg=args.stage_sweep, start_deg=args.stage_start)
+                poses = [turntable_pose(rig, a, board_on_turntable(board)) for a in angles]
+            else:
+                poses = board_poses(rig, board, args.views)
+        elif turned:
+            rig = config.rig()
+            scene = config.build_scene()
+            angles = view_angles(args.views, sweep_deg=args.stage_sweep, start_deg=args.stage_start)
+            poses = [turntable_pose(rig, a, scene.placement) for a in angles]
         world = virtual_devices(config, scene=scene, poses=poses, latency_s=args.latency)
+        world.turntable_angles = angles
         lens = world.rig.projector.lens
         patterns = _pattern_set(args, lens.width, lens.height)
         if camera_spec.kind == "virtual":
@@ -290,7 +368,17 @@ def _open_rig(args, camera_spec, projector_spec) -> _Rig:
         if lights_kind == "virtual":
             raise SlscanError("--lights virtual needs the virtual rig (--camera virtual)")
         lights = ManualLights(args.light_count) if lights_kind == "manual" and board is None else NoLights()
-        devices = ScanDevices(projector, camera, lights, FirstViewInPlace(ManualStage()))
+        kind = _stage_kind(args)
+        if kind == "virtual":
+            raise SlscanError("--stage virtual is the virtual rig's turntable (--camera virtual)")
+        if kind == "serial":
+            stage = open_stage(args)
+        else:
+            if args.turntable_axis is not None:
+                raise SlscanError("--turntable-axis needs a turntable: give --stage serial:PORT")
+            stage = FirstViewInPlace(ManualStage())
+        opened.append(stage)
+        devices = ScanDevices(projector, camera, lights, stage)
         w, h = projector.resolution
         patterns = _pattern_set(args, w, h)
         calibration = measured = camera_model = None

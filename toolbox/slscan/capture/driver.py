@@ -319,7 +319,7 @@ def scan(
                     gt_file = "ground_truth.npz"
                     gt.save(writer.view_folder(name) / gt_file)
                 record = ViewRecord(name, tuple(records), placement.rig_from_object, placement.pose_source,
-                                    exposure, gt_file)
+                                    exposure, gt_file, placement.turntable_deg)
                 t = time.perf_counter()
                 writer.add_view(record)
                 timing.write += time.perf_counter() - t

@@ -210,10 +210,12 @@ class Placement:
 
     rig_from_object : (4, 4) mm, or None when unknown (a hand-placed object)
     pose_source : how the pose is known, e.g. "ground-truth", "turntable", or None
+    turntable_deg : the angle a turntable was turned to (degrees), or None
     """
 
     rig_from_object: np.ndarray | None = None
     pose_source: str | None = None
+    turntable_deg: float | None = None
 
 
 class Stage(Device):
