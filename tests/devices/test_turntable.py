@@ -140,3 +140,26 @@ def test_a_turntable_failing_mid_scan_keeps_the_finished_views_for_resume(tmp_pa
         assert [ln for ln in fake.received if ln.startswith("G0")] == ["G0 X120.0000", "G0 X240.0000"]
     assert [v.turntable_deg for v in load_session(out).views] == [0, 120, 240]
     assert result.resumed_views == 1
+
+
+def test_stage_command_homes_turns_and_zeroes(capsys):
+    from slscan.cli import main
+
+    with FakeController() as fake:
+        code = main(["stage", f"serial:{fake.port}", "--home", "--rotate", "30", "--zero", "--stage-axis", "A",
+                     "--stage-boot", "0"])
+        assert code == 0
+        assert [ln for ln in fake.received if ln != "G90"] == ["$H", "G4 P0", "G0 A30.0000", "G4 P0", "G92 A0"]
+    err = capsys.readouterr().err
+    assert "turned turntable on" in err and "30 degrees" in err
+
+
+def test_stage_command_without_an_answer_is_one_line_and_non_zero(capsys):
+    from slscan.cli import main
+
+    with FakeController(silent=True) as fake:
+        code = main(["stage", f"serial:{fake.port}:marlin", "--rotate", "10", "--stage-timeout", "0.2",
+                     "--stage-boot", "0"])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert f"turntable on {fake.port} did not answer 'G90' in 0.2 s" in err and "marlin controller" in err

@@ -141,6 +141,9 @@ def add_stage_arguments(p) -> None:
                    help="the first view's turntable angle, degrees (default 0)")
     p.add_argument("--stage-timeout", type=float, default=5.0, metavar="S",
                    help="seconds the controller may take to answer a command (default 5)")
+    p.add_argument("--stage-boot", type=float, default=2.0, metavar="S",
+                   help="seconds to wait after opening the port, while the controller reboots (default 2; "
+                        "0 for a board that does not reset when the port opens)")
 
 
 def open_stage(args):
@@ -157,10 +160,12 @@ def open_stage(args):
         point, direction = axis.point, axis.direction
     if not (math.isfinite(args.stage_timeout) and args.stage_timeout > 0):
         raise SlscanError(f"--stage-timeout must be positive, got {args.stage_timeout}")
+    if not (math.isfinite(args.stage_boot) and 0 <= args.stage_boot <= 60):
+        raise SlscanError(f"--stage-boot must be in [0, 60] s, got {args.stage_boot}")
     return SerialTurntable(spec.port, firmware=spec.firmware, baud=spec.baud, axis=args.stage_axis,
                            units_per_degree=args.stage_units_per_degree, timeout_s=args.stage_timeout,
                            sweep_deg=args.stage_sweep, start_deg=args.stage_start, axis_point=point,
-                           axis_direction=direction, home=args.stage_home)
+                           axis_direction=direction, home=args.stage_home, boot_s=args.stage_boot)
 
 
 def _stage_kind(args) -> str:
