@@ -44,6 +44,9 @@ examples:
               --calibration rig.json --lights manual --spawn
   slscan scan --projector screen:1 --camera gphoto2 --board 9x7 --square 25 --views 8 --out board
   slscan scan ... --out bust --resume        continue an interrupted scan with its next view
+  slscan scan --camera virtual --preview --preview-seconds 3     live focus, clipping and overlap; no scan
+  slscan scan --projector screen:1 --camera opencv:0:1920x1080@30 --stage serial:/dev/ttyUSB0 --preview \
+              --turntable-axis turntable.json --views 8 --out bust
 """
 
 
@@ -55,7 +58,8 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
         "scan", help="scan with a projector and a camera (real or virtual), live in Rerun",
         description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--out", type=Path, help="capture-session folder to write (not needed with --check-exposure)")
+    p.add_argument("--out", type=Path, help="capture-session folder to write (not needed with --check-exposure, "
+                   "or with --preview to preview only)")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--resume", action="store_true", help="continue the session in --out with its next view")
     dev = p.add_argument_group("devices")
@@ -76,6 +80,10 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
                           "overlap (as slscan preview) until you press Enter or --preview-seconds pass")
     dev.add_argument("--preview-seconds", type=float, default=None, metavar="S",
                      help="with --preview: stop the preview after S seconds instead of waiting for Enter")
+    dev.add_argument("--preview-frames", type=int, default=None, metavar="N",
+                     help="with --preview: stop the preview after N refreshes")
+    dev.add_argument("--preview-period", type=int, default=4, metavar="PX",
+                     help="with --preview: the focus stripes' period, projector px (default 4: 2 px stripes)")
     pat = p.add_argument_group("patterns")
     from slscan.patterns import add_pattern_arguments
 
@@ -364,11 +372,11 @@ def _open_rig(args, camera_spec, projector_spec) -> _Rig:
             raise SlscanError(f"{option} is for the virtual rig (--camera virtual or loop); a real rig's geometry "
                               "comes from --calibration")
 
-    projector = open_projector(projector_spec or _default_projector())
-    opened = [projector]
+    camera = open_camera(camera_spec)  # first: a missing camera is reported before a window opens
+    opened = [camera]
     try:
-        camera = open_camera(camera_spec)
-        opened.append(camera)
+        projector = open_projector(projector_spec or _default_projector())
+        opened.append(projector)
         lights_kind = args.lights or "none"
         if lights_kind == "virtual":
             raise SlscanError("--lights virtual needs the virtual rig (--camera virtual)")
@@ -550,6 +558,52 @@ def _settle(args, rig: _Rig, rec) -> float:
     return latency.settle_s
 
 
+def _preview(args, rig: _Rig, settle: float, rec, *, then_scan: bool) -> None:
+    """The live preview (focus, clipping, overlap) until Enter, --preview-seconds or
+    --preview-frames; one line per refresh on the terminal, everything in Rerun."""
+    import sys
+    import threading
+
+    from slscan.capture.preview import run_preview
+    from slscan.viewer.log_preview import log_preview
+
+    seconds, frames = args.preview_seconds, args.preview_frames
+    if seconds is not None and not (math.isfinite(seconds) and seconds >= 0):
+        raise SlscanError(f"--preview-seconds must be a number of seconds >= 0, got {seconds}")
+    if frames is not None and frames < 1:
+        raise SlscanError(f"--preview-frames must be at least 1, got {frames}")
+    stop = None
+    if seconds is None and frames is None:
+        if sys.stdin is None or not sys.stdin.isatty():
+            raise SlscanError("--preview waits for Enter from an operator at a terminal: give --preview-seconds N "
+                              "or --preview-frames N to preview without one")
+        pressed = threading.Event()
+
+        def wait_for_enter() -> None:
+            try:
+                sys.stdin.readline()
+            finally:
+                pressed.set()
+
+        threading.Thread(target=wait_for_enter, daemon=True).start()
+        stop = pressed.is_set
+    console = _console()
+    until = "press Enter to " + ("start the scan" if then_scan else "stop") if stop is not None else (
+        f"for {seconds:g} s" if seconds is not None else f"{frames} refresh(es)")
+    console.print(f"[cyan]preview[/] ({until}): turn the focus ring for the highest focus; keep clipped near 0 %",
+                  highlight=False)
+
+    def show(index: int, measures) -> None:
+        log_preview(rec, index, measures)
+        console.print(f"[cyan]preview {index + 1}[/] {measures.line()}", highlight=False)
+
+    try:
+        run_preview(rig.devices.projector, rig.devices.camera, seconds=seconds, frames=frames, stop=stop,
+                    on_measures=show, period_px=args.preview_period, settle_s=settle)
+    except DeviceError as exc:
+        raise SlscanError(f"preview: {exc}") from None
+
+
 def _exposure(args, rig: _Rig, settle: float, rec) -> None:
     from rich.table import Table
 
@@ -576,8 +630,11 @@ def run(args: argparse.Namespace) -> int:
     from slscan.viewer.log_scan import frame_logger, scan_blueprint
     from slscan.viewer.recording import recording_from_args
 
-    if args.out is None and not args.check_exposure:
+    if args.out is None and not (args.check_exposure or args.preview):
         raise SlscanError("--out: name the capture-session folder to write")
+    preview_only = args.preview and args.out is None and not args.check_exposure
+    if not args.preview and (args.preview_seconds is not None or args.preview_frames is not None):
+        raise SlscanError("--preview-seconds and --preview-frames go with --preview")
     if args.out is None:
         args.out = Path("check-exposure")  # never written
     if args.views < 1:
@@ -603,6 +660,10 @@ def run(args: argparse.Namespace) -> int:
             if rig.world is not None:
                 devices.stage.move_to(0, args.views)  # the object in view for latency and exposure
             settle = _settle(args, rig, rec)
+            if args.preview:
+                _preview(args, rig, settle, rec, then_scan=not preview_only)
+                if preview_only:
+                    return 0
             if args.check_exposure or args.auto_exposure:
                 if args.check_exposure:
                     from slscan.capture.driver import find_exposure
