@@ -163,3 +163,32 @@ def test_stage_command_without_an_answer_is_one_line_and_non_zero(capsys):
     err = capsys.readouterr().err
     assert code == 2
     assert f"turntable on {fake.port} did not answer 'G90' in 0.2 s" in err and "marlin controller" in err
+
+
+def test_scan_stage_options_are_checked(tmp_path, capsys):
+    from slscan.cli import main
+
+    assert main(["scan", "--camera", "virtual", "--stage", "serial:/dev/ttyUSB0", "--out", str(tmp_path / "a")]) == 2
+    assert "the virtual rig turns its own turntable" in capsys.readouterr().err
+    assert main(["scan", "--camera", "virtual", "--stage", "usb:3", "--out", str(tmp_path / "b")]) == 2
+    assert "expected manual, virtual or serial:PORT" in capsys.readouterr().err
+
+
+def test_open_stage_reads_the_turntable_axis_file(tmp_path):
+    import argparse
+
+    from slscan.calibrate.turntable import TurntableAxis, save_turntable_axis
+    from slscan.capture.command import add_stage_arguments, open_stage
+
+    axis = TurntableAxis(np.array([0.0, 0.0, 1300.0]), np.array([0.0, 1.0, 0.0]), 1.0, 0.0, 0.0, 5)
+    save_turntable_axis(axis, tmp_path / "turntable.json")
+    parser = argparse.ArgumentParser()
+    add_stage_arguments(parser)
+    parser.add_argument("--turntable-axis")
+    with FakeController() as fake:
+        args = parser.parse_args(["--stage", f"serial:{fake.port}", "--stage-boot", "0",
+                                  "--turntable-axis", str(tmp_path / "turntable.json")])
+        with open_stage(args) as table:
+            placement = table.move_to(2, 8)
+    np.testing.assert_allclose(placement.rig_from_object, axis.pose(90.0))
+    assert placement.pose_source == "turntable" and placement.turntable_deg == 90
