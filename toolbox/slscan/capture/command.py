@@ -597,11 +597,19 @@ def _preview(args, rig: _Rig, settle: float, rec, *, then_scan: bool) -> None:
         log_preview(rec, index, measures)
         console.print(f"[cyan]preview {index + 1}[/] {measures.line()}", highlight=False)
 
+    if rec is not None and then_scan:  # the preview's layout while it runs, then the scan's
+        from slscan.viewer.log_preview import preview_blueprint
+
+        rec.send_blueprint(preview_blueprint(), make_active=True, make_default=False)
     try:
         run_preview(rig.devices.projector, rig.devices.camera, seconds=seconds, frames=frames, stop=stop,
                     on_measures=show, period_px=args.preview_period, settle_s=settle)
     except DeviceError as exc:
         raise SlscanError(f"preview: {exc}") from None
+    if rec is not None and then_scan:
+        from slscan.viewer.log_scan import scan_blueprint
+
+        rec.send_blueprint(scan_blueprint(), make_active=True, make_default=False)
 
 
 def _exposure(args, rig: _Rig, settle: float, rec) -> None:
@@ -654,7 +662,13 @@ def run(args: argparse.Namespace) -> int:
     rig = _open_rig(args, camera_spec, projector_spec)
     devices = rig.devices
     try:
-        with recording_from_args(args, recording_name=f"scan {args.out.name}", blueprint=scan_blueprint()) as rec:
+        if preview_only:
+            from slscan.viewer.log_preview import preview_blueprint
+
+            layout, name = preview_blueprint(), "preview"
+        else:
+            layout, name = scan_blueprint(), f"scan {args.out.name}"
+        with recording_from_args(args, recording_name=name, blueprint=layout) as rec:
             if rig.calibration is not None:
                 log_rig(rec, rig.calibration)
             if rig.world is not None:

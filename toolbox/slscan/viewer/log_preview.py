@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import rerun as rr
+import rerun.blueprint as rrb
 
 PREVIEW_TIMELINE = "preview"
 IMAGE_PATH = "preview/camera"
@@ -59,3 +60,24 @@ def log_preview(rec: rr.RecordingStream | None, index: int, measures) -> None:
     rec.log(CLIPPED_PLOT, rr.Scalars(100.0 * float(measures.clipped_share)))
     rec.log(OVERLAP_PLOT, rr.Scalars(100.0 * float(measures.overlap)))
     rec.log(TEXT_PATH, rr.TextLog(measures.line(), level="INFO"))
+
+
+def preview_blueprint() -> rrb.Blueprint:
+    """The preview's layout: the camera with the focus tiles and clipped pixels over it
+    (left), focus, clipped share and overlap plotted per refresh, and the lines (right)."""
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial2DView(origin=IMAGE_PATH, contents="$origin/**",
+                              name="Camera: focus (red blurred, green sharp), clipped (magenta)"),
+            rrb.Vertical(
+                rrb.TimeSeriesView(origin=FOCUS_PLOT, name="Focus (stripe contrast)"),
+                rrb.TimeSeriesView(origin="plot/preview", contents=[f"+ {CLIPPED_PLOT}", f"+ {OVERLAP_PLOT}"],
+                                   name="Clipped % and overlap %"),
+                rrb.TextLogView(origin=TEXT_PATH, name="Preview"),
+            ),
+            column_shares=[3, 2],
+            name="Preview",
+        ),
+        rrb.TimePanel(state="collapsed"),
+        collapse_panels=True,
+    )
