@@ -232,3 +232,27 @@ def test_scan_asks_for_every_shot_with_a_bell_on_stderr(tmp_path, capsys):
     assert "\ashoot view 1, frame 1 (white) now\n" in err
     assert "\ashoot view 1, frame 2 (black) now\n" in err
     assert err.count("\a") == len(shots) == len(plan.patterns) + 1
+
+
+def test_preview_asks_for_its_four_shots(tmp_path, capsys):
+    from slscan.capture.preview import measure_once
+    from slscan.devices.folder import bell_prompt
+    from slscan.virtual.device import VirtualCaptureConfig, virtual_devices
+
+    world = virtual_devices(VirtualCaptureConfig(camera_scale=0.2, projector_scale=0.2, scene="tile"))
+    world.stage.move_to(0, 1)
+    folder = tmp_path / "tether"
+    folder.mkdir()
+
+    def fake_trigger(message: str) -> None:  # FAKE: the operator pressing the shutter
+        bell_prompt(message)
+        n = len(list(folder.iterdir()))
+        (folder / f"IMG_{n:04d}.png").write_bytes(_encode(world.camera.capture().image))
+
+    camera = FolderCamera(folder, resolution=world.camera.resolution, stable_s=0.02, poll_s=0.005, prompt=fake_trigger)
+    m = measure_once(world.projector, camera)
+    err = capsys.readouterr().err
+    assert [line for line in err.splitlines() if line.startswith("\a")] == [
+        "\ashoot preview, black now", "\ashoot preview, white now", "\ashoot preview, stripes now",
+        "\ashoot preview, inverse stripes now"]
+    assert m.overlap > 0.1 and m.focus > 0.2

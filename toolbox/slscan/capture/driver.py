@@ -528,13 +528,14 @@ def find_exposure(
 
     def measure() -> ExposureTrial:
         shots = []
-        for img in (None, white_img, lines_img):
+        for name, img in (("black", None), ("white", white_img), ("finest pattern", lines_img)):
             if img is None and shots:
                 continue
             projector.blank() if img is None else projector.show(img)
             if settle_s:
                 time.sleep(settle_s)
             camera.flush()
+            camera.about_to_capture(f"exposure check, {name}")
             shots.append(camera.capture().image)
         dark, white = shots[0], shots[1]
         lines = shots[2] if len(shots) > 2 else None

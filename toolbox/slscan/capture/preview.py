@@ -133,11 +133,12 @@ def measure_once(
     white = np.full((h, w, 3), 255, np.uint8)
     t0 = time.monotonic()
     shots = []
-    for image in (None, white, stripes, inverse):
+    for name, image in (("black", None), ("white", white), ("stripes", stripes), ("inverse stripes", inverse)):
         projector.blank() if image is None else projector.show(image)
         if settle_s:
             time.sleep(settle_s)
         camera.flush()
+        camera.about_to_capture(f"preview, {name}")
         shots.append(camera.capture().image)
     return preview_measures(*shots, tiles=tiles, seconds=time.monotonic() - t0)
 
