@@ -372,10 +372,13 @@ def _open_rig(args, camera_spec, projector_spec) -> _Rig:
             raise SlscanError(f"{option} is for the virtual rig (--camera virtual or loop); a real rig's geometry "
                               "comes from --calibration")
 
-    camera = open_camera(camera_spec)  # first: a missing camera is reported before a window opens
+    projector_spec = projector_spec or _default_projector()
+    if projector_spec.kind != "screen":
+        open_projector(projector_spec)  # refuses it, naming the real ones, before anything opens
+    camera = open_camera(camera_spec)  # before the projector: a missing camera is reported before a window opens
     opened = [camera]
     try:
-        projector = open_projector(projector_spec or _default_projector())
+        projector = open_projector(projector_spec)
         opened.append(projector)
         lights_kind = args.lights or "none"
         if lights_kind == "virtual":

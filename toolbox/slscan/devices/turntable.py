@@ -230,7 +230,8 @@ class SerialTurntable(Stage):
                 text = f"{line} ({meaning})" if meaning else line
             return f"{self.name} reported: {text} (after {sent!r})"
         if low.startswith("alarm"):
-            return f"{self.name} reported: {line} (after {sent!r}; a limit switch or homing failed: check the table, then --home)"
+            return (f"{self.name} reported: {line} (after {sent!r}; a limit switch or homing failed: check the "
+                    "table, then --home)")
         if low.startswith("!!"):
             return f"{self.name} reported: {line} (after {sent!r}; the firmware halted: reset it)"
         return None
