@@ -799,6 +799,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_scan_command(sub)
 
+    from slscan.capture.stage_command import add_commands as add_stage_commands
+
+    add_stage_commands(sub)
+
     from slscan.decode.options import DEFAULT_ESTIMATOR, ESTIMATORS
     from slscan.viewer.recording import add_recording_arguments
 
