@@ -177,3 +177,39 @@ def test_a_file_a_setting_names_is_part_of_the_fingerprint(tmp_path, monkeypatch
     assert second != first
     (tmp_path / "rig.json").write_text("{}")
     assert _fingerprint(stage, Config(), {}) != second
+
+
+def test_shipped_recipes_are_found_by_name_from_any_folder(tmp_path, monkeypatch):
+    from slscan.recipe.runner import find_recipe, shipped_recipe, shipped_recipes
+
+    monkeypatch.chdir(tmp_path)  # no recipes/ here
+    assert set(shipped_recipes()) == {p.stem for p in RECIPES}
+    demo = shipped_recipe("demo")
+    assert demo.read_text() == (Path(__file__).parents[2] / "recipes" / "demo.toml").read_text()
+    for spec in ("demo", "demo.toml", "recipes/demo.toml", Path("recipes") / "demo.toml"):
+        assert find_recipe(spec) == demo, spec
+    with pytest.raises(SlscanError, match=r"nosuch: recipe not found \(slscan's own recipes, by name: .*demo"):
+        find_recipe("nosuch")
+    with pytest.raises(SlscanError, match=r"elsewhere/demo\.toml: recipe not found"):
+        find_recipe("elsewhere/demo.toml")  # a path elsewhere is that path, never a shipped recipe
+    (tmp_path / "recipes").mkdir()
+    mine = tmp_path / "recipes" / "demo.toml"
+    mine.write_text('[recipe]\nname = "mine"\nstages = ["capture"]\n')
+    assert find_recipe("recipes/demo.toml") == Path("recipes/demo.toml")  # a file here wins
+    assert load_recipe(find_recipe("recipes/demo.toml")).name == "mine"
+
+
+def test_slscan_run_takes_a_recipe_name_from_any_folder(tmp_path, monkeypatch, capsys):
+    """`slscan run demo` and `slscan run recipes/demo.toml` outside the source tree load the
+    shipped recipe (stopped here at an unknown setting, which names the file it came from)."""
+    from slscan.cli import main
+    from slscan.recipe.runner import shipped_recipe
+
+    monkeypatch.chdir(tmp_path)
+    for spec in ("demo", "recipes/demo.toml"):
+        assert main(["run", spec, "--set", "capture.no_such_setting=1", "--out", "run"]) == 2
+        err = " ".join(capsys.readouterr().err.split())
+        assert f"{shipped_recipe('demo')}: [capture]: unknown key 'no_such_setting'" in err
+    assert not (tmp_path / "run").exists()
+    assert main(["run", "nosuch", "--out", "run"]) == 2
+    assert "nosuch: recipe not found" in capsys.readouterr().err
