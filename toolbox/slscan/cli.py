@@ -179,8 +179,8 @@ textured model: the demo recipe (recipes/demo.toml, shipped with slscan), run ex
   lights/    the ring lights calibrated on a matte panel (lights.json)
   albedo/    the un-shaded colour of every view
   register/  the range maps aligned (aligned.mlp for MeshLab, registration.json)
-  fuse/      the fused mesh (mesh.ply)
-  simplify/  the simplified mesh (mesh.ply)
+  fuse/      the fused mesh (mesh.ply; mesh.mlp opens it in MeshLab)
+  simplify/  the simplified mesh (mesh.ply; mesh.mlp opens it in MeshLab)
   texture/   the textured model: model.glb, OBJ, PLY, model.mlp
 
 plus OUT/<stage>.stage.json and OUT/recipe.resolved.toml (the recipe as run). At the
