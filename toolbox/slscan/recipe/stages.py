@@ -199,7 +199,7 @@ class SimplifyConfig:
 
 def _run_register(ctx: StageContext, config: RegisterConfig) -> dict[str, Any]:
     from slscan.register.command import load_poses, load_scans, save_registration
-    from slscan.register.multiview import register_scans
+    from slscan.register.multiview import median_pair_rmse, register_scans
 
     if config.max_neighbours < 0:
         raise SlscanError(f"register.max_neighbours: expected >= 0 (0: every candidate pair), "
@@ -228,9 +228,9 @@ def _run_register(ctx: StageContext, config: RegisterConfig) -> dict[str, Any]:
     result, frame = to_object_frame(scans, result)
     rlog.log_registration_result(ctx.rec, result)
     save_registration(ctx.out, scans, result, overwrite=True, frame=frame)
-    rmse = [p.rmse for p in result.pairs]
+    median = median_pair_rmse(result.pairs)
     return {"aligned": len(result.poses), "left_out": len(result.left_out), "up_from": frame.up_from,
-            "median_pair_rmse_mm": round(float(np.median(rmse)), 4) if rmse else None}
+            "median_pair_rmse_mm": None if median is None else round(median, 4)}
 
 
 def _run_fuse(ctx: StageContext, config) -> dict[str, Any]:

@@ -146,7 +146,7 @@ def save_registration(folder: Path, scans, result, *, overwrite: bool = False, f
 
 def _cmd_register(args: argparse.Namespace) -> int:
     from slscan.register.frame import preview_frame, to_object_frame
-    from slscan.register.multiview import MultiviewConfig, register_scans
+    from slscan.register.multiview import MultiviewConfig, median_pair_rmse, register_scans
     from slscan.viewer import log_register as rlog
     from slscan.viewer.recording import recording_from_args
 
@@ -175,10 +175,10 @@ def _cmd_register(args: argparse.Namespace) -> int:
         rlog.log_registration_result(rec, result)
     project = save_registration(args.out, scans, result, overwrite=args.overwrite, frame=frame)
     out = console()
-    rmse = [p.rmse for p in result.pairs]
+    median = median_pair_rmse(result.pairs)
+    residual = "no pair residual" if median is None else f"median residual {median:.3f} mm"
     out.print(f"[green]aligned[/] {len(result.poses)} of {len(scans)} scans in {time.perf_counter() - t0:.1f} s; "
-              f"{len(result.pairs)} overlapping pairs, median residual {np.median(rmse) if rmse else float('nan'):.3f} mm "
-              f"-> {project}", highlight=False)
+              f"{len(result.pairs)} overlapping pairs, {residual} -> {project}", highlight=False)
     if result.rejected:
         n = len(result.rejected)
         out.print(f"{n} candidate pair{'s' * (n != 1)} rejected (all in registration.json):",
