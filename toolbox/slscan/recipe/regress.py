@@ -517,8 +517,8 @@ def _lens_checks(stage: str, what: str, a, b, tol: Tolerances) -> list[Check]:
 def _pose_checks(stage: str, what: str, a: np.ndarray, b: np.ndarray, tol: Tolerances) -> list[Check]:
     return [
         _at_most(stage, f"{what} rotation deg", _rotation_deg(a, b), tol.calibration_deg),
-        _at_most(stage, f"{what} position mm", float(np.linalg.norm(np.asarray(b)[:3, 3] - np.asarray(a)[:3, 3])),
-                 tol.calibration_mm),
+        _at_most(stage, f"{what} position mm",
+                 float(np.linalg.norm(np.asarray(b)[:3, 3] - np.asarray(a)[:3, 3])), tol.calibration_mm),
     ]
 
 
@@ -536,8 +536,10 @@ def _plane_checks(stage: str, a, b, tol: Tolerances) -> list[Check]:
         _at_most(stage, "light planes fx px", abs(b.fx - a.fx), tol.calibration_px),
         _at_most(stage, "light planes cx px", abs(b.cx - a.cx), tol.calibration_px),
         *_pose_checks(stage, "light planes centre", a.rig_from_projector, b.rig_from_projector, tol),
-        _at_most(stage, "light planes angle deg", float(np.degrees(np.arccos(cos)).max()), tol.calibration_deg),
-        _at_most(stage, "light planes offset mm", float(np.abs(pb[:, 3] - pa[:, 3]).max()), tol.calibration_mm),
+        _at_most(stage, "light planes angle deg", float(np.degrees(np.arccos(cos)).max()),
+                 tol.calibration_deg),
+        _at_most(stage, "light planes offset mm", float(np.abs(pb[:, 3] - pa[:, 3]).max()),
+                 tol.calibration_mm),
     ]
 
 
@@ -580,19 +582,16 @@ def _compare_calibration(stage: Stage, old: Path, new: Path, tol: Tolerances, re
     ]
     if a.projector is not None and b.projector is not None:
         checks += _lens_checks(name, "projector", a.projector.lens, b.projector.lens, tol)
-        checks += _pose_checks(name, "projector", a.projector.rig_from_projector, b.projector.rig_from_projector,
-                               tol)
+        checks += _pose_checks(name, "projector", a.projector.rig_from_projector,
+                               b.projector.rig_from_projector, tol)
     if a.light_planes is not None and b.light_planes is not None:
         checks += _plane_checks(name, a.light_planes, b.light_planes, tol)
     if a.raw_planes is not None or b.raw_planes is not None:
         checks.append(_count(name, "raw light planes", 0 if a.raw_planes is None else len(a.raw_planes),
                              0 if b.raw_planes is None else len(b.raw_planes), tol.count))
     ra, rb = _residual_numbers(a.residuals), _residual_numbers(b.residuals)
-    checks += [
-        c if c.stage == name else replace(c, stage=name)
-        for c in _metric_checks({f"{name}/residuals {k}": v for k, v in ra.items()},
-                                {f"{name}/residuals {k}": v for k, v in rb.items()}, tol)
-    ]
+    checks += _metric_checks({f"{name}/residuals {k}": v for k, v in ra.items()},
+                             {f"{name}/residuals {k}": v for k, v in rb.items()}, tol)
     return checks
 
 

@@ -199,7 +199,8 @@ def write_wedge_uv_ply(path: str | os.PathLike, vertices: np.ndarray, faces: np.
     vertices = np.asarray(vertices, np.float64)
     faces = np.asarray(faces, np.int64).reshape(-1, 3)
     atlas_faces = np.asarray(atlas.faces, np.int64)
-    if atlas_faces.shape != faces.shape or not np.array_equal(np.asarray(atlas.source_vertex)[atlas_faces], faces):
+    same = atlas_faces.shape == faces.shape and np.array_equal(np.asarray(atlas.source_vertex)[atlas_faces], faces)
+    if not same:
         raise SlscanError(f"{path}: the atlas's faces are not the model's ({len(atlas_faces)} vs {len(faces)})")
     if normals is not None and len(normals) != len(vertices):
         raise SlscanError(f"{path}: {len(normals)} normals for {len(vertices)} vertices")
