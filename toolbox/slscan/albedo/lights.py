@@ -124,6 +124,92 @@ def read_panel(session_root: str | os.PathLike) -> MattePanel:
 # --- the calibration result --------------------------------------------------------------
 
 
+PROJECTOR_LIGHT_FORMAT = "slscan.projector-light"
+
+
+@dataclass(frozen=True)
+class ProjectorLight:
+    """The projector's full white as a calibrated point light (for albedo without ring lights).
+
+    In normalised units (:mod:`slscan.albedo.radiometry`) a Lambertian surface of albedo
+    ``a`` lit by the projector's white frame (its black frame subtracted) reads
+    ``a_c * intensity_c * flat(u, v) * max(0, n . l) * (reference_distance / d)**2``,
+    ``l`` the unit vector to the projector's centre and ``d`` its distance (mm).
+
+    intensity : (3,) RGB, what a white surface facing the projector at
+        ``reference_distance`` mm reads; (1, 1, 1) uncalibrated (albedo then is relative
+        to the projector's white at that distance)
+    reference_distance : mm
+    flat_field : (gh, gw) relative emitted radiance over the projector's frame (a coarse
+        grid spanning the projector's pixels, median 1: vignetting, hot spot), or None
+        (uniform)
+    source : how it was made, in words ("nominal (uncalibrated)", the panel session)
+    """
+
+    intensity: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    reference_distance: float = 1300.0
+    flat_field: tuple[tuple[float, ...], ...] | None = None
+    source: str = "nominal (uncalibrated)"
+
+    def __post_init__(self) -> None:
+        if len(self.intensity) != 3 or not all(np.isfinite(i) and i > 0 for i in self.intensity):
+            raise SlscanError(f"projector light: intensity must be 3 positive values, got {self.intensity}")
+        if not (np.isfinite(self.reference_distance) and self.reference_distance > 0):
+            raise SlscanError(f"projector light: reference distance must be positive, got {self.reference_distance}")
+        if self.flat_field is not None:
+            grid = np.asarray(self.flat_field, float)
+            if grid.ndim != 2 or min(grid.shape) < 1 or not np.all(np.isfinite(grid) & (grid > 0)):
+                raise SlscanError("projector light: flat_field must be a 2-D grid of positive numbers")
+
+    @property
+    def calibrated(self) -> bool:
+        return not self.source.startswith("nominal")
+
+    def flat_at(self, uv: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+        """Relative radiance (n,) at projector pixels ``uv`` (n, 2) of a ``size`` = (w, h)
+        projector, bilinear over the flat-field grid (its cells span the frame evenly); 1
+        without a flat field."""
+        uv = np.asarray(uv, float).reshape(-1, 2)
+        if self.flat_field is None:
+            return np.ones(len(uv))
+        from scipy.ndimage import map_coordinates
+
+        grid = np.asarray(self.flat_field, np.float64)
+        gh, gw = grid.shape
+        w, h = size
+        # cell i's centre sits at projector pixel (i + 0.5) * w / gw - 0.5
+        x = np.clip((uv[:, 0] + 0.5) * gw / w - 0.5, 0, gw - 1)
+        y = np.clip((uv[:, 1] + 0.5) * gh / h - 0.5, 0, gh - 1)
+        return map_coordinates(grid, [y, x], order=1, mode="nearest")
+
+    def to_dict(self) -> dict:
+        return {
+            "format": PROJECTOR_LIGHT_FORMAT,
+            "intensity": [float(i) for i in self.intensity],
+            "reference_distance_mm": float(self.reference_distance),
+            "flat_field": None if self.flat_field is None else [list(map(float, r)) for r in self.flat_field],
+            "source": self.source,
+        }
+
+    @classmethod
+    def from_dict(cls, d: Any, where: str = "projector light") -> ProjectorLight:
+        if not isinstance(d, dict):
+            raise SlscanError(f"{where}: expected a table with 'intensity' and 'reference_distance_mm'")
+        try:
+            flat = d.get("flat_field")
+            return cls(
+                tuple(float(i) for i in d["intensity"]),
+                float(d["reference_distance_mm"]),
+                None if flat is None else tuple(tuple(float(x) for x in row) for row in flat),
+                str(d.get("source", "given")),
+            )
+        except KeyError as exc:
+            raise SlscanError(f"{where}: missing field {exc.args[0]!r}") from None
+        except (TypeError, ValueError) as exc:
+            raise SlscanError(f"{where}: {exc}") from None
+
+
+
 @dataclass(frozen=True)
 class LightCalibration:
     """Calibrated ring lights: positions (mm, rig frame), RGB intensities, ambient light.
@@ -138,6 +224,8 @@ class LightCalibration:
     position_sigma : (k,) mm, 1-sigma position uncertainty of each light from the fit
         (0 when not fitted)
     fit : how the calibration was made (residual, samples, session), for the record
+    projector : the projector's white as a calibrated light (from the panel's white and
+        black frames), or None; with it ``lights`` may be empty (a rig without ring lights)
     """
 
     lights: tuple[Light, ...]
@@ -145,6 +233,7 @@ class LightCalibration:
     reference_distance: float = 1300.0
     position_sigma: tuple[float, ...] = ()
     fit: dict = field(default_factory=dict)
+    projector: ProjectorLight | None = None
 
     @property
     def positions(self) -> np.ndarray:
@@ -187,6 +276,7 @@ class LightCalibration:
                 for light, s in zip(self.lights, sigma)
             ],
             "fit": self.fit,
+            **({"projector": self.projector.to_dict()} if self.projector is not None else {}),
         }
 
     @classmethod
@@ -203,8 +293,11 @@ class LightCalibration:
             lights = tuple(Light.from_dict(x) for x in d["lights"])
             ambient = tuple(float(a) for a in d.get("ambient", (0, 0, 0)))
             sigma = tuple(float(x.get("position_sigma_mm", 0.0)) for x in d["lights"])
+            projector = d.get("projector")
+            if projector is not None:
+                projector = ProjectorLight.from_dict(projector, f"{where}: projector")
             cal = cls(
-                lights, ambient, float(d["reference_distance_mm"]), sigma, dict(d.get("fit", {}))
+                lights, ambient, float(d["reference_distance_mm"]), sigma, dict(d.get("fit", {})), projector
             )
         except KeyError as exc:
             raise SlscanError(f"{where}: missing field {exc.args[0]!r}") from None
@@ -214,8 +307,8 @@ class LightCalibration:
             len(x.position) != 3 or len(x.intensity) != 3 for x in lights
         ):
             raise SlscanError(f"{where}: positions, intensities and ambient need 3 values each")
-        if not lights:
-            raise SlscanError(f"{where}: no lights")
+        if not lights and cal.projector is None:
+            raise SlscanError(f"{where}: no lights (and no projector light)")
         return cal
 
 
@@ -251,31 +344,42 @@ class PanelSamples:
     lights: np.ndarray
 
 
-def panel_samples(
+def _panel_pose(session: Session, view: ViewRecord, rig_from_panel: np.ndarray | None) -> np.ndarray:
+    pose = rig_from_panel if rig_from_panel is not None else view.rig_from_object
+    if pose is None:
+        raise SlscanError(
+            f"{session.root / view.name}: the panel's pose is unknown (the view records no rig_from_object; "
+            "give the panel's range maps, slscan decode --out, to fit its plane)"
+        )
+    return np.asarray(pose, float)
+
+
+def panel_plane(
+    session: Session, view: ViewRecord, panel: MattePanel, *, rig_from_panel: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """A point on the panel's front face (3,) mm and its unit normal (3,), rig frame, from
+    ``rig_from_panel`` (default: the view's recorded ``rig_from_object``)."""
+    return panel.front_plane(_panel_pose(session, view, rig_from_panel))
+
+
+def panel_pixels(
     session: Session,
     view: ViewRecord,
     panel: MattePanel,
     *,
     rig_from_panel: np.ndarray | None = None,
-    max_samples: int = 4000,
     edge_px: int = 3,
-) -> PanelSamples:
-    """Intersect the camera rays with the panel's front face and read the lit images there.
+) -> np.ndarray:
+    """(h, w) bool: the camera pixels whose ray meets the panel's front face inside its
+    margin, ``edge_px`` pixels away from its outline.
 
     rig_from_panel : (4, 4) the panel's pose; default: the view's recorded
         ``rig_from_object`` (the virtual rig records it)
-    max_samples : pixels kept, on a regular grid over the face
-    edge_px : pixels dropped next to the face's outline, besides ``panel.margin``
     """
     rig = session.calibration
     if rig is None:
         raise SlscanError(f"{session.root}: the session has no camera calibration")
-    pose = rig_from_panel if rig_from_panel is not None else view.rig_from_object
-    if pose is None:
-        raise SlscanError(
-            f"{session.root / view.name}: the panel's pose is unknown (the view records no rig_from_object)"
-        )
-    lit = read_lit_images(session, view, min_images=1)
+    pose = _panel_pose(session, view, rig_from_panel)
     cam = rig.camera
     h, w = cam.height, cam.width
     grid = np.stack(np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float)), axis=-1)
@@ -297,19 +401,43 @@ def panel_samples(
         inside = cv2.erode(
             inside.astype(np.uint8), np.ones((2 * edge_px + 1,) * 2, np.uint8)
         ).astype(bool)
+    return inside
+
+
+def panel_samples(
+    session: Session,
+    view: ViewRecord,
+    panel: MattePanel,
+    *,
+    rig_from_panel: np.ndarray | None = None,
+    max_samples: int = 4000,
+    edge_px: int = 3,
+) -> PanelSamples:
+    """Intersect the camera rays with the panel's front face and read the lit images there.
+
+    rig_from_panel : (4, 4) the panel's pose; default: the view's recorded
+        ``rig_from_object`` (the virtual rig records it)
+    max_samples : pixels kept, on a regular grid over the face
+    edge_px : pixels dropped next to the face's outline, besides ``panel.margin``
+    """
+    inside = panel_pixels(session, view, panel, rig_from_panel=rig_from_panel, edge_px=edge_px)
+    centre, normal = panel_plane(session, view, panel, rig_from_panel=rig_from_panel)
     count = int(inside.sum())
     if count < 50:
         raise SlscanError(
             f"{session.root / view.name}: the panel covers {count} pixels; expected it to fill the view"
         )
+    lit = read_lit_images(session, view, min_images=1)
     stride = max(1, int(np.ceil(np.sqrt(count / max_samples))))
     keep = np.zeros_like(inside)
     keep[stride // 2 :: stride, stride // 2 :: stride] = True
     keep &= inside
     rows, cols = np.nonzero(keep)
+    rays = session.calibration.camera.rays_local(np.stack([cols, rows], axis=1).astype(float))
+    points = rays * ((normal @ centre) / (rays @ normal))[:, None]
     return PanelSamples(
         view=view.name,
-        points=points[rows, cols],
+        points=points,
         normal=normal,
         values=lit.values[:, rows, cols].astype(np.float64),
         usable=~lit.saturated[:, rows, cols],

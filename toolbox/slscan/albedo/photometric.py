@@ -67,6 +67,7 @@ log = logging.getLogger(__name__)
 
 NORMALS = ("photometric", "range")
 SPECULAR = ("fit", "none")
+LIGHT_SOURCES = ("auto", "ring", "projector")
 CHUNK = 40000  # pixels solved at once (bounds memory: ~50 floats per pixel and light)
 
 
@@ -74,6 +75,13 @@ CHUNK = 40000  # pixels solved at once (bounds memory: ~50 floats per pixel and 
 class AlbedoConfig:
     """How the albedo stage un-shades the lit images."""
 
+    light: str = "auto"
+    """{"auto", "ring", "projector"}: which light the albedo comes from. "ring": the
+    paper's 6-light un-shading of the lit images; "projector": the projector's white frame
+    (black frame subtracted) as one calibrated point light, with the range map's normals
+    (:mod:`slscan.albedo.projector_light`, for rigs without ring lights); "auto": the ring
+    when every view has ``min_lights`` lit images and the lights are known, else the
+    projector."""
     min_lights: int = 3
     """Pixels with fewer usable lights (unshadowed, not grazing, not saturated, not
     rejected) are invalid."""
@@ -114,7 +122,19 @@ class AlbedoConfig:
     fit the figurine's lobe as 12000 did (0.127, 34.9 against 0.127, 34.7; the albedo
     benchmark's table unchanged within 0.1 point) at half the cost."""
 
+    projector_highlight_deg: float = 0.0
+    """Projector light: pixels whose normal is within this angle (degrees) of the half
+    vector between projector and camera are left out as possible highlights (one light
+    cannot tell a highlight from paint per pixel). 0 keeps them."""
+    projector_min_signal_dn: float = 4.0
+    """Projector light: pixels whose white frame is brighter than the black by less than
+    this (8-bit digital numbers, luminance) are left out (projector shadow, dark paint)."""
+
     def __post_init__(self) -> None:
+        if self.light not in LIGHT_SOURCES:
+            raise SlscanError(
+                f"unknown albedo light {self.light!r}: expected one of {', '.join(LIGHT_SOURCES)}"
+            )
         if self.normals not in NORMALS:
             raise SlscanError(
                 f"unknown albedo normals {self.normals!r}: expected one of {', '.join(NORMALS)}"
