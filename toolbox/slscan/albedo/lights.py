@@ -29,7 +29,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -647,9 +647,11 @@ def calibrate_lights(
     views: list[str] | None = None,
     max_samples_per_view: int = 4000,
     fit_ambient: bool = True,
+    projector: bool = True,
     progress: Callable[[str], None] | None = None,
 ) -> LightCalibration:
-    """Calibrate the ring lights from a session of a matte panel at known poses.
+    """Calibrate the ring lights (and the projector as a light) from a session of a matte
+    panel at known poses.
 
     session : a light-calibration session (e.g. from
         :func:`slscan.virtual.panels.capture_light_calibration`); each view shows the
@@ -658,6 +660,10 @@ def calibrate_lights(
     initial : starting light positions; default: the session's rig description, else a
         250 mm ring around the camera
     views : names of the views to use; default all
+    projector : also measure the projector's white as a light
+        (:func:`slscan.albedo.projector_light.calibrate_projector_light`) when the views
+        have white frames; a session with white frames and no lit images (a rig without
+        ring lights) gives a calibration of the projector only
 
     The intensities are in normalised units relative to ``panel.albedo``, the reference
     distance is the rig's working distance.
@@ -670,7 +676,23 @@ def calibrate_lights(
         raise SlscanError(f"{session.root}: the session has no calibration (camera model needed)")
     chosen = [session.view(v) for v in views] if views else list(session.views)
     light_ids = sorted({r.light for v in chosen for r in v.lit_images()})
+
+    def projector_light():
+        if not (projector and _has_white_frame(session)):
+            return None
+        from slscan.albedo.projector_light import calibrate_projector_light
+
+        return calibrate_projector_light(session if not views else replace(session, views=tuple(chosen)), panel)
+
     if not light_ids:
+        if projector and _has_white_frame(session):
+            log.info("%s: no lit images; the projector light only", session.root)
+            return LightCalibration(
+                (), (0.0, 0.0, 0.0), rig.working_distance, (),
+                {"source": "panel session (projector only)", "session": str(Path(session.root).resolve()),
+                 "panel": panel.to_dict()},
+                projector_light(),
+            )
         raise SlscanError(f"{session.root}: no lit images in the session; nothing to calibrate")
     n_lights = max(light_ids) + 1
     missing = sorted(set(range(n_lights)) - set(light_ids))
@@ -703,4 +725,9 @@ def calibrate_lights(
         cal.reference_distance,
         cal.position_sigma,
         {**cal.fit, "session": str(Path(session.root).resolve())},
+        projector_light(),
     )
+
+
+def _has_white_frame(session: Session) -> bool:
+    return any(p.family == "flat" and list(p.params.get("value", [])) == [255, 255, 255] for p in session.patterns)

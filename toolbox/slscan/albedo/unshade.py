@@ -459,12 +459,13 @@ def choose_light(
 ) -> tuple[str, str]:
     """Which light the albedo of ``session`` comes from, and why, in words.
 
-    "ring" when forced (``config.light``), or under "auto" when every view has at least
-    ``config.min_lights`` lit images and the ring lights are known (a light calibration
-    with lights, or the session's rig description); "projector" otherwise (forced, or no
-    usable ring). Raises when the forced ring cannot be had.
+    "ring" when forced (``config.light``), or under "auto" when the session has lit
+    images and the ring lights are known (a light calibration with lights, or the
+    session's rig description; a view with too few lit images is then an error, not a
+    silent change of light); "projector" otherwise (forced, no lit images: the real-rig
+    default, or no known ring lights). Raises when the forced ring cannot be had.
     """
-    lit = min((len(v.lit_images()) for v in session.views), default=0)
+    lit = max((len(v.lit_images()) for v in session.views), default=0)
     known = (lights is not None and len(lights.lights) > 0) or (
         lights is None and session.calibration is not None and bool(session.calibration.lights)
     )
@@ -477,10 +478,10 @@ def choose_light(
         return "ring", "forced (light = ring)"
     if config.light == "projector":
         return "projector", "forced (light = projector)"
-    if lit >= config.min_lights and known:
-        return "ring", f"every view has {lit}+ lit images and the ring lights are known"
-    if lit < config.min_lights:
-        return "projector", f"a view has {lit} lit image(s), fewer than {config.min_lights}: no ring-light un-shading"
+    if lit and known:
+        return "ring", "the session has lit images and the ring lights are known"
+    if not lit:
+        return "projector", "no view has lit images (a rig without ring lights)"
     return "projector", "the ring lights are not known (no light calibration, none in the session's rig)"
 
 
@@ -524,8 +525,8 @@ def albedo_session(
         lights_source = lights.fit.get("source", "given")
     else:
         lights_source = "session rig description"
-    light, why = choose_light(session, lights, config)
-    log.info("albedo light: %s (%s)", light, why)
+    light, choice = choose_light(session, lights, config)
+    log.info("albedo light: %s (%s)", light, choice)
     if light == "projector":
         from slscan.albedo.projector_light import flat_frame_records, projector_light_of
 
@@ -615,7 +616,7 @@ def albedo_session(
                 "encoding": "VIEW_albedo.png: 16-bit linear RGB reflectance x 65535 (not sRGB), 0 where "
                 "VIEW_valid.png is 0; VIEW.ply: vertex colour 8-bit sRGB, albedo_* float linear",
                 "light": light,
-                "light_choice": why,
+                "light_choice": choice,
                 "lights_source": lights_source,
                 **({"lights": light_model.to_dict()} if light == "ring" else {}),
                 **({"projector_light": light_model.to_dict()} if light == "projector" else {}),

@@ -1,0 +1,164 @@
+"""Albedo with the projector as the calibrated light, against the virtual rig's true albedo."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+import pytest
+
+from slscan.albedo.command import add_command
+from slscan.albedo.lights import LightCalibration, ProjectorLight, read_panel, write_lights
+from slscan.albedo.photometric import AlbedoConfig
+from slscan.albedo.projector_light import calibrate_projector_light, projector_albedo_view
+from slscan.albedo.unshade import albedo_session, choose_light, load_range_map
+from slscan.decode.pipeline import decode_session
+from slscan.errors import SlscanError
+from slscan.virtual.device import VirtualCaptureConfig, capture_session
+
+from .conftest import SMALL
+
+
+@pytest.fixture(scope="module")
+def projector_light(panel_session) -> ProjectorLight:
+    return calibrate_projector_light(panel_session, read_panel(panel_session.root))
+
+
+@pytest.fixture(scope="module")
+def tile(tmp_path_factory):
+    """A tilted tile (albedo 0.8, 0.8, 0.776) without ring lights: (session, range maps)."""
+    root = tmp_path_factory.mktemp("tile")
+    config = VirtualCaptureConfig(scene="tile", lit_images=False, levels=7, **SMALL)
+    session = capture_session(config, root / "capture")
+    decode_session(session, root / "range_maps")
+    return session, root / "range_maps"
+
+
+def _errors(session, view, albedo, valid):
+    truth = session.load_ground_truth(view).albedo
+    ok = valid & np.isfinite(truth[..., 0])
+    return np.linalg.norm(albedo[ok] - truth[ok], axis=1) / np.linalg.norm(truth[ok], axis=1), ok
+
+
+def test_calibration_recovers_the_virtual_projector(projector_light, panel_session):
+    # the virtual projector's white reads sum_k M[c, k] = 1.12, 1.14, 1.16 times the albedo
+    # at distance d0 = |centre - (0, 0, wd)|; the calibration refers it to wd
+    rig = panel_session.calibration
+    d0 = np.linalg.norm(rig.projector.center - [0, 0, rig.working_distance])
+    expected = np.array([1.12, 1.14, 1.16]) * (d0 / rig.working_distance) ** 2
+    np.testing.assert_allclose(projector_light.intensity, expected, rtol=0.01)
+    flat = np.array(projector_light.flat_field)
+    assert flat.shape == (6, 8)
+    assert np.abs(flat - 1).max() < 0.01  # the virtual projector is uniform
+
+
+def test_tile_albedo_is_absolute(tile, projector_light):
+    session, range_maps = tile
+    view = session.views[0]
+    range_map, _ = load_range_map(range_maps, view)
+    result = projector_albedo_view(session, view, range_map, projector_light)
+    err, ok = _errors(session, view, result.albedo, result.valid)
+    assert ok.sum() > 0.9 * result.surface.hit.sum() - 300  # all but the outline
+    assert np.median(err) < 0.02
+    np.testing.assert_allclose(np.nanmedian(result.albedo[result.valid], axis=0), [0.8, 0.8, 0.776], rtol=0.02)
+
+
+def test_uncalibrated_projector_is_relative(tile, projector_light):
+    session, range_maps = tile
+    view = session.views[0]
+    range_map, _ = load_range_map(range_maps, view)
+    nominal = ProjectorLight(reference_distance=projector_light.reference_distance)
+    assert not nominal.calibrated
+    result = projector_albedo_view(session, view, range_map, nominal)
+    ratio = np.nanmedian(result.albedo[result.valid], axis=0) / np.array([0.8, 0.8, 0.776])
+    np.testing.assert_allclose(ratio, projector_light.intensity, rtol=0.02)
+
+
+def test_shadows_grazing_and_saturation_are_left_out(figurine, projector_light):
+    session, range_maps = figurine
+    view = session.views[0]
+    range_map, _ = load_range_map(range_maps, view)
+    result = projector_albedo_view(session, view, range_map, projector_light, AlbedoConfig(min_cos=0.5))
+    assert not (result.valid & result.shadow[0]).any()
+    assert not (result.valid & result.highlight[0]).any()
+    cos = np.einsum("hwi,hwi->hw", np.nan_to_num(result.normal), np.nan_to_num(
+        (session.calibration.projector.center - result.surface.points)
+        / np.linalg.norm(session.calibration.projector.center - result.surface.points, axis=-1, keepdims=True)))
+    assert (cos[result.valid] >= 0.5 - 1e-9).all()
+    err, _ = _errors(session, view, result.albedo, result.valid)
+    assert np.median(err) < 0.08  # the range map's normals, quarter size
+    # the mirror-direction test removes pixels, and only those near the half vector
+    glossy = projector_albedo_view(session, view, range_map, projector_light,
+                                   AlbedoConfig(projector_highlight_deg=15))
+    assert glossy.valid.sum() < result.valid.sum() or not result.valid.any()
+    assert not (glossy.valid & ~result.valid & (cos >= 0.5)).any()
+
+
+def test_choose_light(tile, figurine, calibrated):
+    tile_session, _ = tile
+    fig_session, _ = figurine
+    auto = AlbedoConfig()
+    assert choose_light(fig_session, calibrated, auto)[0] == "ring"
+    light, why = choose_light(tile_session, None, auto)
+    assert light == "projector" and "no view has lit images" in why
+    assert choose_light(fig_session, calibrated, AlbedoConfig(light="projector"))[0] == "projector"
+    only_projector = LightCalibration((), projector=ProjectorLight())
+    assert choose_light(fig_session, only_projector, auto)[0] == "projector"
+    with pytest.raises(SlscanError, match="describes no lights"):
+        choose_light(fig_session, only_projector, AlbedoConfig(light="ring"))
+    with pytest.raises(SlscanError, match="unknown albedo light"):
+        AlbedoConfig(light="sun")
+
+
+def test_session_without_lights_gets_colour(tmp_path, tile, projector_light):
+    """The real-rig default: no ring lights; `slscan albedo` used to stop with an error."""
+    session, range_maps = tile
+    lights = LightCalibration((), projector=projector_light)
+    write_lights(tmp_path / "lights.json", lights)
+    parser = argparse.ArgumentParser(prog="slscan")
+    add_command(parser.add_subparsers(dest="command"))
+    out = tmp_path / "albedo"
+    args = parser.parse_args(["albedo", str(session.root), "--range-maps", str(range_maps),
+                              "--lights", str(tmp_path / "lights.json"), "--out", str(out), "--quiet"])
+    assert args.func(args) == 0
+    meta = json.loads((out / "albedo.json").read_text())
+    assert meta["light"] == "projector" and meta["views"][0]["light"] == "projector"
+    assert meta["projector_light"]["intensity"] == pytest.approx(list(projector_light.intensity))
+    from slscan.colour import read_albedo_png
+    from slscan.texture.pipeline import albedo_light
+
+    assert albedo_light(out) == "projector"
+    albedo = read_albedo_png(out / "view_000_albedo.png", out / "view_000_valid.png")
+    valid = np.isfinite(albedo[..., 0])
+    err, _ = _errors(session, session.views[0], albedo, valid)
+    assert np.median(err) < 0.02
+    # forcing the ring on a session without lit images fails at the boundary, naming the fix
+    with pytest.raises(SlscanError, match="describes no lights"):
+        albedo_session(session, range_maps, tmp_path / "ring", lights=lights, config=AlbedoConfig(light="ring"))
+    assert not (tmp_path / "ring").exists()
+
+
+def test_light_calibration_round_trip(tmp_path, projector_light):
+    from slscan.albedo.lights import read_lights
+
+    cal = LightCalibration((), reference_distance=1300.0, projector=projector_light)
+    write_lights(tmp_path / "l.json", cal)
+    back = read_lights(tmp_path / "l.json")
+    assert back.projector == projector_light and back.lights == ()
+    d = json.loads((tmp_path / "l.json").read_text())
+    del d["projector"]
+    (tmp_path / "bad.json").write_text(json.dumps(d))
+    with pytest.raises(SlscanError, match="bad.json: no lights"):
+        read_lights(tmp_path / "bad.json")
+
+
+def test_flat_field_interpolates_its_grid():
+    grid = ((1.0, 2.0), (3.0, 4.0))
+    light = ProjectorLight(flat_field=grid)
+    # a 100 x 50 projector: cell centres at x = 24.5, 74.5 and y = 12, 37
+    uv = np.array([[24.5, 12.0], [74.5, 37.0], [49.5, 24.5], [0.0, 0.0], [99.0, 49.0]])
+    np.testing.assert_allclose(light.flat_at(uv, (100, 50)), [1.0, 4.0, 2.5, 1.0, 4.0])
+    assert np.all(ProjectorLight().flat_at(uv, (100, 50)) == 1)
+    with pytest.raises(SlscanError, match="flat_field"):
+        ProjectorLight(flat_field=((1.0, -1.0),))
