@@ -35,6 +35,7 @@ import cv2
 import numpy as np
 
 from slscan.albedo.lights import ProjectorLight
+from slscan.albedo.photometric import AlbedoConfig
 from slscan.albedo.projector_light import projector_albedo_view, read_flat_frames
 from slscan.calibrate.io import import_opencv_xml
 from slscan.capture.kamino410 import import_kamino410
@@ -71,6 +72,8 @@ def detrended_cv(values: np.ndarray, pixels: np.ndarray) -> float:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--windows", default="0,9,21",
+                        help="projector_normal_window_px values to compare (0: the range map's vertex normals)")
     parser.add_argument("--data", type=Path, default=None, help=f"shared data folder (default ${ENV_VAR} or ../shared/data)")
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
@@ -88,9 +91,12 @@ def main() -> int:
         rig = reference.rig(working_distance=3300.0)
         session = replace(session, calibration=rig, calibration_source="kamino410 calibration_result.xml")
         light = ProjectorLight(reference_distance=rig.working_distance)
+        windows = [int(w) for w in args.windows.split(",")]
         for view in session.views:
             range_map = decode_view(session, view, DecodeConfig(projector_axes="columns")).range_map
-            result = projector_albedo_view(session, view, range_map, light)
+            results = {w: projector_albedo_view(session, view, range_map, light,
+                                                AlbedoConfig(projector_normal_window_px=w)) for w in windows}
+            result = results[windows[0]]
             frames = read_flat_frames(session, view)
             white = frames.white[..., 0].astype(np.float64)
             signal = white - frames.black[..., 0]
@@ -99,7 +105,7 @@ def main() -> int:
                 print(f"{view.name}: the chessboard's corners are not found; left out")
                 continue
             bright = np.zeros(white.shape, np.uint8)
-            inside = board & result.valid
+            inside = board & np.logical_and.reduce([r.valid for r in results.values()])
             scaled = np.clip(white / np.percentile(white[board], 99.5) * 255, 0, 255).astype(np.uint8)
             level, _ = cv2.threshold(scaled[inside], 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
             bright[inside & (scaled > level)] = 1
@@ -107,23 +113,25 @@ def main() -> int:
             paper = cv2.erode(bright, kernel).astype(bool)
             ys, xs = np.nonzero(paper)
             pixels = np.column_stack([xs, ys])
-            lum = result.albedo[..., 0].astype(np.float64)
-            values = {"white frame": white[paper], "white - black": signal[paper], "albedo": lum[paper]}
+            values = {"white frame": white[paper], "white - black": signal[paper]}
+            for w, r in results.items():
+                values[f"albedo, normals {'of the range map' if w == 0 else f'over {w} px'}"] = (
+                    r.albedo[..., 0].astype(np.float64)[paper])
             depth = result.surface.points[..., 2][paper]
             rows.append((view.name, int(paper.sum()), float(np.median(depth)),
                          {k: (cv(v), detrended_cv(v, pixels)) for k, v in values.items()},
                          float(100 * result.valid[board].mean())))
     print(f"\nkamino410 chessboard, white squares only ({time.perf_counter() - t0:.0f} s): coefficient of "
           "variation % (raw / after a fitted plane)")
-    print("| pose | pixels | depth (mm) | albedo valid on board % | white frame | white - black | albedo |")
-    print("|---|---|---|---|---|---|---|")
+    names = list(rows[0][3]) if rows else []
+    print("| pose | pixels | depth (mm) | albedo valid on board % | " + " | ".join(names) + " |")
+    print("|---" * (4 + len(names)) + "|")
     for name, n, depth, cvs, share in rows:
         cells = " | ".join(f"{a:.2f} / {b:.2f}" for a, b in cvs.values())
         print(f"| {name} | {n:,} | {depth:.0f} | {share:.1f} | {cells} |")
     if rows:
-        means = [np.mean([r[3][k][i] for r in rows]) for k in rows[0][3] for i in (0, 1)]
-        print(f"| mean | | | | {means[0]:.2f} / {means[1]:.2f} | {means[2]:.2f} / {means[3]:.2f} | "
-              f"{means[4]:.2f} / {means[5]:.2f} |")
+        means = [(np.mean([r[3][k][0] for r in rows]), np.mean([r[3][k][1] for r in rows])) for k in names]
+        print("| mean | | | | " + " | ".join(f"{a:.2f} / {b:.2f}" for a, b in means) + " |")
     return 0
 
 

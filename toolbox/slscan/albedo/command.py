@@ -97,6 +97,14 @@ def add_command(subparsers) -> None:
         default=None,
         help="panel width, height, thickness in mm (default: from light_panel.json)",
     )
+    p.add_argument(
+        "--range-maps",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="the panel session's range maps (slscan decode --out): a real rig's panel session records "
+        "no panel pose, so the panel's plane is fitted to each view's range map",
+    )
     p.add_argument("--no-ambient", action="store_true", help="assume no ambient light")
     p.add_argument(
         "--no-projector",
@@ -256,6 +264,7 @@ def _cmd_calibrate_lights(args: argparse.Namespace) -> int:
             panel=panel,
             fit_ambient=not args.no_ambient,
             projector=not args.no_projector,
+            range_maps=args.range_maps,
             progress=bar.step,
         )
         if rec is not None:

@@ -1,8 +1,12 @@
 """Light calibration: point-light positions and RGB intensities from a flat matte panel.
 
 Done once per rig. A matte panel of known reflectance is imaged under each ring light at
-a few known poses (a virtual session records its placement; a real rig would take it
-from a printed board on the panel, not implemented yet). Every panel pixel gives the
+a few poses. The pose is known when the session records it (the virtual rig does);
+otherwise (a real rig, the panel placed by hand) the panel's plane comes from its own
+range map: the panel session is a scan like any other (patterns, then one image per ring
+light, switched by a relay or by the operator when asked), decoded, and a plane fitted to
+each view's range map (:func:`fit_panel_plane`); its pixels are those of the range map on
+that plane. Every panel pixel gives the
 irradiance of every light at a known point and normal (:mod:`slscan.albedo.radiometry`).
 The light positions, RGB intensities and the ambient light are fitted to all of them
 together by Levenberg-Marquardt with an analytic sparse Jacobian, started from the
@@ -344,6 +348,90 @@ class PanelSamples:
     lights: np.ndarray
 
 
+@dataclass(frozen=True)
+class PanelFit:
+    """The panel's plane in one view, fitted to its range map (pose not recorded).
+
+    rig_from_panel : (4, 4) a pose whose front face (``MattePanel.front_plane``) is the
+        fitted plane, centred on the panel's pixels (its in-plane rotation is arbitrary)
+    mask : (h, w) bool camera pixels on the plane (range map within ``tolerance_mm``),
+        ``edge_px`` away from its outline
+    rms_mm : RMS distance of the inliers to the plane
+    """
+
+    rig_from_panel: np.ndarray
+    mask: np.ndarray
+    rms_mm: float
+
+
+def fit_panel_plane(
+    session: Session,
+    view: ViewRecord,
+    range_map,
+    panel: MattePanel,
+    *,
+    tolerance_mm: float = 3.0,
+    edge_px: int = 6,
+) -> PanelFit:
+    """Fit the panel's front plane to ``view``'s range map (rig frame, mm).
+
+    The largest plane is found by least squares, twice trimmed to the range-map pixels within
+    ``tolerance_mm`` of it (a background wall or the panel's stand left out); the panel's
+    pixels are the inliers, eroded by ``edge_px`` (blur and the panel's edges).
+    """
+    import cv2
+
+    from slscan.albedo.surface import rasterise
+
+    rig = session.calibration
+    if rig is None:
+        raise SlscanError(f"{session.root}: the session has no camera calibration")
+    surface = rasterise(range_map, rig.camera)
+    pts = surface.points[surface.hit]
+    where = f"{session.root / view.name}: panel plane"
+    if len(pts) < 100:
+        raise SlscanError(f"{where}: the range map covers {len(pts)} pixels; expected the panel to fill the view")
+    keep = np.ones(len(pts), bool)
+    centre = normal = None
+    for round_ in range(4):  # wide first (the fit may start tilted by a background), then the tolerance
+        centre = pts[keep].mean(0)
+        normal = np.linalg.svd(pts[keep] - centre, full_matrices=False)[2][2]
+        dist = np.abs((pts - centre) @ normal)
+        limit = max(tolerance_mm, 3 * 1.4826 * float(np.median(dist[keep]))) if round_ < 2 else tolerance_mm
+        keep = dist <= limit
+        if keep.sum() < 100:
+            raise SlscanError(f"{where}: fewer than 100 range-map pixels lie on one plane; is the panel flat?")
+    if normal @ centre > 0:
+        normal = -normal  # towards the camera
+    mask = np.zeros(surface.hit.shape, bool)
+    mask[surface.hit] = keep
+    if edge_px > 0:
+        mask = cv2.erode(mask.astype(np.uint8), np.ones((2 * edge_px + 1,) * 2, np.uint8)).astype(bool)
+    centre = pts[keep].mean(0)
+    z = -normal
+    x = np.cross([0.0, 1.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    pose = np.eye(4)
+    pose[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+    pose[:3, 3] = centre - normal * (panel.thickness / 2)  # the front face through the centre
+    rms = float(np.sqrt(np.mean(((pts[keep] - centre) @ normal) ** 2)))
+    return PanelFit(pose, mask, rms)
+
+
+def fit_panel_planes(
+    session: Session, range_maps_dir, panel: MattePanel, views: list[ViewRecord] | None = None
+) -> dict[str, PanelFit]:
+    """:func:`fit_panel_plane` for each view (default all) from a decode output folder."""
+    from slscan.albedo.unshade import load_range_map
+
+    fits = {}
+    for view in views or session.views:
+        range_map, _ = load_range_map(range_maps_dir, view)
+        fits[view.name] = fit_panel_plane(session, view, range_map, panel)
+        log.info("%s: panel plane fitted to the range map, RMS %.2f mm", view.name, fits[view.name].rms_mm)
+    return fits
+
+
 def _panel_pose(session: Session, view: ViewRecord, rig_from_panel: np.ndarray | None) -> np.ndarray:
     pose = rig_from_panel if rig_from_panel is not None else view.rig_from_object
     if pose is None:
@@ -369,13 +457,17 @@ def panel_pixels(
     *,
     rig_from_panel: np.ndarray | None = None,
     edge_px: int = 3,
+    fit: PanelFit | None = None,
 ) -> np.ndarray:
     """(h, w) bool: the camera pixels whose ray meets the panel's front face inside its
     margin, ``edge_px`` pixels away from its outline.
 
     rig_from_panel : (4, 4) the panel's pose; default: the view's recorded
         ``rig_from_object`` (the virtual rig records it)
+    fit : the panel's plane fitted to its range map instead (its pixels are the fit's mask)
     """
+    if fit is not None:
+        return fit.mask.copy()
     rig = session.calibration
     if rig is None:
         raise SlscanError(f"{session.root}: the session has no camera calibration")
@@ -412,6 +504,7 @@ def panel_samples(
     rig_from_panel: np.ndarray | None = None,
     max_samples: int = 4000,
     edge_px: int = 3,
+    fit: PanelFit | None = None,
 ) -> PanelSamples:
     """Intersect the camera rays with the panel's front face and read the lit images there.
 
@@ -419,8 +512,11 @@ def panel_samples(
         ``rig_from_object`` (the virtual rig records it)
     max_samples : pixels kept, on a regular grid over the face
     edge_px : pixels dropped next to the face's outline, besides ``panel.margin``
+    fit : the panel's plane fitted to its range map (:func:`fit_panel_plane`) instead of a pose
     """
-    inside = panel_pixels(session, view, panel, rig_from_panel=rig_from_panel, edge_px=edge_px)
+    if fit is not None:
+        rig_from_panel = fit.rig_from_panel
+    inside = panel_pixels(session, view, panel, rig_from_panel=rig_from_panel, edge_px=edge_px, fit=fit)
     centre, normal = panel_plane(session, view, panel, rig_from_panel=rig_from_panel)
     count = int(inside.sum())
     if count < 50:
@@ -648,6 +744,7 @@ def calibrate_lights(
     max_samples_per_view: int = 4000,
     fit_ambient: bool = True,
     projector: bool = True,
+    range_maps: str | os.PathLike | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> LightCalibration:
     """Calibrate the ring lights (and the projector as a light) from a session of a matte
@@ -664,6 +761,9 @@ def calibrate_lights(
         (:func:`slscan.albedo.projector_light.calibrate_projector_light`) when the views
         have white frames; a session with white frames and no lit images (a rig without
         ring lights) gives a calibration of the projector only
+    range_maps : the panel session's range maps (``slscan decode --out``): the panel's
+        plane in each view whose pose is not recorded (a real rig) is fitted to its range
+        map (:func:`fit_panel_plane`)
 
     The intensities are in normalised units relative to ``panel.albedo``, the reference
     distance is the rig's working distance.
@@ -676,13 +776,16 @@ def calibrate_lights(
         raise SlscanError(f"{session.root}: the session has no calibration (camera model needed)")
     chosen = [session.view(v) for v in views] if views else list(session.views)
     light_ids = sorted({r.light for v in chosen for r in v.lit_images()})
+    unposed = [v for v in chosen if v.rig_from_object is None]
+    fits = fit_panel_planes(session, range_maps, panel, unposed) if range_maps is not None and unposed else {}
 
     def projector_light():
         if not (projector and _has_white_frame(session)):
             return None
         from slscan.albedo.projector_light import calibrate_projector_light
 
-        return calibrate_projector_light(session if not views else replace(session, views=tuple(chosen)), panel)
+        sub = session if not views else replace(session, views=tuple(chosen))
+        return calibrate_projector_light(sub, panel, fits=fits)
 
     if not light_ids:
         if projector and _has_white_frame(session):
@@ -713,7 +816,9 @@ def calibrate_lights(
         raise SlscanError(f"light calibration: {len(x0)} initial positions for {n_lights} lights")
     samples = []
     for view in chosen:
-        samples.append(panel_samples(session, view, panel, max_samples=max_samples_per_view))
+        samples.append(
+            panel_samples(session, view, panel, max_samples=max_samples_per_view, fit=fits.get(view.name))
+        )
         if progress:
             progress(view.name)
     cal = fit_lights(
@@ -724,7 +829,8 @@ def calibrate_lights(
         cal.ambient,
         cal.reference_distance,
         cal.position_sigma,
-        {**cal.fit, "session": str(Path(session.root).resolve())},
+        {**cal.fit, "session": str(Path(session.root).resolve()),
+         **({"panel_planes_rms_mm": {k: f.rms_mm for k, f in fits.items()}} if fits else {})},
         projector_light(),
     )
 

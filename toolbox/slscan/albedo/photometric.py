@@ -126,6 +126,11 @@ class AlbedoConfig:
     """Projector light: pixels whose normal is within this angle (degrees) of the half
     vector between projector and camera are left out as possible highlights (one light
     cannot tell a highlight from paint per pixel). 0 keeps them."""
+    projector_normal_window_px: int = 0
+    """Projector light: the normal at a pixel is that of the plane fitted to the range
+    surface's points in a window of this many pixels (odd), instead of the range map's
+    interpolated vertex normal; 0 keeps the vertex normals. One light cannot correct a
+    normal from the images, and a noisy range map's normals are noisy albedo."""
     projector_min_signal_dn: float = 4.0
     """Projector light: pixels whose white frame is brighter than the black by less than
     this (8-bit digital numbers, luminance) are left out (projector shadow, dark paint)."""
@@ -147,6 +152,12 @@ class AlbedoConfig:
             raise SlscanError(f"albedo min_lights must be at least 1, got {self.min_lights}")
         if self.normals == "photometric" and self.min_lights < 3:
             raise SlscanError("albedo: photometric normals need min_lights >= 3")
+        if self.projector_normal_window_px < 0 or (
+            self.projector_normal_window_px and self.projector_normal_window_px % 2 == 0
+        ):
+            raise SlscanError(
+                f"albedo projector_normal_window_px must be 0 or odd, got {self.projector_normal_window_px}"
+            )
         if not 0 < self.outlier_threshold:
             raise SlscanError(
                 f"albedo outlier_threshold must be positive, got {self.outlier_threshold}"

@@ -43,7 +43,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slscan.albedo.lights import LightCalibration, MattePanel, ProjectorLight, panel_plane
+from slscan.albedo.lights import LightCalibration, MattePanel, PanelFit, ProjectorLight, panel_pixels, panel_plane
 from slscan.albedo.photometric import AlbedoConfig, SpecularLobe
 from slscan.albedo.radiometry import exposure_factor
 from slscan.albedo.surface import occluded, rasterise
@@ -181,6 +181,10 @@ def projector_albedo_view(
     rows, cols = np.nonzero(surface.hit & ~mixed_pixels(surface, config.edge_px))
     points = surface.points[rows, cols]
     normals = surface.normals[rows, cols]
+    if config.projector_normal_window_px > 1:
+        fitted = window_normals(surface.points, surface.hit, config.projector_normal_window_px)[rows, cols]
+        ok = np.all(np.isfinite(fitted), axis=1)
+        normals = np.where(ok[:, None], fitted, normals)
     centre = rig.projector.center
     cos, falloff, direction = projector_geometry(points, normals, centre, light.reference_distance)
     uv = rig.projector.project(points)
@@ -238,6 +242,35 @@ def projector_albedo_view(
     )
 
 
+def window_normals(points: np.ndarray, hit: np.ndarray, window: int) -> np.ndarray:
+    """Normals (h, w, 3) of the planes fitted (least squares, PCA) to the points (h, w, 3)
+    mm of the ``hit`` pixels in a ``window`` x ``window`` neighbourhood of each pixel,
+    turned towards the camera; NaN where fewer than 6 points are in the window."""
+    import cv2
+
+    h, w = hit.shape
+    wgt = hit.astype(np.float64)
+    p = np.where(hit[..., None], points, 0.0)
+
+    def box(a: np.ndarray) -> np.ndarray:
+        return cv2.boxFilter(a, -1, (window, window), normalize=False, borderType=cv2.BORDER_CONSTANT)
+
+    n = box(wgt)
+    mean = np.stack([box(p[..., i]) for i in range(3)], axis=-1) / np.maximum(n, 1)[..., None]
+    cov = np.empty((h, w, 3, 3))
+    for i in range(3):
+        for j in range(i, 3):
+            cov[..., i, j] = cov[..., j, i] = box(p[..., i] * p[..., j]) / np.maximum(n, 1) - mean[..., i] * mean[..., j]
+    good = (n >= 6) & hit
+    normals = np.full((h, w, 3), np.nan)
+    if good.any():
+        _, vectors = np.linalg.eigh(cov[good])
+        v = vectors[..., 0]  # the smallest eigenvalue's
+        v[np.einsum("ij,ij->i", v, points[good]) > 0] *= -1
+        normals[good] = v
+    return normals
+
+
 # --- calibration from a matte panel ---------------------------------------------------------
 
 
@@ -245,7 +278,7 @@ def calibrate_projector_light(
     session: Session,
     panel: MattePanel,
     *,
-    poses: dict[str, np.ndarray] | None = None,
+    fits: dict[str, PanelFit] | None = None,
     grid: tuple[int, int] | None = (8, 6),
     max_samples_per_view: int = 20000,
     min_cos: float = 0.5,
@@ -256,8 +289,8 @@ def calibrate_projector_light(
         lights' panel session (``slscan capture-lights`` or a real one through
         ``slscan scan``)
     panel : the panel (its reflectance sets the absolute scale)
-    poses : ``rig_from_object`` of the panel per view name (default: the views' recorded
-        poses, or the planes fitted by :func:`slscan.albedo.lights.panel_plane`)
+    fits : the panel's plane per view name fitted to its range map
+        (:func:`slscan.albedo.lights.fit_panel_plane`), for views without a recorded pose
     grid : (columns, rows) of the flat-field grid over the projector's frame, or None for
         a uniform projector; cells seen by fewer than 50 panel pixels are set to 1
 
@@ -274,10 +307,11 @@ def calibrate_projector_light(
     ref = rig.working_distance
     ratios, uvs = [], []
     for view in session.views:
-        pose = poses.get(view.name) if poses is not None else view.rig_from_object
+        fit = (fits or {}).get(view.name)
+        pose = fit.rig_from_panel if fit is not None else None
         centre_pt, normal = panel_plane(session, view, panel, rig_from_panel=pose)
         frames = read_flat_frames(session, view)
-        mask = _panel_mask(session, view, panel, pose)
+        mask = panel_pixels(session, view, panel, rig_from_panel=pose, fit=fit)
         rows, cols = np.nonzero(mask)
         if len(rows) > max_samples_per_view:
             pick = np.linspace(0, len(rows) - 1, max_samples_per_view).astype(np.int64)
@@ -323,9 +357,3 @@ def calibrate_projector_light(
         tuple(float(i) for i in intensity), float(ref), flat, f"panel session {session.root.resolve()}"
     )
 
-
-def _panel_mask(session: Session, view: ViewRecord, panel: MattePanel, pose: np.ndarray | None) -> np.ndarray:
-    """(h, w) bool: the camera pixels on the panel's face (inside its margin), from the pose."""
-    from slscan.albedo.lights import panel_pixels
-
-    return panel_pixels(session, view, panel, rig_from_panel=pose)
