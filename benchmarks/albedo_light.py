@@ -11,8 +11,10 @@ into a range map, and coloured by
   lights estimated by ``calibrate-lights`` from a matte-panel session (6 poses);
 - **projector**: the white frame minus the black, the projector as the calibrated point
   light (intensity and flat field measured on the same panel session's white and black
-  frames), the range map's normals; and the same leaving out the pixels within 15° of the
-  mirror direction (``projector_highlight_deg=15``);
+  frames), with the range map's vertex normals and with the normals of planes fitted to the
+  range surface over 5, 9 (the default) and 21 pixels (``projector_normal_window_px``); and
+  the default leaving out the pixels within 15° of the mirror direction
+  (``projector_highlight_deg=15``);
 - **white frame**: the raw white frame scaled by the one global factor that best fits the
   truth (the naive colour: shading and highlights left in; its coverage is every pixel).
 
@@ -89,8 +91,11 @@ def main() -> int:
         t = time.perf_counter()
         ring = albedo_view(session, view, range_map, lights, AlbedoConfig())
         results["ring (6 lights un-shaded)"] = (ring.albedo, ring.valid, time.perf_counter() - t)
-        for name, cfg in (("projector as light", AlbedoConfig()),
-                          ("projector, mirror cone 15° out", AlbedoConfig(projector_highlight_deg=15))):
+        for name, cfg in (("projector, range-map normals", AlbedoConfig(projector_normal_window_px=0)),
+                          ("projector, normals over 5 px", AlbedoConfig(projector_normal_window_px=5)),
+                          ("projector, normals over 9 px (default)", AlbedoConfig()),
+                          ("projector, normals over 21 px", AlbedoConfig(projector_normal_window_px=21)),
+                          ("projector (default), mirror cone 15° out", AlbedoConfig(projector_highlight_deg=15))):
             t = time.perf_counter()
             res = projector_albedo_view(session, view, range_map, lights.projector, cfg)
             results[name] = (res.albedo, res.valid, time.perf_counter() - t)

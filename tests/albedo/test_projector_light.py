@@ -162,3 +162,25 @@ def test_flat_field_interpolates_its_grid():
     assert np.all(ProjectorLight().flat_at(uv, (100, 50)) == 1)
     with pytest.raises(SlscanError, match="flat_field"):
         ProjectorLight(flat_field=((1.0, -1.0),))
+
+
+def test_window_normals_recover_a_noisy_plane():
+    from slscan.albedo.projector_light import window_normals
+
+    rng = np.random.default_rng(0)
+    ys, xs = np.mgrid[0:60, 0:80].astype(float)
+    true = np.array([0.3, -0.2, -1.0])
+    true /= np.linalg.norm(true)
+    # points of the plane n . p = n . (0, 0, 1000), 2 mm apart, with 1 mm of depth noise
+    px, py = (xs - 40) * 2.0, (ys - 30) * 2.0
+    pz = 1000 - (true[0] * px + true[1] * py) / true[2] + rng.normal(0, 1.0, xs.shape)
+    points = np.stack([px, py, pz], axis=-1)
+    hit = np.ones(xs.shape, bool)
+    hit[:, :5] = False
+    normals = window_normals(points, hit, 9)
+    inner = normals[10:-10, 15:-10]
+    angles = np.degrees(np.arccos(np.clip(inner @ true, -1, 1)))
+    assert np.median(angles) < 2.0  # a single triangle's normal here is off by ~25°
+    assert np.isnan(normals[:, :5]).all()
+    with pytest.raises(SlscanError, match="odd"):
+        AlbedoConfig(projector_normal_window_px=8)
