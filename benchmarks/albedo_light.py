@@ -12,7 +12,8 @@ into a range map, and coloured by
 - **projector**: the white frame minus the black, the projector as the calibrated point
   light (intensity and flat field measured on the same panel session's white and black
   frames), with the range map's vertex normals and with the normals of planes fitted to the
-  range surface over 5, 9 (the default) and 21 pixels (``projector_normal_window_px``); and
+  range surface over up to 9, 21 (the default) and 41 pixels, as planar as the range map's
+  noise allows (``projector_normal_window_px``); and
   the default leaving out the pixels within 15° of the mirror direction
   (``projector_highlight_deg=15``);
 - **white frame**: the raw white frame scaled by the one global factor that best fits the
@@ -92,9 +93,9 @@ def main() -> int:
         ring = albedo_view(session, view, range_map, lights, AlbedoConfig())
         results["ring (6 lights un-shaded)"] = (ring.albedo, ring.valid, time.perf_counter() - t)
         for name, cfg in (("projector, range-map normals", AlbedoConfig(projector_normal_window_px=0)),
-                          ("projector, normals over 5 px", AlbedoConfig(projector_normal_window_px=5)),
-                          ("projector, normals over 9 px (default)", AlbedoConfig()),
-                          ("projector, normals over 21 px", AlbedoConfig(projector_normal_window_px=21)),
+                          ("projector, plane normals up to 9 px", AlbedoConfig(projector_normal_window_px=9)),
+                          ("projector, plane normals up to 21 px (default)", AlbedoConfig()),
+                          ("projector, plane normals up to 41 px", AlbedoConfig(projector_normal_window_px=41)),
                           ("projector (default), mirror cone 15° out", AlbedoConfig(projector_highlight_deg=15))):
             t = time.perf_counter()
             res = projector_albedo_view(session, view, range_map, lights.projector, cfg)

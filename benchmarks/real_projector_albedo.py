@@ -72,8 +72,9 @@ def detrended_cv(values: np.ndarray, pixels: np.ndarray) -> float:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--windows", default="0,9,21",
-                        help="projector_normal_window_px values to compare (0: the range map's vertex normals)")
+    parser.add_argument("--windows", default="0,9,21,41",
+                        help="projector_normal_window_px values to compare (0: the range map's vertex normals; "
+                        "the default 21)")
     parser.add_argument("--data", type=Path, default=None, help=f"shared data folder (default ${ENV_VAR} or ../shared/data)")
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
@@ -115,7 +116,7 @@ def main() -> int:
             pixels = np.column_stack([xs, ys])
             values = {"white frame": white[paper], "white - black": signal[paper]}
             for w, r in results.items():
-                values[f"albedo, normals {'of the range map' if w == 0 else f'over {w} px'}"] = (
+                values[f"albedo, normals {'of the range map' if w == 0 else f'up to {w} px'}"] = (
                     r.albedo[..., 0].astype(np.float64)[paper])
             depth = result.surface.points[..., 2][paper]
             rows.append((view.name, int(paper.sum()), float(np.median(depth)),

@@ -184,3 +184,24 @@ def test_window_normals_recover_a_noisy_plane():
     assert np.isnan(normals[:, :5]).all()
     with pytest.raises(SlscanError, match="odd"):
         AlbedoConfig(projector_normal_window_px=8)
+
+
+def test_adaptive_normals_widen_on_a_noisy_plane_and_keep_a_crease():
+    from slscan.albedo.projector_light import adaptive_normals, window_normals
+
+    rng = np.random.default_rng(1)
+    ys, xs = np.mgrid[0:80, 0:120].astype(float)
+    px, py = (xs - 60) * 2.0, (ys - 40) * 2.0
+    hit = np.ones(xs.shape, bool)
+    # a noisy flat plane facing the camera: the widest window is planar within the noise
+    flat = np.stack([px, py, 1000 + rng.normal(0, 1.0, xs.shape)], axis=-1)
+    wide = adaptive_normals(flat, hit, 21)[25:-25, 25:-25]
+    small = window_normals(flat, hit, 5)[25:-25, 25:-25]
+    angle = lambda n: np.degrees(np.arccos(np.clip(-n[..., 2], -1, 1)))  # noqa: E731
+    assert np.median(angle(wide)) < 0.5 * np.median(angle(small))
+    # a clean 90-degree crease (a roof along x = 0): the normals next to it stay its sides'
+    roof = np.stack([px, py, 1000 + np.abs(px) + rng.normal(0, 0.05, xs.shape)], axis=-1)
+    normals = adaptive_normals(roof, hit, 21)
+    side = np.array([1.0, 0.0, -1.0]) / np.sqrt(2)  # the x > 0 side, towards the camera
+    near = normals[20:-20, 60 + 4]  # 4 px (8 mm) from the crease
+    assert np.degrees(np.arccos(np.clip(near @ side, -1, 1))).max() < 5.0

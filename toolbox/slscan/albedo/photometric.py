@@ -126,16 +126,16 @@ class AlbedoConfig:
     """Projector light: pixels whose normal is within this angle (degrees) of the half
     vector between projector and camera are left out as possible highlights (one light
     cannot tell a highlight from paint per pixel). 0 keeps them."""
-    projector_normal_window_px: int = 9
-    """Projector light: the normal at a pixel is that of the plane fitted to the range
-    surface's points in a window of this many pixels (odd), instead of the range map's
-    interpolated vertex normal; 0 keeps the vertex normals. One light cannot correct a
+    projector_normal_window_px: int = 21
+    """Projector light: the largest window (pixels, odd) over which a plane is fitted to the
+    range surface for the normal (:func:`slscan.albedo.projector_light.adaptive_normals`:
+    each pixel takes the largest of 5, 9, 21, 41 px still planar within 4 times the range
+    map's own noise); 0 keeps the range map's vertex normals. One light cannot correct a
     normal from the images, and a noisy range map's normals are noisy albedo: on
     kamino410's real chessboard (Gray code at 3-3.7 m) the white squares' albedo varies by
-    20 % with the vertex normals, 5.2 % over 9 px, 3.5 % over 21 px (the raw white frame:
-    3.0 %); on the virtual figurine at quarter size 9 px costs 0.3 points of median error
-    (relief is smoothed), on the virtual tile it gains 0.1 (``benchmarks/albedo_light.py``,
-    ``benchmarks/real_projector_albedo.py``)."""
+    20 % with the vertex normals and 3.5 % with these (the raw white frame: 3.2 %); on the
+    virtual figurine they change the median error by under 0.1 point, on the tile they
+    gain 0.1 (``benchmarks/albedo_light.py``, ``benchmarks/real_projector_albedo.py``)."""
     projector_min_signal_dn: float = 4.0
     """Projector light: pixels whose white frame is brighter than the black by less than
     this (8-bit digital numbers, luminance) are left out (projector shadow, dark paint)."""

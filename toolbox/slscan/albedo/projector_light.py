@@ -182,7 +182,7 @@ def projector_albedo_view(
     points = surface.points[rows, cols]
     normals = surface.normals[rows, cols]
     if config.projector_normal_window_px > 1:
-        fitted = window_normals(surface.points, surface.hit, config.projector_normal_window_px)[rows, cols]
+        fitted = adaptive_normals(surface.points, surface.hit, config.projector_normal_window_px)[rows, cols]
         ok = np.all(np.isfinite(fitted), axis=1)
         normals = np.where(ok[:, None], fitted, normals)
     centre = rig.projector.center
@@ -242,15 +242,19 @@ def projector_albedo_view(
     )
 
 
-def window_normals(points: np.ndarray, hit: np.ndarray, window: int) -> np.ndarray:
+def window_normals(points: np.ndarray, hit: np.ndarray, window: int, *, residual: bool = False):
     """Normals (h, w, 3) of the planes fitted (least squares, PCA) to the points (h, w, 3)
     mm of the ``hit`` pixels in a ``window`` x ``window`` neighbourhood of each pixel,
-    turned towards the camera; NaN where fewer than 6 points are in the window."""
+    turned towards the camera; NaN where fewer than 6 points are in the window. With
+    ``residual``, also the mean squared distance (h, w) mm² of the window's points to
+    their plane (the covariance's smallest eigenvalue; NaN likewise)."""
     import cv2
 
     h, w = hit.shape
     wgt = hit.astype(np.float64)
-    p = np.where(hit[..., None], points, 0.0)
+    # centred on the surface's mean point: the second moments then keep their precision
+    origin = points[hit].mean(0) if hit.any() else np.zeros(3)
+    p = np.where(hit[..., None], points - origin, 0.0)
 
     def box(a: np.ndarray) -> np.ndarray:
         return cv2.boxFilter(a, -1, (window, window), normalize=False, borderType=cv2.BORDER_CONSTANT)
@@ -263,12 +267,42 @@ def window_normals(points: np.ndarray, hit: np.ndarray, window: int) -> np.ndarr
             cov[..., i, j] = cov[..., j, i] = box(p[..., i] * p[..., j]) / np.maximum(n, 1) - mean[..., i] * mean[..., j]
     good = (n >= 6) & hit
     normals = np.full((h, w, 3), np.nan)
+    spread = np.full((h, w), np.nan)
     if good.any():
-        _, vectors = np.linalg.eigh(cov[good])
+        values, vectors = np.linalg.eigh(cov[good])
         v = vectors[..., 0]  # the smallest eigenvalue's
         v[np.einsum("ij,ij->i", v, points[good]) > 0] *= -1
         normals[good] = v
-    return normals
+        spread[good] = np.maximum(values[:, 0], 0.0)
+    return (normals, spread) if residual else normals
+
+
+ADAPTIVE_WINDOWS = (5, 9, 21, 41)
+"""Window sizes (px) :func:`adaptive_normals` chooses from, up to the configured largest."""
+NOISE_FACTOR = 4.0
+"""A window is planar enough while its fit residual is under this many times the noise's."""
+
+
+def adaptive_normals(points: np.ndarray, hit: np.ndarray, largest: int) -> np.ndarray:
+    """Normals (h, w, 3) of the largest window (of :data:`ADAPTIVE_WINDOWS`, up to
+    ``largest`` px) in which the range surface is still a plane within its noise.
+
+    The noise is the range map's own: the median plane-fit residual over the smallest
+    window. A pixel takes the normal of the largest window whose residual is at most
+    :data:`NOISE_FACTOR` times that; where even the smallest exceeds it (relief, a
+    crease), the smallest window's. A noisy flat board so gets the widest plane, a clean
+    carved relief keeps its detail.
+    """
+    windows = [w for w in ADAPTIVE_WINDOWS if w <= largest] or [largest]
+    out, spread = window_normals(points, hit, windows[0], residual=True)
+    finite = np.isfinite(spread)
+    noise = float(np.median(spread[finite])) if finite.any() else 0.0
+    planar = finite.copy()  # still planar at every window so far
+    for window in windows[1:]:
+        normals, spread = window_normals(points, hit, window, residual=True)
+        planar &= np.isfinite(spread) & (spread <= NOISE_FACTOR * noise)
+        out = np.where(planar[..., None], normals, out)
+    return out
 
 
 # --- calibration from a matte panel ---------------------------------------------------------
