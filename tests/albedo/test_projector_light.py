@@ -119,9 +119,16 @@ def test_session_without_lights_gets_colour(tmp_path, tile, projector_light):
     parser = argparse.ArgumentParser(prog="slscan")
     add_command(parser.add_subparsers(dest="command"))
     out = tmp_path / "albedo"
+    rrd = tmp_path / "albedo.rrd"
     args = parser.parse_args(["albedo", str(session.root), "--range-maps", str(range_maps),
-                              "--lights", str(tmp_path / "lights.json"), "--out", str(out), "--quiet"])
+                              "--lights", str(tmp_path / "lights.json"), "--out", str(out), "--quiet",
+                              "--save", str(rrd)])
     assert args.func(args) == 0
+    from rerun.chunk import RrdReader
+
+    paths = {c.entity_path for c in RrdReader(rrd).stream().to_chunks()}
+    assert {"/world/camera/image/albedo/lit", "/world/camera/image/albedo/unshaded",
+            "/world/camera/image/albedo/error", "/world/scans/view_000/albedo"} <= paths
     meta = json.loads((out / "albedo.json").read_text())
     assert meta["light"] == "projector" and meta["views"][0]["light"] == "projector"
     assert meta["projector_light"]["intensity"] == pytest.approx(list(projector_light.intensity))
