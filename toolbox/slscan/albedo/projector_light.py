@@ -22,8 +22,10 @@ next to a depth jump, and optionally near the mirror direction (possible highlig
 This is how commercial structured-light scanners with one camera (DAVID / HP 3D Scan)
 colour their scans. Compared with the ring of lights it has one light, so it cannot
 solve a finer normal from the images nor tell a highlight from paint: normal noise of the
-range map goes straight into the albedo, and a glossy surface's highlight near the mirror
-direction stays in it (``projector_highlight_deg`` leaves those pixels out).
+range map goes straight into the albedo (so the normal is that of a plane fitted over as
+wide a window as the surface stays planar within the range map's noise,
+:func:`adaptive_normals`), and a glossy surface's highlight near the mirror direction
+stays in it (``projector_highlight_deg`` leaves those pixels out).
 
 :func:`calibrate_projector_light` measures ``P`` (and a coarse flat field) from a matte
 panel of known reflectance at known poses: the same panel session that calibrates the
