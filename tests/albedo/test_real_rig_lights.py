@@ -160,3 +160,16 @@ def test_calibrate_lights_command_takes_the_range_maps(hand_session, tmp_path):
     assert args.func(args) == 0
     cal = read_lights(tmp_path / "lights.json")
     assert len(cal.lights) == 6 and cal.projector is not None
+
+
+def test_driver_switched_lights_calibrate_from_the_range_maps(tmp_path):
+    """The same with lights the driver switches itself (the virtual rig's, as a relay board's)."""
+    config = VirtualCaptureConfig(levels=6, camera_scale=0.25, projector_scale=0.25)
+    rig = config.rig()
+    world = virtual_devices(config, scene=panel_scene(PANEL), poses=light_calibration_poses(rig, count=3), rig=rig)
+    devices = ScanDevices(world.projector, world.camera, world.lights, FakeHandPlacedPanel(world))
+    session = scan(devices, scan_plan(config, rig), tmp_path / "session", views=3, calibration=rig).session
+    decode_session(session, tmp_path / "range_maps")
+    cal = calibrate_lights(session, panel=PANEL, range_maps=tmp_path / "range_maps", max_samples_per_view=2500)
+    true = np.array([light.position for light in rig.lights])
+    assert np.linalg.norm(cal.positions - true, axis=1).max() < 15.0
