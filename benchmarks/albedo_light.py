@@ -35,7 +35,6 @@ import argparse
 import logging
 import tempfile
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np

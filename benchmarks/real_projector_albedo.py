@@ -75,7 +75,8 @@ def main() -> int:
     parser.add_argument("--windows", default="0,9,21,41",
                         help="projector_normal_window_px values to compare (0: the range map's vertex normals; "
                         "the default 21)")
-    parser.add_argument("--data", type=Path, default=None, help=f"shared data folder (default ${ENV_VAR} or ../shared/data)")
+    parser.add_argument("--data", type=Path, default=None,
+                        help=f"shared data folder (default ${ENV_VAR} or ../shared/data)")
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     data = args.data or shared_data_dir()

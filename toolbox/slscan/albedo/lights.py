@@ -159,7 +159,9 @@ class ProjectorLight:
         if len(self.intensity) != 3 or not all(np.isfinite(i) and i > 0 for i in self.intensity):
             raise SlscanError(f"projector light: intensity must be 3 positive values, got {self.intensity}")
         if not (np.isfinite(self.reference_distance) and self.reference_distance > 0):
-            raise SlscanError(f"projector light: reference distance must be positive, got {self.reference_distance}")
+            raise SlscanError(
+                f"projector light: reference distance must be positive, got {self.reference_distance}"
+            )
         if self.flat_field is not None:
             grid = np.asarray(self.flat_field, float)
             if grid.ndim != 2 or min(grid.shape) < 1 or not np.all(np.isfinite(grid) & (grid > 0)):

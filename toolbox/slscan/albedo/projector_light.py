@@ -266,7 +266,8 @@ def window_normals(points: np.ndarray, hit: np.ndarray, window: int, *, residual
     cov = np.empty((h, w, 3, 3))
     for i in range(3):
         for j in range(i, 3):
-            cov[..., i, j] = cov[..., j, i] = box(p[..., i] * p[..., j]) / np.maximum(n, 1) - mean[..., i] * mean[..., j]
+            second = box(p[..., i] * p[..., j]) / np.maximum(n, 1)
+            cov[..., i, j] = cov[..., j, i] = second - mean[..., i] * mean[..., j]
     good = (n >= 6) & hit
     normals = np.full((h, w, 3), np.nan)
     spread = np.full((h, w), np.nan)
