@@ -212,3 +212,19 @@ def test_adaptive_normals_widen_on_a_noisy_plane_and_keep_a_crease():
     side = np.array([1.0, 0.0, -1.0]) / np.sqrt(2)  # the x > 0 side, towards the camera
     near = normals[20:-20, 60 + 4]  # 4 px (8 mm) from the crease
     assert np.degrees(np.arccos(np.clip(near @ side, -1, 1))).max() < 5.0
+
+
+def test_srgb_camera_is_read_in_linear_light(tmp_path, tile, projector_light):
+    """The white and black frames of a camera saving sRGB codes are read as light: the
+    same tile's albedo as from the linear camera (undecoded, 0.8 would read about 0.9)."""
+    from slscan.virtual.sensor import Sensor
+
+    session, range_maps = tile
+    config = VirtualCaptureConfig(scene="tile", lit_images=False, levels=7, sensor=Sensor(response="srgb"), **SMALL)
+    srgb = capture_session(config, tmp_path / "srgb")
+    assert srgb.response == "srgb"
+    view = srgb.views[0]
+    range_map, _ = load_range_map(range_maps, session.views[0])
+    result = projector_albedo_view(srgb, view, range_map, projector_light, range_map_source="the linear capture's")
+    err, _ = _errors(srgb, view, result.albedo, result.valid)
+    assert np.median(err) < 0.03

@@ -176,6 +176,8 @@ def projector_albedo_view(
     seconds: dict[str, float] = {}
     t = time.perf_counter()
     frames = read_flat_frames(session, view)
+    if not frames.has_black:
+        log.warning("%s: the pattern set has no black frame: ambient light is not subtracted", view.name)
     seconds["read"] = time.perf_counter() - t
     t = time.perf_counter()
     surface = rasterise(range_map, rig.camera)
