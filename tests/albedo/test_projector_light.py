@@ -228,3 +228,20 @@ def test_srgb_camera_is_read_in_linear_light(tmp_path, tile, projector_light):
     result = projector_albedo_view(srgb, view, range_map, projector_light, range_map_source="the linear capture's")
     err, _ = _errors(srgb, view, result.albedo, result.valid)
     assert np.median(err) < 0.03
+
+
+def test_ambient_light_is_subtracted_with_the_black_frame(tmp_path, tile, projector_light):
+    """Room light 30 % of the projector's white: the black frame takes it out."""
+    from dataclasses import replace
+
+    from slscan.virtual.render import Optics
+
+    session, range_maps = tile
+    config = VirtualCaptureConfig(scene="tile", lit_images=False, levels=7,
+                                  optics=replace(Optics(), ambient=(0.3, 0.3, 0.3)), **SMALL)
+    lit_room = capture_session(config, tmp_path / "ambient")
+    view = lit_room.views[0]
+    range_map, _ = load_range_map(range_maps, session.views[0])
+    result = projector_albedo_view(lit_room, view, range_map, projector_light, range_map_source="the dark room's")
+    err, _ = _errors(lit_room, view, result.albedo, result.valid)
+    assert np.median(err) < 0.02
