@@ -530,6 +530,11 @@ def albedo_session(
     if light == "projector":
         from slscan.albedo.projector_light import flat_frame_records, projector_light_of
 
+        if session.calibration is None:
+            raise SlscanError(
+                f"{session.root / 'session.json'}: no calibration; the projector as the light needs the "
+                "projector's centre (calibrate the rig, or decode with a calibration)"
+            )
         light_model = projector_light_of(session, lights)
         if lights is None or lights.projector is None:
             lights_source = light_model.source
