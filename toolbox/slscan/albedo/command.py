@@ -19,6 +19,8 @@ examples:
   slscan calibrate-lights lights-session --out lights.json
   slscan albedo demo-scan/capture --range-maps demo-scan/decode --lights lights.json \\
       --out albedo --save albedo.rrd
+  slscan albedo scan --range-maps decode --light projector --lights lights.json --out albedo
+      # no ring lights: the projector's white frame, LIGHTS.json's "projector" block
 
 outputs (per view): VIEW_albedo.png (16-bit LINEAR RGB reflectance x 65535, not sRGB;
 0 where invalid), VIEW_valid.png (255 where the albedo is valid), VIEW.ply (the range
@@ -29,7 +31,7 @@ and albedo.json (lights, settings, per-view metrics).
 
 def add_command(subparsers) -> None:
     """Add ``capture-lights``, ``calibrate-lights`` and ``albedo`` to ``slscan``'s subparsers."""
-    from slscan.albedo.photometric import NORMALS, SPECULAR, AlbedoConfig
+    from slscan.albedo.photometric import LIGHT_SOURCES, NORMALS, SPECULAR, AlbedoConfig
     from slscan.viewer.recording import add_recording_arguments
 
     p = subparsers.add_parser(
@@ -95,7 +97,21 @@ def add_command(subparsers) -> None:
         default=None,
         help="panel width, height, thickness in mm (default: from light_panel.json)",
     )
+    p.add_argument(
+        "--range-maps",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="the panel session's range maps (slscan decode --out): a real rig's panel session records "
+        "no panel pose, so the panel's plane is fitted to each view's range map",
+    )
     p.add_argument("--no-ambient", action="store_true", help="assume no ambient light")
+    p.add_argument(
+        "--no-projector",
+        action="store_true",
+        help="do not calibrate the projector as a light (by default its white is measured on the "
+        "panel's white and black frames, for slscan albedo --light projector)",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_recording_arguments(p)
@@ -109,7 +125,10 @@ def add_command(subparsers) -> None:
         "images (one per ring light), its range map and the calibrated lights: "
         "per pixel a Lambertian model with a fitted specular lobe is inverted, cast "
         "shadows (shadow rays against the range map) and outliers left out, and "
-        "pixels with too few usable lights marked invalid.",
+        "pixels with too few usable lights marked invalid. A scan without ring lights "
+        "(or --light projector) takes its colour from the white frame instead, the "
+        "projector being the calibrated point light (black frame subtracted, inverse "
+        "square and cosine from the range map, projector shadows left out).",
         epilog=ALBEDO_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -134,6 +153,14 @@ def add_command(subparsers) -> None:
         default=None,
         metavar="LIGHTS.json",
         help="light calibration (slscan calibrate-lights); default: the session's nominal lights",
+    )
+    p.add_argument(
+        "--light",
+        choices=LIGHT_SOURCES,
+        default=defaults.light,
+        help="ring: un-shade the ring lights' images (paper); projector: the white frame with the "
+        "projector as the calibrated light (rigs without ring lights); auto (default): the ring when "
+        "every view has lit images and the lights are known, else the projector",
     )
     p.add_argument(
         "--normals",
@@ -232,14 +259,22 @@ def _cmd_calibrate_lights(args: argparse.Namespace) -> int:
         ) as rec,
         ProgressBar(len(session.views), "reading the panel", args.quiet) as bar,
     ):
-        cal = calibrate_lights(session, panel=panel, fit_ambient=not args.no_ambient, progress=bar.step)
+        cal = calibrate_lights(
+            session,
+            panel=panel,
+            fit_ambient=not args.no_ambient,
+            projector=not args.no_projector,
+            range_maps=args.range_maps,
+            progress=bar.step,
+        )
         if rec is not None:
             from slscan.viewer.log import log_rig
             from slscan.viewer.log_albedo import log_lights
 
             if session.calibration is not None:
                 log_rig(rec, session.calibration)
-            log_lights(rec, cal)
+            if cal.lights:
+                log_lights(rec, cal)
     write_lights(args.out, cal)
     out = console()
     truth = (
@@ -266,11 +301,21 @@ def _cmd_calibrate_lights(args: argparse.Namespace) -> int:
             rel = max(abs(a / b - 1) for a, b in zip(light.intensity, truth[k].intensity))
             row += [f"{err:.2f}", f"{100 * rel:.2f} %"]
         table.add_row(*row)
-    out.print(table)
-    out.print(
-        f"ambient {' '.join(f'{a:.4f}' for a in cal.ambient)}; residual RMS {cal.fit['rms']:.5f} "
-        f"over {cal.fit['samples']} panel pixels; {time.perf_counter() - t0:.1f} s"
-    )
+    if cal.lights:
+        out.print(table)
+        out.print(
+            f"ambient {' '.join(f'{a:.4f}' for a in cal.ambient)}; residual RMS {cal.fit['rms']:.5f} "
+            f"over {cal.fit['samples']} panel pixels; {time.perf_counter() - t0:.1f} s"
+        )
+    if cal.projector is not None:
+        flat = cal.projector.flat_field
+        spread = (
+            f", flat field {min(map(min, flat)):.3f}..{max(map(max, flat)):.3f}" if flat is not None else ""
+        )
+        out.print(
+            f"projector light: intensity {' '.join(f'{x:.4f}' for x in cal.projector.intensity)} at "
+            f"{cal.projector.reference_distance:.0f} mm{spread}"
+        )
     out.print(f"[green]wrote[/] {args.out}")
     return 0
 
@@ -282,7 +327,9 @@ def _cmd_albedo(args: argparse.Namespace) -> int:
     from slscan.viewer.log_albedo import albedo_blueprint
     from slscan.viewer.recording import recording_from_args
 
-    config = AlbedoConfig(normals=args.normals, specular=args.specular, min_lights=args.min_lights)
+    config = AlbedoConfig(
+        light=args.light, normals=args.normals, specular=args.specular, min_lights=args.min_lights
+    )
     session = load_session(args.session)
     with recording_from_args(
         args, recording_name=f"albedo {args.session.name}", blueprint=albedo_blueprint()
@@ -337,8 +384,9 @@ def run_albedo(
         )
     valid = sum(r.valid_pixels for r in results)
     seen = sum(r.seen_pixels for r in results)
+    light = "the projector as the light" if results and results[0].light == "projector" else "the ring lights"
     console().print(
-        f"[green]wrote[/] {out}: {len(results)} albedo image(s) and mesh(es), {valid:,} valid pixels "
+        f"[green]wrote[/] {out}: {len(results)} albedo image(s) and mesh(es) from {light}, {valid:,} valid pixels "
         f"({100 * valid / max(seen, 1):.1f} % of the range maps'), {time.perf_counter() - t0:.1f} s"
     )
     return results

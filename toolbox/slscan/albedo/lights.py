@@ -1,8 +1,12 @@
 """Light calibration: point-light positions and RGB intensities from a flat matte panel.
 
 Done once per rig. A matte panel of known reflectance is imaged under each ring light at
-a few known poses (a virtual session records its placement; a real rig would take it
-from a printed board on the panel, not implemented yet). Every panel pixel gives the
+a few poses. The pose is known when the session records it (the virtual rig does);
+otherwise (a real rig, the panel placed by hand) the panel's plane comes from its own
+range map: the panel session is a scan like any other (patterns, then one image per ring
+light, switched by a relay or by the operator when asked), decoded, and a plane fitted to
+each view's range map (:func:`fit_panel_plane`); its pixels are those of the range map on
+that plane. Every panel pixel gives the
 irradiance of every light at a known point and normal (:mod:`slscan.albedo.radiometry`).
 The light positions, RGB intensities and the ambient light are fitted to all of them
 together by Levenberg-Marquardt with an analytic sparse Jacobian, started from the
@@ -29,7 +33,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -124,6 +128,94 @@ def read_panel(session_root: str | os.PathLike) -> MattePanel:
 # --- the calibration result --------------------------------------------------------------
 
 
+PROJECTOR_LIGHT_FORMAT = "slscan.projector-light"
+
+
+@dataclass(frozen=True)
+class ProjectorLight:
+    """The projector's full white as a calibrated point light (for albedo without ring lights).
+
+    In normalised units (:mod:`slscan.albedo.radiometry`) a Lambertian surface of albedo
+    ``a`` lit by the projector's white frame (its black frame subtracted) reads
+    ``a_c * intensity_c * flat(u, v) * max(0, n . l) * (reference_distance / d)**2``,
+    ``l`` the unit vector to the projector's centre and ``d`` its distance (mm).
+
+    intensity : (3,) RGB, what a white surface facing the projector at
+        ``reference_distance`` mm reads; (1, 1, 1) uncalibrated (albedo then is relative
+        to the projector's white at that distance)
+    reference_distance : mm
+    flat_field : (gh, gw) relative emitted radiance over the projector's frame (a coarse
+        grid spanning the projector's pixels, median 1: vignetting, hot spot), or None
+        (uniform)
+    source : how it was made, in words ("nominal (uncalibrated)", the panel session)
+    """
+
+    intensity: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    reference_distance: float = 1300.0
+    flat_field: tuple[tuple[float, ...], ...] | None = None
+    source: str = "nominal (uncalibrated)"
+
+    def __post_init__(self) -> None:
+        if len(self.intensity) != 3 or not all(np.isfinite(i) and i > 0 for i in self.intensity):
+            raise SlscanError(f"projector light: intensity must be 3 positive values, got {self.intensity}")
+        if not (np.isfinite(self.reference_distance) and self.reference_distance > 0):
+            raise SlscanError(
+                f"projector light: reference distance must be positive, got {self.reference_distance}"
+            )
+        if self.flat_field is not None:
+            grid = np.asarray(self.flat_field, float)
+            if grid.ndim != 2 or min(grid.shape) < 1 or not np.all(np.isfinite(grid) & (grid > 0)):
+                raise SlscanError("projector light: flat_field must be a 2-D grid of positive numbers")
+
+    @property
+    def calibrated(self) -> bool:
+        return not self.source.startswith("nominal")
+
+    def flat_at(self, uv: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+        """Relative radiance (n,) at projector pixels ``uv`` (n, 2) of a ``size`` = (w, h)
+        projector, bilinear over the flat-field grid (its cells span the frame evenly); 1
+        without a flat field."""
+        uv = np.asarray(uv, float).reshape(-1, 2)
+        if self.flat_field is None:
+            return np.ones(len(uv))
+        from scipy.ndimage import map_coordinates
+
+        grid = np.asarray(self.flat_field, np.float64)
+        gh, gw = grid.shape
+        w, h = size
+        # cell i's centre sits at projector pixel (i + 0.5) * w / gw - 0.5
+        x = np.clip((uv[:, 0] + 0.5) * gw / w - 0.5, 0, gw - 1)
+        y = np.clip((uv[:, 1] + 0.5) * gh / h - 0.5, 0, gh - 1)
+        return map_coordinates(grid, [y, x], order=1, mode="nearest")
+
+    def to_dict(self) -> dict:
+        return {
+            "format": PROJECTOR_LIGHT_FORMAT,
+            "intensity": [float(i) for i in self.intensity],
+            "reference_distance_mm": float(self.reference_distance),
+            "flat_field": None if self.flat_field is None else [list(map(float, r)) for r in self.flat_field],
+            "source": self.source,
+        }
+
+    @classmethod
+    def from_dict(cls, d: Any, where: str = "projector light") -> ProjectorLight:
+        if not isinstance(d, dict):
+            raise SlscanError(f"{where}: expected a table with 'intensity' and 'reference_distance_mm'")
+        try:
+            flat = d.get("flat_field")
+            return cls(
+                tuple(float(i) for i in d["intensity"]),
+                float(d["reference_distance_mm"]),
+                None if flat is None else tuple(tuple(float(x) for x in row) for row in flat),
+                str(d.get("source", "given")),
+            )
+        except KeyError as exc:
+            raise SlscanError(f"{where}: missing field {exc.args[0]!r}") from None
+        except (TypeError, ValueError) as exc:
+            raise SlscanError(f"{where}: {exc}") from None
+
+
+
 @dataclass(frozen=True)
 class LightCalibration:
     """Calibrated ring lights: positions (mm, rig frame), RGB intensities, ambient light.
@@ -138,6 +230,8 @@ class LightCalibration:
     position_sigma : (k,) mm, 1-sigma position uncertainty of each light from the fit
         (0 when not fitted)
     fit : how the calibration was made (residual, samples, session), for the record
+    projector : the projector's white as a calibrated light (from the panel's white and
+        black frames), or None; with it ``lights`` may be empty (a rig without ring lights)
     """
 
     lights: tuple[Light, ...]
@@ -145,6 +239,7 @@ class LightCalibration:
     reference_distance: float = 1300.0
     position_sigma: tuple[float, ...] = ()
     fit: dict = field(default_factory=dict)
+    projector: ProjectorLight | None = None
 
     @property
     def positions(self) -> np.ndarray:
@@ -187,6 +282,7 @@ class LightCalibration:
                 for light, s in zip(self.lights, sigma)
             ],
             "fit": self.fit,
+            **({"projector": self.projector.to_dict()} if self.projector is not None else {}),
         }
 
     @classmethod
@@ -203,8 +299,11 @@ class LightCalibration:
             lights = tuple(Light.from_dict(x) for x in d["lights"])
             ambient = tuple(float(a) for a in d.get("ambient", (0, 0, 0)))
             sigma = tuple(float(x.get("position_sigma_mm", 0.0)) for x in d["lights"])
+            projector = d.get("projector")
+            if projector is not None:
+                projector = ProjectorLight.from_dict(projector, f"{where}: projector")
             cal = cls(
-                lights, ambient, float(d["reference_distance_mm"]), sigma, dict(d.get("fit", {}))
+                lights, ambient, float(d["reference_distance_mm"]), sigma, dict(d.get("fit", {})), projector
             )
         except KeyError as exc:
             raise SlscanError(f"{where}: missing field {exc.args[0]!r}") from None
@@ -214,8 +313,8 @@ class LightCalibration:
             len(x.position) != 3 or len(x.intensity) != 3 for x in lights
         ):
             raise SlscanError(f"{where}: positions, intensities and ambient need 3 values each")
-        if not lights:
-            raise SlscanError(f"{where}: no lights")
+        if not lights and cal.projector is None:
+            raise SlscanError(f"{where}: no lights (and no projector light)")
         return cal
 
 
@@ -251,31 +350,130 @@ class PanelSamples:
     lights: np.ndarray
 
 
-def panel_samples(
+@dataclass(frozen=True)
+class PanelFit:
+    """The panel's plane in one view, fitted to its range map (pose not recorded).
+
+    rig_from_panel : (4, 4) a pose whose front face (``MattePanel.front_plane``) is the
+        fitted plane, centred on the panel's pixels (its in-plane rotation is arbitrary)
+    mask : (h, w) bool camera pixels on the plane (range map within ``tolerance_mm``),
+        ``edge_px`` away from its outline
+    rms_mm : RMS distance of the inliers to the plane
+    """
+
+    rig_from_panel: np.ndarray
+    mask: np.ndarray
+    rms_mm: float
+
+
+def fit_panel_plane(
+    session: Session,
+    view: ViewRecord,
+    range_map,
+    panel: MattePanel,
+    *,
+    tolerance_mm: float = 3.0,
+    edge_px: int = 6,
+) -> PanelFit:
+    """Fit the panel's front plane to ``view``'s range map (rig frame, mm).
+
+    The largest plane is found by least squares, twice trimmed to the range-map pixels within
+    ``tolerance_mm`` of it (a background wall or the panel's stand left out); the panel's
+    pixels are the inliers, eroded by ``edge_px`` (blur and the panel's edges).
+    """
+    import cv2
+
+    from slscan.albedo.surface import rasterise
+
+    rig = session.calibration
+    if rig is None:
+        raise SlscanError(f"{session.root}: the session has no camera calibration")
+    surface = rasterise(range_map, rig.camera)
+    pts = surface.points[surface.hit]
+    where = f"{session.root / view.name}: panel plane"
+    if len(pts) < 100:
+        raise SlscanError(f"{where}: the range map covers {len(pts)} pixels; expected the panel to fill the view")
+    keep = np.ones(len(pts), bool)
+    centre = normal = None
+    for round_ in range(4):  # wide first (the fit may start tilted by a background), then the tolerance
+        centre = pts[keep].mean(0)
+        normal = np.linalg.svd(pts[keep] - centre, full_matrices=False)[2][2]
+        dist = np.abs((pts - centre) @ normal)
+        limit = max(tolerance_mm, 3 * 1.4826 * float(np.median(dist[keep]))) if round_ < 2 else tolerance_mm
+        keep = dist <= limit
+        if keep.sum() < 100:
+            raise SlscanError(f"{where}: fewer than 100 range-map pixels lie on one plane; is the panel flat?")
+    if normal @ centre > 0:
+        normal = -normal  # towards the camera
+    mask = np.zeros(surface.hit.shape, bool)
+    mask[surface.hit] = keep
+    if edge_px > 0:
+        mask = cv2.erode(mask.astype(np.uint8), np.ones((2 * edge_px + 1,) * 2, np.uint8)).astype(bool)
+    centre = pts[keep].mean(0)
+    z = -normal
+    x = np.cross([0.0, 1.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    pose = np.eye(4)
+    pose[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+    pose[:3, 3] = centre - normal * (panel.thickness / 2)  # the front face through the centre
+    rms = float(np.sqrt(np.mean(((pts[keep] - centre) @ normal) ** 2)))
+    return PanelFit(pose, mask, rms)
+
+
+def fit_panel_planes(
+    session: Session, range_maps_dir, panel: MattePanel, views: list[ViewRecord] | None = None
+) -> dict[str, PanelFit]:
+    """:func:`fit_panel_plane` for each view (default all) from a decode output folder."""
+    from slscan.albedo.unshade import load_range_map
+
+    fits = {}
+    for view in views or session.views:
+        range_map, _ = load_range_map(range_maps_dir, view)
+        fits[view.name] = fit_panel_plane(session, view, range_map, panel)
+        log.info("%s: panel plane fitted to the range map, RMS %.2f mm", view.name, fits[view.name].rms_mm)
+    return fits
+
+
+def _panel_pose(session: Session, view: ViewRecord, rig_from_panel: np.ndarray | None) -> np.ndarray:
+    pose = rig_from_panel if rig_from_panel is not None else view.rig_from_object
+    if pose is None:
+        raise SlscanError(
+            f"{session.root / view.name}: the panel's pose is unknown (the view records no rig_from_object; "
+            "give the panel's range maps, slscan decode --out, to fit its plane)"
+        )
+    return np.asarray(pose, float)
+
+
+def panel_plane(
+    session: Session, view: ViewRecord, panel: MattePanel, *, rig_from_panel: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """A point on the panel's front face (3,) mm and its unit normal (3,), rig frame, from
+    ``rig_from_panel`` (default: the view's recorded ``rig_from_object``)."""
+    return panel.front_plane(_panel_pose(session, view, rig_from_panel))
+
+
+def panel_pixels(
     session: Session,
     view: ViewRecord,
     panel: MattePanel,
     *,
     rig_from_panel: np.ndarray | None = None,
-    max_samples: int = 4000,
     edge_px: int = 3,
-) -> PanelSamples:
-    """Intersect the camera rays with the panel's front face and read the lit images there.
+    fit: PanelFit | None = None,
+) -> np.ndarray:
+    """(h, w) bool: the camera pixels whose ray meets the panel's front face inside its
+    margin, ``edge_px`` pixels away from its outline.
 
     rig_from_panel : (4, 4) the panel's pose; default: the view's recorded
         ``rig_from_object`` (the virtual rig records it)
-    max_samples : pixels kept, on a regular grid over the face
-    edge_px : pixels dropped next to the face's outline, besides ``panel.margin``
+    fit : the panel's plane fitted to its range map instead (its pixels are the fit's mask)
     """
+    if fit is not None:
+        return fit.mask.copy()
     rig = session.calibration
     if rig is None:
         raise SlscanError(f"{session.root}: the session has no camera calibration")
-    pose = rig_from_panel if rig_from_panel is not None else view.rig_from_object
-    if pose is None:
-        raise SlscanError(
-            f"{session.root / view.name}: the panel's pose is unknown (the view records no rig_from_object)"
-        )
-    lit = read_lit_images(session, view, min_images=1)
+    pose = _panel_pose(session, view, rig_from_panel)
     cam = rig.camera
     h, w = cam.height, cam.width
     grid = np.stack(np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float)), axis=-1)
@@ -297,19 +495,47 @@ def panel_samples(
         inside = cv2.erode(
             inside.astype(np.uint8), np.ones((2 * edge_px + 1,) * 2, np.uint8)
         ).astype(bool)
+    return inside
+
+
+def panel_samples(
+    session: Session,
+    view: ViewRecord,
+    panel: MattePanel,
+    *,
+    rig_from_panel: np.ndarray | None = None,
+    max_samples: int = 4000,
+    edge_px: int = 3,
+    fit: PanelFit | None = None,
+) -> PanelSamples:
+    """Intersect the camera rays with the panel's front face and read the lit images there.
+
+    rig_from_panel : (4, 4) the panel's pose; default: the view's recorded
+        ``rig_from_object`` (the virtual rig records it)
+    max_samples : pixels kept, on a regular grid over the face
+    edge_px : pixels dropped next to the face's outline, besides ``panel.margin``
+    fit : the panel's plane fitted to its range map (:func:`fit_panel_plane`) instead of a pose
+    """
+    if fit is not None:
+        rig_from_panel = fit.rig_from_panel
+    inside = panel_pixels(session, view, panel, rig_from_panel=rig_from_panel, edge_px=edge_px, fit=fit)
+    centre, normal = panel_plane(session, view, panel, rig_from_panel=rig_from_panel)
     count = int(inside.sum())
     if count < 50:
         raise SlscanError(
             f"{session.root / view.name}: the panel covers {count} pixels; expected it to fill the view"
         )
+    lit = read_lit_images(session, view, min_images=1)
     stride = max(1, int(np.ceil(np.sqrt(count / max_samples))))
     keep = np.zeros_like(inside)
     keep[stride // 2 :: stride, stride // 2 :: stride] = True
     keep &= inside
     rows, cols = np.nonzero(keep)
+    rays = session.calibration.camera.rays_local(np.stack([cols, rows], axis=1).astype(float))
+    points = rays * ((normal @ centre) / (rays @ normal))[:, None]
     return PanelSamples(
         view=view.name,
-        points=points[rows, cols],
+        points=points,
         normal=normal,
         values=lit.values[:, rows, cols].astype(np.float64),
         usable=~lit.saturated[:, rows, cols],
@@ -519,9 +745,12 @@ def calibrate_lights(
     views: list[str] | None = None,
     max_samples_per_view: int = 4000,
     fit_ambient: bool = True,
+    projector: bool = True,
+    range_maps: str | os.PathLike | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> LightCalibration:
-    """Calibrate the ring lights from a session of a matte panel at known poses.
+    """Calibrate the ring lights (and the projector as a light) from a session of a matte
+    panel at known poses.
 
     session : a light-calibration session (e.g. from
         :func:`slscan.virtual.panels.capture_light_calibration`); each view shows the
@@ -530,6 +759,13 @@ def calibrate_lights(
     initial : starting light positions; default: the session's rig description, else a
         250 mm ring around the camera
     views : names of the views to use; default all
+    projector : also measure the projector's white as a light
+        (:func:`slscan.albedo.projector_light.calibrate_projector_light`) when the views
+        have white frames; a session with white frames and no lit images (a rig without
+        ring lights) gives a calibration of the projector only
+    range_maps : the panel session's range maps (``slscan decode --out``): the panel's
+        plane in each view whose pose is not recorded (a real rig) is fitted to its range
+        map (:func:`fit_panel_plane`)
 
     The intensities are in normalised units relative to ``panel.albedo``, the reference
     distance is the rig's working distance.
@@ -542,7 +778,26 @@ def calibrate_lights(
         raise SlscanError(f"{session.root}: the session has no calibration (camera model needed)")
     chosen = [session.view(v) for v in views] if views else list(session.views)
     light_ids = sorted({r.light for v in chosen for r in v.lit_images()})
+    unposed = [v for v in chosen if v.rig_from_object is None]
+    fits = fit_panel_planes(session, range_maps, panel, unposed) if range_maps is not None and unposed else {}
+
+    def projector_light():
+        if not (projector and _has_white_frame(session)):
+            return None
+        from slscan.albedo.projector_light import calibrate_projector_light
+
+        sub = session if not views else replace(session, views=tuple(chosen))
+        return calibrate_projector_light(sub, panel, fits=fits)
+
     if not light_ids:
+        if projector and _has_white_frame(session):
+            log.info("%s: no lit images; the projector light only", session.root)
+            return LightCalibration(
+                (), (0.0, 0.0, 0.0), rig.working_distance, (),
+                {"source": "panel session (projector only)", "session": str(Path(session.root).resolve()),
+                 "panel": panel.to_dict()},
+                projector_light(),
+            )
         raise SlscanError(f"{session.root}: no lit images in the session; nothing to calibrate")
     n_lights = max(light_ids) + 1
     missing = sorted(set(range(n_lights)) - set(light_ids))
@@ -563,7 +818,9 @@ def calibrate_lights(
         raise SlscanError(f"light calibration: {len(x0)} initial positions for {n_lights} lights")
     samples = []
     for view in chosen:
-        samples.append(panel_samples(session, view, panel, max_samples=max_samples_per_view))
+        samples.append(
+            panel_samples(session, view, panel, max_samples=max_samples_per_view, fit=fits.get(view.name))
+        )
         if progress:
             progress(view.name)
     cal = fit_lights(
@@ -574,5 +831,11 @@ def calibrate_lights(
         cal.ambient,
         cal.reference_distance,
         cal.position_sigma,
-        {**cal.fit, "session": str(Path(session.root).resolve())},
+        {**cal.fit, "session": str(Path(session.root).resolve()),
+         **({"panel_planes_rms_mm": {k: f.rms_mm for k, f in fits.items()}} if fits else {})},
+        projector_light(),
     )
+
+
+def _has_white_frame(session: Session) -> bool:
+    return any(p.family == "flat" and list(p.params.get("value", [])) == [255, 255, 255] for p in session.patterns)

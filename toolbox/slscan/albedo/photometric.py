@@ -67,6 +67,7 @@ log = logging.getLogger(__name__)
 
 NORMALS = ("photometric", "range")
 SPECULAR = ("fit", "none")
+LIGHT_SOURCES = ("auto", "ring", "projector")
 CHUNK = 40000  # pixels solved at once (bounds memory: ~50 floats per pixel and light)
 
 
@@ -74,6 +75,13 @@ CHUNK = 40000  # pixels solved at once (bounds memory: ~50 floats per pixel and 
 class AlbedoConfig:
     """How the albedo stage un-shades the lit images."""
 
+    light: str = "auto"
+    """{"auto", "ring", "projector"}: which light the albedo comes from. "ring": the
+    paper's 6-light un-shading of the lit images; "projector": the projector's white frame
+    (black frame subtracted) as one calibrated point light, with the range map's normals
+    (:mod:`slscan.albedo.projector_light`, for rigs without ring lights); "auto": the ring
+    when every view has ``min_lights`` lit images and the lights are known, else the
+    projector."""
     min_lights: int = 3
     """Pixels with fewer usable lights (unshadowed, not grazing, not saturated, not
     rejected) are invalid."""
@@ -114,7 +122,30 @@ class AlbedoConfig:
     fit the figurine's lobe as 12000 did (0.127, 34.9 against 0.127, 34.7; the albedo
     benchmark's table unchanged within 0.1 point) at half the cost."""
 
+    projector_highlight_deg: float = 0.0
+    """Projector light: pixels whose normal is within this angle (degrees) of the half
+    vector between projector and camera are left out as possible highlights (one light
+    cannot tell a highlight from paint per pixel). 0 keeps them."""
+    projector_normal_window_px: int = 21
+    """Projector light: the largest window (pixels, odd) over which a plane is fitted to the
+    range surface for the normal (:func:`slscan.albedo.projector_light.adaptive_normals`:
+    each pixel takes the largest of 5, 9, 21, 41 px still planar within 4 times the range
+    map's own noise); 0 keeps the range map's vertex normals. One light cannot correct a
+    normal from the images, and a noisy range map's normals are noisy albedo: on
+    kamino410's real chessboard (Gray code at 3-3.7 m) the white squares' albedo varies by
+    20 % with the vertex normals and 3.5 % with these (the raw white frame: 3.2 %); on the
+    virtual figurine at half size, whose range map is clean, they cost 0.6 point of median
+    error (4.1 -> 4.7 %; p95 30.1 -> 29.4 %), on the tile they gain 0.1
+    (``benchmarks/albedo_light.py``, ``benchmarks/real_projector_albedo.py``)."""
+    projector_min_signal_dn: float = 4.0
+    """Projector light: pixels whose white frame is brighter than the black by less than
+    this (8-bit digital numbers, luminance) are left out (projector shadow, dark paint)."""
+
     def __post_init__(self) -> None:
+        if self.light not in LIGHT_SOURCES:
+            raise SlscanError(
+                f"unknown albedo light {self.light!r}: expected one of {', '.join(LIGHT_SOURCES)}"
+            )
         if self.normals not in NORMALS:
             raise SlscanError(
                 f"unknown albedo normals {self.normals!r}: expected one of {', '.join(NORMALS)}"
@@ -127,6 +158,12 @@ class AlbedoConfig:
             raise SlscanError(f"albedo min_lights must be at least 1, got {self.min_lights}")
         if self.normals == "photometric" and self.min_lights < 3:
             raise SlscanError("albedo: photometric normals need min_lights >= 3")
+        if self.projector_normal_window_px < 0 or (
+            self.projector_normal_window_px and self.projector_normal_window_px % 2 == 0
+        ):
+            raise SlscanError(
+                f"albedo projector_normal_window_px must be 0 or odd, got {self.projector_normal_window_px}"
+            )
         if not 0 < self.outlier_threshold:
             raise SlscanError(
                 f"albedo outlier_threshold must be positive, got {self.outlier_threshold}"

@@ -29,8 +29,9 @@ EXPOSURE_KEYS = ("white_level", "exposure", "gain")
 """Sensor settings multiplied into the exposure factor when a view records them."""
 
 
-def exposure_factor(session: Session, view: ViewRecord) -> float:
-    """How much signal one unit of radiance gives in the lit images of ``view`` (relative).
+def exposure_factor(session: Session, view: ViewRecord, *, lit: bool = True) -> float:
+    """How much signal one unit of radiance gives in the lit images of ``view`` (relative),
+    or in its pattern images (the white and black frames) with ``lit=False``.
 
     The product of ``white_level``, ``exposure`` and ``gain`` (from the view's
     ``exposure["sensor"]`` block, or the top level of ``exposure``), times
@@ -49,8 +50,8 @@ def exposure_factor(session: Session, view: ViewRecord) -> float:
     for key in EXPOSURE_KEYS:
         value = sensor.get(key, meta.get(key, 1.0))
         factor *= _positive(value, f"{where}.{key}")
-    factor *= _positive(meta.get("lit_exposure", 1.0), f"{where}.lit_exposure")
-    return factor
+    lit_exposure = _positive(meta.get("lit_exposure", 1.0), f"{where}.lit_exposure")
+    return factor * lit_exposure if lit else factor
 
 
 def _positive(value, where: str) -> float:

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from slscan import __version__
-from slscan.albedo.lights import LightCalibration, read_lights
+from slscan.albedo.lights import LightCalibration, ProjectorLight, read_lights
 from slscan.albedo.photometric import (
     AlbedoConfig,
     SpecularLobe,
@@ -102,7 +102,7 @@ class AlbedoSummary:
     view : the view's name; valid_pixels : pixels with an albedo; seen_pixels : pixels on
     the range map; light_ids : the light of each lit image used; lobe : the fitted
     specular lobe; metrics, seconds : as :class:`ViewAlbedo`'s; unusable : why the view
-    was left out, or None
+    was left out, or None; light : {"ring", "projector"}, what lit it
     """
 
     view: str
@@ -113,12 +113,14 @@ class AlbedoSummary:
     metrics: dict[str, float]
     seconds: dict[str, float]
     unusable: str | None = None
+    light: str = "ring"
 
     @classmethod
     def of(cls, result: ViewAlbedo) -> AlbedoSummary:
+        light = "projector" if result.light_ids.tolist() == [-1] else "ring"
         return cls(result.view, int(result.valid.sum()), int(result.surface.hit.sum()),
                    tuple(int(k) for k in result.light_ids), result.lobe, dict(result.metrics), dict(result.seconds),
-                   _why_unusable(result))
+                   _why_unusable(result, light), light)
 
 
 def mixed_pixels(surface: SurfaceMap, edge_px: int = 1, *, jump_mm: float = 10.0) -> np.ndarray:
@@ -331,6 +333,10 @@ def _log_view(rec, session, view, result: ViewAlbedo, range_map, lights, view_in
             log.warning("%s: %s", view.name, exc)
     frames = {r.file: i for i, r in enumerate(view.images)}
     records = {r.light: r for r in view.lit_images()}
+    if result.light_ids.tolist() == [-1]:  # the projector: its white frame is the "lit image"
+        from slscan.albedo.projector_light import flat_frame_records
+
+        records = {-1: flat_frame_records(session, view)[0]}
     for i, light in enumerate(result.light_ids):
         record = records[int(light)]
         rlog.log_lit_image(
@@ -353,7 +359,8 @@ def _log_view(rec, session, view, result: ViewAlbedo, range_map, lights, view_in
         result.vertex_albedo,
         view_index=view_index,
     )
-    rlog.log_lights(rec, lights)
+    if isinstance(lights, LightCalibration):
+        rlog.log_lights(rec, lights)
     rlog.log_albedo_metrics(rec, result.metrics, view_index=view_index)
 
 
@@ -415,12 +422,15 @@ def _left_out_by_decode(range_maps_dir: str | os.PathLike) -> dict[str, str]:
     return {str(k): str(v) for k, v in left_out.items()} if isinstance(left_out, dict) else {}
 
 
-def _why_unusable(result: ViewAlbedo) -> str | None:
+def _why_unusable(result: ViewAlbedo, light: str = "ring") -> str | None:
     """Why a view's albedo is unusable, in words, or None when it is usable."""
+    images = "white frame is" if light == "projector" else "lit images are"
     if not result.valid.any():
+        if light == "projector":
+            return "no pixel is lit by the projector well enough (its white frame is dark, saturated or shadowed)"
         return "no pixel has enough usable lights (its lit images are dark or saturated)"
     if not np.nanmax(result.albedo[result.valid]) > 0:
-        return "its lit images are black over the range map (no lit pixels)"
+        return f"its {images} black over the range map (no lit pixels)"
     return None
 
 
@@ -430,13 +440,49 @@ def _albedo_task(task: tuple) -> tuple[AlbedoSummary, ViewAlbedo | None, RangeMa
     session, view_name, range_maps_dir, lights, config, folder, full = task
     view = session.view(view_name)
     range_map, source = load_range_map(range_maps_dir, view)
-    result = albedo_view(session, view, range_map, lights, config, range_map_source=source)
+    if isinstance(lights, ProjectorLight):
+        from slscan.albedo.projector_light import projector_albedo_view
+
+        result = projector_albedo_view(session, view, range_map, lights, config, range_map_source=source)
+    else:
+        result = albedo_view(session, view, range_map, lights, config, range_map_source=source)
     folder = Path(folder)
     write_png(folder / f"{view.name}_albedo.png", albedo_png(result.albedo, result.valid))
     write_png(folder / f"{view.name}_valid.png", (result.valid * 255).astype(np.uint8))
     write_albedo_ply(range_map, result.vertex_albedo, folder / f"{view.name}.ply")
     summary = AlbedoSummary.of(result)
     return (summary, result, range_map, source) if full else (summary, None, None, source)
+
+
+def choose_light(
+    session: Session, lights: LightCalibration | None, config: AlbedoConfig
+) -> tuple[str, str]:
+    """Which light the albedo of ``session`` comes from, and why, in words.
+
+    "ring" when forced (``config.light``), or under "auto" when the session has lit
+    images and the ring lights are known (a light calibration with lights, or the
+    session's rig description; a view with too few lit images is then an error, not a
+    silent change of light); "projector" otherwise (forced, no lit images: the real-rig
+    default, or no known ring lights). Raises when the forced ring cannot be had.
+    """
+    lit = max((len(v.lit_images()) for v in session.views), default=0)
+    known = (lights is not None and len(lights.lights) > 0) or (
+        lights is None and session.calibration is not None and bool(session.calibration.lights)
+    )
+    if config.light == "ring":
+        if not known:
+            raise SlscanError(
+                f"{session.root}: no light calibration given and the session describes no lights "
+                "(--light ring needs calibrated ring lights: slscan calibrate-lights)"
+            )
+        return "ring", "forced (light = ring)"
+    if config.light == "projector":
+        return "projector", "forced (light = projector)"
+    if lit and known:
+        return "ring", "the session has lit images and the ring lights are known"
+    if not lit:
+        return "projector", "no view has lit images (a rig without ring lights)"
+    return "projector", "the ring lights are not known (no light calibration, none in the session's rig)"
 
 
 def albedo_session(
@@ -461,6 +507,8 @@ def albedo_session(
 
     lights : a :class:`LightCalibration` or the path of ``LIGHTS.json``; default: the
         session's rig description (nominal lights, no ambient; a warning says so)
+    config : its ``light`` chooses the ring lights or the projector (:func:`choose_light`);
+        the projector light is ``lights.projector`` when calibrated, else nominal
     config : default :class:`AlbedoConfig`
     rec : an ``rr.RecordingStream`` (logged from this process, view by view), or None
     executor : where the views are un-shaded: local processes (default), or a Dask
@@ -470,33 +518,52 @@ def albedo_session(
     if not isinstance(session, Session):
         session = load_session(session)
     executor.start(len(session.views), [__name__, "open3d"])  # they import while we check
-    lights_source = "session rig description"
-    if lights is None:
-        if session.calibration is None or not session.calibration.lights:
-            raise SlscanError(
-                f"{session.root}: no light calibration given and the session describes no lights"
-            )
-        log.warning(
-            "no light calibration given: using the session's nominal lights (no ambient light)"
-        )
-        lights = LightCalibration.from_rig(session.calibration)
-    elif not isinstance(lights, LightCalibration):
+    if lights is not None and not isinstance(lights, LightCalibration):
         lights_source = str(Path(lights).resolve())
         lights = read_lights(lights)
-    else:
+    elif isinstance(lights, LightCalibration):
         lights_source = lights.fit.get("source", "given")
-    for view in session.views:  # fail before any work on a view that cannot be done
-        if len(view.lit_images()) < config.min_lights:
+    else:
+        lights_source = "session rig description"
+    light, choice = choose_light(session, lights, config)
+    log.info("albedo light: %s (%s)", light, choice)
+    if light == "projector":
+        from slscan.albedo.projector_light import flat_frame_records, projector_light_of
+
+        if session.calibration is None:
             raise SlscanError(
-                f"{session.root / view.name}: {len(view.lit_images())} lit image(s); albedo needs at least "
-                f"{config.min_lights}"
+                f"{session.root / 'session.json'}: no calibration; the projector as the light needs the "
+                "projector's centre (calibrate the rig, or decode with a calibration)"
             )
-        for r in view.lit_images():
-            if r.light >= len(lights.lights):
+        light_model = projector_light_of(session, lights)
+        if lights is None or lights.projector is None:
+            lights_source = light_model.source
+        if not light_model.calibrated:
+            log.warning(
+                "projector light not calibrated (no 'projector' block in the light calibration): albedo is "
+                "relative to the projector's white at %.0f mm, not absolute", light_model.reference_distance
+            )
+        for view in session.views:  # fail before any work on a view that cannot be done
+            flat_frame_records(session, view)
+    else:
+        if lights is None:
+            log.warning(
+                "no light calibration given: using the session's nominal lights (no ambient light)"
+            )
+            lights = LightCalibration.from_rig(session.calibration)
+        light_model = lights
+        for view in session.views:  # fail before any work on a view that cannot be done
+            if len(view.lit_images()) < config.min_lights:
                 raise SlscanError(
-                    f"{session.root / view.name / r.file}: lit by light {r.light}, which the light calibration "
-                    f"lacks (it has {len(lights.lights)} lights)"
+                    f"{session.root / view.name}: {len(view.lit_images())} lit image(s); albedo needs at least "
+                    f"{config.min_lights} (or the projector as the light: --light projector)"
                 )
+            for r in view.lit_images():
+                if r.light >= len(lights.lights):
+                    raise SlscanError(
+                        f"{session.root / view.name / r.file}: lit by light {r.light}, which the light "
+                        f"calibration lacks (it has {len(lights.lights)} lights)"
+                    )
     left_out = _left_out_by_decode(range_maps_dir)
     views = [view for view in session.views if view.name not in left_out]
     for name, why in left_out.items():
@@ -510,12 +577,12 @@ def albedo_session(
     unusable = {}
     with atomic_output_dir(out, overwrite=overwrite) as tmp:
         tasks = [
-            (session, view.name, range_maps_dir, lights, config, tmp, rec is not None) for view in views
+            (session, view.name, range_maps_dir, light_model, config, tmp, rec is not None) for view in views
         ]
         done = executor.map(_albedo_task, tasks)
         for index, (view, (summary, result, range_map, source)) in enumerate(zip(views, done)):
             if rec is not None:
-                _log_view(rec, session, view, result, range_map, lights, index)
+                _log_view(rec, session, view, result, range_map, light_model, index)
             if progress:
                 progress(view.name)
             why = summary.unusable
@@ -532,6 +599,7 @@ def albedo_session(
                     "valid": f"{view.name}_valid.png",
                     "mesh": f"{view.name}.ply",
                     "range_map": source,
+                    "light": summary.light,
                     "lights_used": list(summary.light_ids),
                     "specular": summary.lobe.to_dict(),
                     "metrics": summary.metrics,
@@ -552,8 +620,11 @@ def albedo_session(
                 "range_maps": str(Path(range_maps_dir).resolve()),
                 "encoding": "VIEW_albedo.png: 16-bit linear RGB reflectance x 65535 (not sRGB), 0 where "
                 "VIEW_valid.png is 0; VIEW.ply: vertex colour 8-bit sRGB, albedo_* float linear",
+                "light": light,
+                "light_choice": choice,
                 "lights_source": lights_source,
-                "lights": lights.to_dict(),
+                **({"lights": light_model.to_dict()} if light == "ring" else {}),
+                **({"projector_light": light_model.to_dict()} if light == "projector" else {}),
                 "config": asdict(config),
                 "views": entries,
             },

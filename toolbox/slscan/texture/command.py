@@ -48,7 +48,8 @@ def _cmd_texture(args: argparse.Namespace) -> int:
     console().print(
         f"[green]textured[/] {result.faces:,} faces: atlas {result.size}x{result.size}, {result.charts:,} charts, "
         f"utilisation {m['utilisation']:.2f}, {m['observed_share']:.1%} of texels seen, seam error "
-        f"{m['seam_error_mean']:.2f} levels in {result.seconds.get('total', 0):.1f} s -> {result.out / 'model.glb'}",
+        f"{m['seam_error_mean']:.2f} levels in {result.seconds.get('total', 0):.1f} s -> {result.out / 'model.glb'} "
+        f"(colour from {'the projector as the light' if result.light == 'projector' else 'the ring lights'})",
         highlight=False,
     )
     return 0

@@ -63,6 +63,8 @@ class TextureResult:
     size: int
     metrics: dict
     seconds: dict
+    light: str = "ring"
+    """What lit the views' albedo: "ring" (the ring lights un-shaded) or "projector"."""
 
 
 def auto_size(faces: int, texels_per_face: float = 8.0, utilisation: float = 0.7) -> int:
@@ -113,6 +115,9 @@ def texture_model(
     size = config.size or auto_size(len(mesh.faces), config.texels_per_face)
     check_texture_memory(size)
     views = load_views(albedo_dir, poses, session=session)
+    light = albedo_light(albedo_dir)
+    log.info("texturing from %d view(s) whose albedo came from %s", len(views),
+             "the projector as the light" if light == "projector" else "the ring lights")
     progress(f"{len(views)} views")
 
     atlas = build_atlas(mesh.vertices, mesh.faces, AtlasOptions(size=size, padding=config.bake.padding))
@@ -164,7 +169,8 @@ def texture_model(
         manifest = {
             "format": TEXTURE_FORMAT, "version": TEXTURE_VERSION, "written_by": f"slscan {__version__}",
             "units": "mm",
-            "source": {"model": str(Path(model).resolve()), "albedo": str(Path(albedo_dir).resolve())},
+            "source": {"model": str(Path(model).resolve()), "albedo": str(Path(albedo_dir).resolve()),
+                       "light": light},
             "model": {"glb": "model.glb", "obj": "model.obj", "ply": "model_vertex_colors.ply",
                       "textured_ply": "model.ply",
                       "texture": "model_albedo.png", "mlp": "model.mlp", "view_count": "view_count.png",
@@ -185,7 +191,17 @@ def texture_model(
         write_json(tmp / "texture.json", manifest)
     log_texture_views(rec, entries, images)
     log_textured_model(rec, atlas, texture, atlas_normals, baked.view_count, metrics)
-    return TextureResult(out, len(mesh.faces), atlas.n_charts, atlas.size, metrics, seconds)
+    return TextureResult(out, len(mesh.faces), atlas.n_charts, atlas.size, metrics, seconds, light)
+
+
+def albedo_light(albedo_dir: str | os.PathLike) -> str:
+    """What lit an albedo folder's views: "ring" or "projector" (``albedo.json``'s
+    ``light``; folders written before it existed are the ring lights')."""
+    from slscan.fsio import read_json
+
+    meta = read_json(Path(albedo_dir) / "albedo.json", "albedo index")
+    light = meta.get("light", "ring") if isinstance(meta, dict) else "ring"
+    return light if light in ("ring", "projector") else "ring"
 
 
 def model_name(out: Path) -> str:
