@@ -421,3 +421,56 @@ def test_malformed_calibration_json_is_refused(session, tmp_path, capsys, text):
     cal.write_text(text)
     assert_refused(["decode", session, "--calibration", cal, "--out", tmp_path / "out"], capsys, "cal.json",
                    nothing_at=tmp_path / "out")
+
+
+# --- Stanford .conf ---------------------------------------------------------------------
+
+
+def write_stanford_ply(path: Path, *, n: int = 6, z: float = 0.5) -> Path:
+    """A Stanford range-grid PLY (ASCII, metres): an n × n grid of a flat patch 4 mm apart."""
+    xs, ys = np.meshgrid(np.arange(n) * 0.004, np.arange(n) * 0.004)
+    points = np.stack([xs.ravel(), ys.ravel(), np.full(n * n, z)], -1)
+    header = ["ply", "format ascii 1.0", f"obj_info num_cols {n}", f"obj_info num_rows {n}",
+              f"element vertex {n * n}", "property float x", "property float y", "property float z",
+              f"element range_grid {n * n}", "property list uchar int vertex_indices", "end_header"]
+    body = [f"{x:.6f} {y:.6f} {z:.6f}" for x, y, z in points] + [f"1 {i}" for i in range(n * n)]
+    path.write_text("\n".join(header + body) + "\n")
+    return path
+
+
+@pytest.mark.parametrize("where", ["relative", "absolute", "symlink"])
+def test_conf_scan_outside_its_folder_needs_allow_outside(tmp_path, capsys, caplog, where):
+    from slscan.register.command import load_scans
+
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    write_stanford_ply(scans / "a.ply")
+    outside = write_stanford_ply(tmp_path / "x.ply")
+    name = {"relative": "../x.ply", "absolute": str(outside), "symlink": "b.ply"}[where]
+    if where == "symlink":
+        os.symlink(outside, scans / "b.ply")
+    (scans / "bun.conf").write_text(f"bmesh a.ply 0 0 0 0 0 0 1\nbmesh {name} 0 0 0 0 0 0 1\n")
+    assert_refused(["register", scans, "--out", tmp_path / "out"], capsys,
+                   "bun.conf", "outside its folder", name, "--allow-outside", nothing_at=tmp_path / "out")
+    loaded, poses = load_scans(scans, allow_outside=True)
+    assert [s.name for s in loaded] == ["a", Path(name).stem] and set(poses) == {"a", Path(name).stem}
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert any("outside the .conf's folder" in w and name in w for w in warnings), warnings
+
+
+@pytest.mark.parametrize(
+    ("pose", "expected"),
+    [("0 0 0 nan 0 0 1", "non-finite"), ("0 0 0 0 inf 0 1", "non-finite"), ("nan 0 0 0 0 0 1", "non-finite"),
+     ("0 0 0 0 0 0 0", "quaternion of b.ply is zero")],
+    ids=["nan-rotation", "inf-rotation", "nan-translation", "zero-rotation"],
+)
+@pytest.mark.parametrize("use", ["folder", "poses"])
+def test_conf_with_a_bad_pose_is_refused(tmp_path, capsys, pose, expected, use):
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    write_stanford_ply(scans / "a.ply")
+    write_stanford_ply(scans / "b.ply", z=0.52)
+    conf = (scans if use == "folder" else tmp_path) / "bun.conf"
+    conf.write_text(f"bmesh a.ply 0 0 0 0 0 0 1\nbmesh b.ply {pose}\n")
+    argv = ["register", scans, "--out", tmp_path / "out"] + (["--poses", conf] if use == "poses" else [])
+    assert_refused(argv, capsys, "bun.conf:2", expected, nothing_at=tmp_path / "out")

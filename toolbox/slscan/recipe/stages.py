@@ -178,7 +178,7 @@ class RegisterConfig:
     conf: str = ""
     """The .conf to read when ``source`` is a Stanford folder holding several (file name)."""
     allow_outside: bool = False
-    """Let a ``source`` .mlp name scans outside its folder (as ``--allow-outside`` does);
+    """Let a ``source`` .mlp or .conf name scans outside its folder (as ``--allow-outside`` does);
     they are reported. False: such a project is refused."""
     max_neighbours: int = 8
     """With poses, align each scan with at most this many partners, its best candidates

@@ -31,7 +31,7 @@ def load_scans(
       it (required when the folder has several);
     - any folder of PLY meshes (no poses: features align them).
 
-    A project's mesh files outside its folder are read only with ``allow_outside``.
+    A project's (or a .conf's) mesh files outside its folder are read only with ``allow_outside``.
     """
     from slscan.fsio import glob_results, read_json
     from slscan.register.meshlab import load_scan_project
@@ -47,7 +47,7 @@ def load_scans(
         if not (path / conf).is_file():
             found = ", ".join(p.name for p in glob_results(path, "*.conf")) or "none"
             raise SlscanError(f"{path / conf}: not found (.conf files in {path}: {found})")
-        return load_stanford_dir(path, conf=conf)
+        return load_stanford_dir(path, conf=conf, allow_outside=allow_outside)
     if (path / "aligned.mlp").is_file():
         return load_scan_project(path / "aligned.mlp", allow_outside=allow_outside)
     if (path / "range_maps.json").is_file():
@@ -66,7 +66,7 @@ def load_scans(
             "(--conf NAME; register.conf in a recipe)"
         )
     if confs:
-        return load_stanford_dir(path, conf=confs[0].name)
+        return load_stanford_dir(path, conf=confs[0].name, allow_outside=allow_outside)
     plys = glob_results(path, "*.ply")
     if not plys:
         raise SlscanError(f"{path}: no range maps found (expected .ply files, range_maps.json, a .conf or a .mlp)")
@@ -103,6 +103,9 @@ def load_poses(path: Path, names: list[str]) -> dict[str, np.ndarray]:
             poses = {str(k): np.asarray(v, float).reshape(4, 4) for k, v in data["poses"].items()}
         except (KeyError, TypeError, AttributeError, ValueError):
             raise SlscanError(f"{path}: expected a 'poses' object of scan name -> 4x4 matrix") from None
+        bad = [k for k, m in poses.items() if not np.isfinite(m).all()]
+        if bad:
+            raise SlscanError(f"{path}: poses.{bad[0]} holds non-finite numbers; expected a finite 4x4 matrix")
     else:
         raise SlscanError(f"{path}: expected a .conf, a registration.json or a .mlp pose file")
     unknown = [n for n in poses if n not in names]
@@ -286,7 +289,8 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
                    help="the .conf to read in a Stanford folder (needed when it holds several)")
     p.add_argument("--reference", help="scan that keeps its pose (default: the first)")
     p.add_argument("--allow-outside", action="store_true",
-                   help="read mesh files a .mlp names outside its folder (each is named in a warning)")
+                   help="read mesh files a .mlp (or a Stanford .conf) names outside its folder (each "
+                        "is named in a warning)")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_recording_arguments(p)
