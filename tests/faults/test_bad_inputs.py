@@ -474,3 +474,11 @@ def test_conf_with_a_bad_pose_is_refused(tmp_path, capsys, pose, expected, use):
     conf.write_text(f"bmesh a.ply 0 0 0 0 0 0 1\nbmesh b.ply {pose}\n")
     argv = ["register", scans, "--out", tmp_path / "out"] + (["--poses", conf] if use == "poses" else [])
     assert_refused(argv, capsys, "bun.conf:2", expected, nothing_at=tmp_path / "out")
+
+
+@pytest.mark.parametrize("command", ["info", "decode"])
+def test_session_with_two_views_of_one_name_is_refused(session, tmp_path, capsys, command):
+    edit_session(session, lambda d: d["views"][1].update(name=d["views"][0]["name"]))
+    argv = [command, session] + (["--out", tmp_path / "out"] if command == "decode" else [])
+    assert_refused(argv, capsys, "session.json", "views[1].name", "'view_000'", "views[0]",
+                   nothing_at=tmp_path / "out")
