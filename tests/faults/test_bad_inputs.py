@@ -482,3 +482,24 @@ def test_session_with_two_views_of_one_name_is_refused(session, tmp_path, capsys
     argv = [command, session] + (["--out", tmp_path / "out"] if command == "decode" else [])
     assert_refused(argv, capsys, "session.json", "views[1].name", "'view_000'", "views[0]",
                    nothing_at=tmp_path / "out")
+
+
+# --- simplify ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("faces", ["10000000000000", "528"])
+def test_simplify_to_more_faces_than_the_mesh_has_says_so(tmp_path, capsys, caplog, faces):
+    """A target at or above the input's face count (528) writes it unchanged, with a warning:
+    the target is a ceiling (the archival size), which a small mesh already meets."""
+    source = write_ply(tmp_path / "m.ply", *sphere())
+    code, _, err = run(["simplify", source, "--out", tmp_path / "s.ply", "--faces", faces, "--quiet"], capsys)
+    assert code == 0, err
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert any("m.ply: has 528 faces, not more than --faces" in w and "written unchanged" in w
+               for w in warnings), warnings
+    from slscan.fuse import read_mesh
+
+    assert read_mesh(tmp_path / "s.ply").n_faces == 528
+    caplog.clear()
+    assert main(["simplify", str(source), "--out", str(tmp_path / "t.ply"), "--faces", "527", "--quiet"]) == 0
+    assert not [r for r in caplog.records if r.levelname == "WARNING"]

@@ -254,7 +254,8 @@ def _run_simplify(ctx: StageContext, config: SimplifyConfig) -> dict[str, Any]:
 
     with atomic_output_dir(ctx.out, overwrite=True) as tmp:
         mesh = simplify_file(ctx.inputs["mesh"] / "mesh.ply", tmp / "mesh.ply", config.faces,
-                             method=config.method, preserve_boundary=config.preserve_boundary)
+                             method=config.method, preserve_boundary=config.preserve_boundary,
+                             option="[simplify] faces")
     from slscan.viewer.log_register import log_simplified_mesh
 
     log_simplified_mesh(ctx.rec, mesh)

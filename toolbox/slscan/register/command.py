@@ -243,7 +243,7 @@ def _cmd_simplify(args: argparse.Namespace) -> int:
     with (recording_from_args(args, recording_name=f"simplify {args.mesh.name}", blueprint=register_blueprint()) as rec,
           ProgressBar(1, f"simplifying ({args.method})", args.quiet) as bar):
         mesh = simplify_file(args.mesh, args.out, args.faces, method=args.method,
-                             preserve_boundary=not args.free_boundary)
+                             preserve_boundary=not args.free_boundary, option="--faces")
         bar.step(f"{len(mesh.faces):,} faces")
         rlog.log_simplified_mesh(rec, mesh)
     console().print(f"[green]simplified[/] {args.mesh} to {len(mesh.faces):,} faces in "
