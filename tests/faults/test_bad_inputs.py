@@ -503,3 +503,52 @@ def test_simplify_to_more_faces_than_the_mesh_has_says_so(tmp_path, capsys, capl
     caplog.clear()
     assert main(["simplify", str(source), "--out", str(tmp_path / "t.ply"), "--faces", "527", "--quiet"]) == 0
     assert not [r for r in caplog.records if r.levelname == "WARNING"]
+
+
+# --- two writers of one output ----------------------------------------------------------
+
+
+@pytest.fixture
+def other_writer():
+    """A live process standing in for another slscan (a fake: a Python that sleeps), whose
+    lock ``hold(out)`` writes beside an output, as :func:`slscan.fsio.output_lock` would."""
+    import socket
+    import subprocess
+    import sys
+
+    from slscan.fsio import lock_path
+
+    proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+
+    def hold(out: Path) -> Path:
+        lock = lock_path(out)
+        lock.write_text(json.dumps({"pid": proc.pid, "host": socket.gethostname(), "started": "now",
+                                    "command": f"slscan decode s --out {out.name}"}))
+        return lock
+
+    yield hold
+    proc.kill()
+    proc.wait()
+
+
+@pytest.mark.parametrize("command", ["decode", "simplify", "run"])
+def test_a_second_writer_of_the_same_out_fails(session, tmp_path, capsys, other_writer, command):
+    out = tmp_path / ("s.ply" if command == "simplify" else "out")
+    lock = other_writer(out)
+    argv = {"decode": ["decode", session, "--out", out],
+            "simplify": ["simplify", write_ply(tmp_path / "m.ply", *sphere()), "--out", out, "--faces", "100"],
+            "run": ["run", tmp_path / "r.toml", "--out", out]}[command]
+    (tmp_path / "r.toml").write_text(RECIPE)
+    code, line, err = run(argv, capsys)
+    assert code == 2, err
+    assert f"{out}: another slscan is writing it (process " in line, line
+    assert f"slscan decode s --out {out.name})" in line and str(lock) in line, line
+    assert not out.exists() and lock.is_file()
+    assert [p.name for p in tmp_path.glob(f".{out.name}*")] == [lock.name]
+
+
+def test_the_out_lock_is_gone_after_a_run_and_after_a_refusal(session, tmp_path, capsys):
+    assert main(["decode", str(session), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    assert not list(tmp_path.glob(".out*"))
+    assert_refused(["decode", session, "--out", tmp_path / "out"], capsys, "not empty")
+    assert not list(tmp_path.glob(".out*"))

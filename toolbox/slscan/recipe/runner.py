@@ -37,7 +37,7 @@ from typing import Any
 
 from slscan import __version__
 from slscan.errors import SlscanError
-from slscan.fsio import atomic_output_file, read_json, remove_stale_leftovers, write_json
+from slscan.fsio import atomic_output_file, output_lock, read_json, remove_stale_leftovers, write_json
 from slscan.recipe.config import dumps_toml, from_mapping, parse_override, set_in, to_mapping
 from slscan.recipe.stages import SUMMARIES, Stage, StageContext, stages
 
@@ -358,9 +358,18 @@ def run_recipe(recipe: Recipe, out: str | os.PathLike, *, force: bool = False, r
         stages that would provide them are not run and later stages read these folders
     unrecorded : kinds of result whose stages do not log to ``rec``
     executor : where per-view stages run (:class:`slscan.executor.Executor`)
+
+    ``out`` is held (:func:`slscan.fsio.output_lock`) while the recipe runs: a second run
+    into the same folder at the same time fails instead of mixing its stages with these.
     """
+    with output_lock(out):
+        return _run_recipe(recipe, Path(out), force=force, rec=rec, reporter=reporter, given=given,
+                           unrecorded=unrecorded, executor=executor)
+
+
+def _run_recipe(recipe: Recipe, out: Path, *, force: bool, rec, reporter: Reporter | None,
+                given: dict[str, Path] | None, unrecorded: tuple[str, ...], executor) -> list[StageRun]:
     given = {k: Path(v) for k, v in (given or {}).items()}
-    out = Path(out)
     reporter = reporter or Reporter()
     try:
         out.mkdir(parents=True, exist_ok=True)
