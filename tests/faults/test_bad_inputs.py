@@ -552,3 +552,31 @@ def test_the_out_lock_is_gone_after_a_run_and_after_a_refusal(session, tmp_path,
     assert not list(tmp_path.glob(".out*"))
     assert_refused(["decode", session, "--out", tmp_path / "out"], capsys, "not empty")
     assert not list(tmp_path.glob(".out*"))
+
+
+# --- recipes: the file and the key, and nothing written ---------------------------------
+
+
+@pytest.mark.parametrize(
+    ("change", "expected"),
+    [
+        ('scene = "tile"\nviews = 0', "r.toml: [capture].views: expected at least 1 view, got 0"),
+        ('scene = "__import__(\'os\').system(\'ls\')"', "r.toml: [capture].scene: expected one of object, tile"),
+        ('scene = "missing.ply"', "missing.ply: mesh file not found (stage [capture] of "),
+    ],
+    ids=["views-0", "code-like-scene", "missing-scene-file"],
+)
+@pytest.mark.parametrize("before", ["new", "earlier-run"])
+def test_a_refused_recipe_names_file_and_key_and_writes_nothing(tmp_path, capsys, change, expected, before):
+    recipe = tmp_path / "r.toml"
+    recipe.write_text(RECIPE.replace('scene = "tile"', change))
+    out = tmp_path / "out"
+    if before == "earlier-run":
+        out.mkdir()
+        (out / "recipe.resolved.toml").write_text("# an earlier run's\n")
+    line = assert_refused(["run", recipe, "--out", out, "--quiet"], capsys, expected,
+                          nothing_at=out if before == "new" else None)
+    assert str(recipe) in line, line
+    if before == "earlier-run":
+        assert [p.name for p in out.iterdir()] == ["recipe.resolved.toml"]
+        assert (out / "recipe.resolved.toml").read_text() == "# an earlier run's\n"
