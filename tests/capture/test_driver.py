@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from slscan.capture.driver import (
+    PEAK_NEAR,
     ScanPlan,
     StaleFrameError,
     find_exposure,
@@ -178,6 +179,19 @@ def test_find_exposure_pulls_a_saturating_camera_below_clipping():
     assert result.ok, result.message
     assert result.clipped_share <= 1e-3 and 0.25 <= result.peak < 1.0
     assert world.camera.get_controls()["exposure"] == result.controls["exposure"] < 6.0
+
+
+@pytest.mark.parametrize("start", [1.0, 6.0])
+def test_find_exposure_brings_the_peak_near_its_target(start):
+    """From the virtual camera's default (peak 68 %, unclipped) and from a saturating start,
+    the search ends near the 85 % target the docs promise, nothing clipped."""
+    config = VirtualCaptureConfig(views=1, sensor=Sensor(exposure=start), **SMALL)
+    world = virtual_devices(config)
+    world.stage.move_to(0, 1)
+    result = find_exposure(world.projector, world.camera, config.pattern_set(world.rig), target_peak=0.85)
+    assert result.ok and result.clipped_share <= 1e-3, result.message
+    assert 0.85 * PEAK_NEAR <= result.peak <= 0.95, [t.peak for t in result.trials]
+    assert len(result.trials) <= 6
 
 
 def test_find_exposure_says_when_no_setting_avoids_saturation():

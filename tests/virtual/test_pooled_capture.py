@@ -86,3 +86,28 @@ def test_executor_parallel():
     assert not POOL.parallel(1)
     assert POOL.parallel(2)
     assert Executor(scheduler="tcp://127.0.0.1:1").parallel(1)
+
+
+def test_a_mesh_in_metres_is_reported_once_and_captured_as_by_one_process(tmp_path):
+    """The units guess ("taking it to be in metres") is made, and said, once: the workers get
+    the units this process resolved (they said it again, once each, before). Run as a user
+    runs it, so that the workers' stderr counts too."""
+    import os
+    import subprocess
+    import sys
+
+    import open3d as o3d
+
+    ball = o3d.geometry.TriangleMesh.create_sphere(radius=0.15, resolution=16)  # 0.3 units: metres
+    ball.compute_vertex_normals()
+    o3d.io.write_triangle_mesh(str(tmp_path / "ball.ply"), ball)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    for out, workers in (("pooled", "2"), ("one", "1")):
+        cli = "import sys; from slscan.cli import main; sys.exit(main())"
+        done = subprocess.run([sys.executable, "-c", cli, "capture", "--scene", str(tmp_path / "ball.ply"),
+                               "--views", "2", "--scale", "0.2", "--workers", workers, "--out", str(tmp_path / out),
+                               "--quiet"], capture_output=True, text=True, env=env, timeout=300)
+        err = " ".join(done.stderr.split())
+        assert done.returncode == 0, err
+        assert err.count("taking it to be in metres") == 1, err
+    assert not _same_tree(tmp_path / "pooled", tmp_path / "one")

@@ -418,7 +418,10 @@ def _capture_pooled(config: VirtualCaptureConfig, world: VirtualRig, poses: list
     with writer:
         # absolute paths: workers (a Dask cluster's) need not share this process's folder
         scene_file = config.scene if os.path.isfile(config.scene) else None
-        job_config = dataclasses.replace(config, scene=os.path.abspath(scene_file)) if scene_file else config
+        # the units as this process resolved them: a worker reading the file again must not
+        # guess (and warn about the guess) once more
+        job_config = dataclasses.replace(config, scene=os.path.abspath(scene_file),
+                                         scene_units=world.scene.mm_per_unit) if scene_file else config
         jobs = [_ViewJob(job_config, rig, pose, v, str(writer.view_folder(f"view_{v:03d}").absolute()))
                 for v, pose in enumerate(poses)]
         executor.start(len(jobs), ("slscan.virtual.device",))
