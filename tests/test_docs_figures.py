@@ -36,10 +36,12 @@ FIGURES = [
            "exposure virtual-camera at exposure 1.24283, gain 1: peak 84 % of full scale, 0.000 % clipped",
            (*VIRTUAL, "--exposure", "40", "--auto-exposure", "--views", "1", "--lights", "none",
             "--no-quick-decode", "--out", "{tmp}/auto")),
-    Figure("docs/scanning.md", "exposure virtual-camera at exposure 1, gain 1: peak 68 % of full scale, 0.000 % clipped",
+    Figure("docs/scanning.md",
+           "exposure virtual-camera at exposure 1, gain 1: peak 68 % of full scale, 0.000 % clipped",
            (*VIRTUAL, "--check-exposure")),
     Figure("docs/scanning.md",
-           "exposure 44.71 % of the lit pixels are saturated (virtual-camera at exposure 6, gain 1); lower the exposure",
+           "exposure 44.71 % of the lit pixels are saturated (virtual-camera at exposure 6, gain 1); "
+           "lower the exposure",
            (*VIRTUAL, "--exposure", "6", "--check-exposure")),
 ]
 

@@ -392,7 +392,9 @@ def _conf_entries(path: Path, units: str) -> list[tuple[int, str, np.ndarray]]:
                 "'tx ty tz qx qy qz qw'"
             )
         if np.linalg.norm(q) == 0:
-            raise SlscanError(f"{path}:{number}: the rotation quaternion of {parts[1]} is zero; expected a unit quaternion")
+            raise SlscanError(
+                f"{path}:{number}: the rotation quaternion of {parts[1]} is zero; expected a unit quaternion"
+            )
         pose = np.eye(4)
         pose[:3, :3] = quaternion_matrix(q).T
         pose[:3, 3] = t
