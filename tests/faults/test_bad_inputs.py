@@ -580,3 +580,15 @@ def test_a_refused_recipe_names_file_and_key_and_writes_nothing(tmp_path, capsys
     if before == "earlier-run":
         assert [p.name for p in out.iterdir()] == ["recipe.resolved.toml"]
         assert (out / "recipe.resolved.toml").read_text() == "# an earlier run's\n"
+
+
+@pytest.mark.parametrize("pose", [[[float("nan")] * 4] * 4, [[0.0] * 4] * 4, [1, 2, 3]],
+                         ids=["nan", "singular", "short"])
+def test_range_maps_with_a_bad_pose_are_refused(session, tmp_path, capsys, pose):
+    assert main(["decode", str(session), "--out", str(tmp_path / "dec"), "--quiet"]) == 0
+    summary = json.loads((tmp_path / "dec" / "range_maps.json").read_text())
+    summary["views"][1]["rig_from_object"] = pose
+    (tmp_path / "dec" / "range_maps.json").write_text(json.dumps(summary))
+    assert_refused(["register", tmp_path / "dec", "--out", tmp_path / "out"], capsys,
+                   "range_maps.json: views[1].rig_from_object: expected a finite, invertible 4x4 pose",
+                   nothing_at=tmp_path / "out")

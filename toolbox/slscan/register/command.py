@@ -53,11 +53,20 @@ def load_scans(
     if (path / "range_maps.json").is_file():
         summary = read_json(path / "range_maps.json", "range-maps summary")
         scans, poses = [], {}
-        for entry in summary["views"]:
+        for i, entry in enumerate(summary["views"]):
             scan = load_range_scan(path / entry["file"])
             scans.append(scan)
             if entry.get("rig_from_object") is not None:
-                poses[scan.name] = np.linalg.inv(np.asarray(entry["rig_from_object"], float))
+                try:
+                    pose = np.asarray(entry["rig_from_object"], float).reshape(4, 4)
+                except (TypeError, ValueError):
+                    pose = np.full((4, 4), np.nan)
+                if not np.isfinite(pose).all() or abs(np.linalg.det(pose[:3, :3])) < 1e-9:
+                    raise SlscanError(
+                        f"{path / 'range_maps.json'}: views[{i}].rig_from_object: expected a finite, "
+                        f"invertible 4x4 pose, got {entry['rig_from_object']!r}"
+                    )
+                poses[scan.name] = np.linalg.inv(pose)
         return scans, (poses if len(poses) == len(scans) else None)
     confs = glob_results(path, "*.conf")
     if len(confs) > 1:
