@@ -592,3 +592,23 @@ def test_range_maps_with_a_bad_pose_are_refused(session, tmp_path, capsys, pose)
     assert_refused(["register", tmp_path / "dec", "--out", tmp_path / "out"], capsys,
                    "range_maps.json: views[1].rig_from_object: expected a finite, invertible 4x4 pose",
                    nothing_at=tmp_path / "out")
+
+
+DEMO_RECIPE = Path(__file__).parents[2] / "recipes" / "demo.toml"
+
+
+@pytest.mark.parametrize(
+    ("setting", "expected"),
+    [
+        ("simplify.faces=0", "[simplify].faces: expected at least 4, got 0"),
+        ("simplify.method=best", "[simplify].method: expected one of fast, quadric, got 'best'"),
+        ("register.max_neighbours=-2", "[register].max_neighbours: expected >= 0"),
+        ("register.pose_tolerance=-1.0", "[register].pose_tolerance: expected >= 0 mm"),
+        ("capture.levels=0", "[capture].levels: expected at least 1, got 0"),
+        ("capture.projector_scale=0.0", "[capture].projector_scale: expected a positive number, got 0.0"),
+    ],
+)
+def test_a_late_stages_bad_setting_is_refused_before_the_first_stage_runs(tmp_path, capsys, setting, expected):
+    """Not after capturing, decoding and fusing: the whole recipe is checked when it is read."""
+    assert_refused(["run", DEMO_RECIPE, "--set", setting, "--out", tmp_path / "out"], capsys,
+                   f"{DEMO_RECIPE}: {expected}", nothing_at=tmp_path / "out")

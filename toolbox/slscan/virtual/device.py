@@ -110,6 +110,11 @@ class VirtualCaptureConfig:
     def __post_init__(self) -> None:
         if isinstance(self.views, int) and self.views < 1:
             raise SlscanError(f"views: expected at least 1 view, got {self.views}")
+        for key in ("camera_scale", "projector_scale"):
+            if not getattr(self, key) > 0:
+                raise SlscanError(f"{key}: expected a positive number, got {getattr(self, key)}")
+        if isinstance(self.levels, int) and self.levels < 1:
+            raise SlscanError(f"levels: expected at least 1, got {self.levels}")
         if (isinstance(self.scene, str) and self.scene not in BUILTIN_SCENES
                 and Path(self.scene).suffix.lower() not in MESH_SUFFIXES):
             suffix = Path(self.scene).suffix
