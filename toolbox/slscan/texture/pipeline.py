@@ -37,18 +37,19 @@ log = logging.getLogger(__name__)
 MIN_SEEN_SHARE = 0.5
 """Below this share of the atlas texels seen by some view, ``slscan texture`` warns that the
 rest is filled from the vertex colours. Measured (``benchmarks/texture_seen.py``, the
-figurine at reduced size): the right model seen by all 8 turntable views 78-79 % (the demo
-baseline 74 %); a model moved 200 mm / 2 m, turned 90 degrees, scaled 1.5, another object
-(the bunny, a sphere) in its place 5-42 %; the right model from 4, 2, 1 views 47, 26, 15 %
-(a partial scan: the warning is true there too)."""
+figurine, camera scale 0.25 and the demo's 0.5): the right model seen by all 8 turntable
+views 78-84 % (the demo baseline 74 %); a model moved 200 mm / 2 m, turned 90 degrees,
+scaled 1.5, another object (the bunny, a sphere) in its place 5-53 % (the sphere's 53 % is
+caught by :data:`MIN_MODEL_SHARE`); the right model from 4, 2, 1 views 47-54, 26-30,
+15-18 % (a partial scan: the warning is true there too)."""
 
 MIN_MODEL_SHARE = 0.75
 """``slscan texture`` warns when, for some view, the model lies on less than this share of
 the pixels where the view saw the object (known albedo): the model is not the object the
 views saw, or not where they saw it. Measured as above: the right model 86-90 % (5 mm voxels,
-3,000 faces) to 99 % (2 mm, 20,000 faces) for every view, partial scans too; a model moved
-200 mm or more, turned, or another object: the lowest view 0-68 %; scaled 1.5: 55-79 % (its
-seen share, 25-29 %, warns); a 20 mm shift: 78-90 % (not caught)."""
+3,000 faces) to 99 % (1-2 mm, 20,000-100,000 faces) for every view, partial scans too; a model
+moved 200 mm or more, turned, or another object: the lowest view 0-72 %; scaled 1.5: 55-86 %
+(its seen share, 25-35 %, warns); a 20 mm shift: 78-90 % (not caught)."""
 
 TEXTURE_FORMAT = "slscan-texture"
 TEXTURE_VERSION = 1
