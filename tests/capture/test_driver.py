@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from slscan.capture.driver import (
+    PEAK_NEAR,
     ScanPlan,
     StaleFrameError,
     find_exposure,
@@ -178,6 +179,20 @@ def test_find_exposure_pulls_a_saturating_camera_below_clipping():
     assert result.ok, result.message
     assert result.clipped_share <= 1e-3 and 0.25 <= result.peak < 1.0
     assert world.camera.get_controls()["exposure"] == result.controls["exposure"] < 6.0
+
+
+def test_find_exposure_brings_the_peak_near_its_target():
+    """From the virtual camera's default (peak 68 %, unclipped: where the search used to stop)
+    it ends near the 85 % target the docs promise, nothing clipped (from a saturating start:
+    ``tests/test_docs_figures.py``)."""
+    config = VirtualCaptureConfig(views=1, sensor=Sensor(exposure=1.0), **SMALL)
+    world = virtual_devices(config)
+    world.stage.move_to(0, 1)
+    result = find_exposure(world.projector, world.camera, config.pattern_set(world.rig), target_peak=0.85)
+    assert result.ok and result.clipped_share <= 1e-3, result.message
+    assert result.trials[0].peak < 0.85 * PEAK_NEAR  # it had to search
+    assert 0.85 * PEAK_NEAR <= result.peak <= 0.95, [t.peak for t in result.trials]
+    assert len(result.trials) <= 3
 
 
 def test_find_exposure_says_when_no_setting_avoids_saturation():

@@ -421,3 +421,194 @@ def test_malformed_calibration_json_is_refused(session, tmp_path, capsys, text):
     cal.write_text(text)
     assert_refused(["decode", session, "--calibration", cal, "--out", tmp_path / "out"], capsys, "cal.json",
                    nothing_at=tmp_path / "out")
+
+
+# --- Stanford .conf ---------------------------------------------------------------------
+
+
+def write_stanford_ply(path: Path, *, n: int = 6, z: float = 0.5) -> Path:
+    """A Stanford range-grid PLY (ASCII, metres): an n × n grid of a flat patch 4 mm apart."""
+    xs, ys = np.meshgrid(np.arange(n) * 0.004, np.arange(n) * 0.004)
+    points = np.stack([xs.ravel(), ys.ravel(), np.full(n * n, z)], -1)
+    header = ["ply", "format ascii 1.0", f"obj_info num_cols {n}", f"obj_info num_rows {n}",
+              f"element vertex {n * n}", "property float x", "property float y", "property float z",
+              f"element range_grid {n * n}", "property list uchar int vertex_indices", "end_header"]
+    body = [f"{x:.6f} {y:.6f} {z:.6f}" for x, y, z in points] + [f"1 {i}" for i in range(n * n)]
+    path.write_text("\n".join(header + body) + "\n")
+    return path
+
+
+@pytest.mark.parametrize("where", ["relative", "absolute", "symlink"])
+def test_conf_scan_outside_its_folder_needs_allow_outside(tmp_path, capsys, caplog, where):
+    from slscan.register.command import load_scans
+
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    write_stanford_ply(scans / "a.ply")
+    outside = write_stanford_ply(tmp_path / "x.ply")
+    name = {"relative": "../x.ply", "absolute": str(outside), "symlink": "b.ply"}[where]
+    if where == "symlink":
+        os.symlink(outside, scans / "b.ply")
+    (scans / "bun.conf").write_text(f"bmesh a.ply 0 0 0 0 0 0 1\nbmesh {name} 0 0 0 0 0 0 1\n")
+    assert_refused(["register", scans, "--out", tmp_path / "out"], capsys,
+                   "bun.conf", "outside its folder", name, "--allow-outside", nothing_at=tmp_path / "out")
+    loaded, poses = load_scans(scans, allow_outside=True)
+    assert [s.name for s in loaded] == ["a", Path(name).stem] and set(poses) == {"a", Path(name).stem}
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert any("outside the .conf's folder" in w and name in w for w in warnings), warnings
+
+
+@pytest.mark.parametrize(
+    ("pose", "expected"),
+    [("0 0 0 nan 0 0 1", "non-finite"), ("0 0 0 0 inf 0 1", "non-finite"), ("nan 0 0 0 0 0 1", "non-finite"),
+     ("0 0 0 0 0 0 0", "quaternion of b.ply is zero")],
+    ids=["nan-rotation", "inf-rotation", "nan-translation", "zero-rotation"],
+)
+@pytest.mark.parametrize("use", ["folder", "poses"])
+def test_conf_with_a_bad_pose_is_refused(tmp_path, capsys, pose, expected, use):
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    write_stanford_ply(scans / "a.ply")
+    write_stanford_ply(scans / "b.ply", z=0.52)
+    conf = (scans if use == "folder" else tmp_path) / "bun.conf"
+    conf.write_text(f"bmesh a.ply 0 0 0 0 0 0 1\nbmesh b.ply {pose}\n")
+    argv = ["register", scans, "--out", tmp_path / "out"] + (["--poses", conf] if use == "poses" else [])
+    assert_refused(argv, capsys, "bun.conf:2", expected, nothing_at=tmp_path / "out")
+
+
+@pytest.mark.parametrize("command", ["info", "decode"])
+def test_session_with_two_views_of_one_name_is_refused(session, tmp_path, capsys, command):
+    edit_session(session, lambda d: d["views"][1].update(name=d["views"][0]["name"]))
+    argv = [command, session] + (["--out", tmp_path / "out"] if command == "decode" else [])
+    assert_refused(argv, capsys, "session.json", "views[1].name", "'view_000'", "views[0]",
+                   nothing_at=tmp_path / "out")
+
+
+# --- simplify ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("faces", ["10000000000000", "528"])
+def test_simplify_to_more_faces_than_the_mesh_has_says_so(tmp_path, capsys, caplog, faces):
+    """A target at or above the input's face count (528) writes it unchanged, with a warning:
+    the target is a ceiling (the archival size), which a small mesh already meets."""
+    source = write_ply(tmp_path / "m.ply", *sphere())
+    code, _, err = run(["simplify", source, "--out", tmp_path / "s.ply", "--faces", faces, "--quiet"], capsys)
+    assert code == 0, err
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert any("m.ply: has 528 faces, not more than --faces" in w and "written unchanged" in w
+               for w in warnings), warnings
+    from slscan.fuse import read_mesh
+
+    assert read_mesh(tmp_path / "s.ply").n_faces == 528
+    caplog.clear()
+    assert main(["simplify", str(source), "--out", str(tmp_path / "t.ply"), "--faces", "527", "--quiet"]) == 0
+    assert not [r for r in caplog.records if r.levelname == "WARNING"]
+
+
+# --- two writers of one output ----------------------------------------------------------
+
+
+@pytest.fixture
+def other_writer():
+    """A live process standing in for another slscan (a fake: a Python that sleeps), whose
+    lock ``hold(out)`` writes beside an output, as :func:`slscan.fsio.output_lock` would."""
+    import socket
+    import subprocess
+    import sys
+
+    from slscan.fsio import lock_path
+
+    proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+
+    def hold(out: Path) -> Path:
+        lock = lock_path(out)
+        lock.write_text(json.dumps({"pid": proc.pid, "host": socket.gethostname(), "started": "now",
+                                    "command": f"slscan decode s --out {out.name}"}))
+        return lock
+
+    yield hold
+    proc.kill()
+    proc.wait()
+
+
+@pytest.mark.parametrize("command", ["decode", "simplify", "run"])
+def test_a_second_writer_of_the_same_out_fails(session, tmp_path, capsys, other_writer, command):
+    out = tmp_path / ("s.ply" if command == "simplify" else "out")
+    lock = other_writer(out)
+    argv = {"decode": ["decode", session, "--out", out],
+            "simplify": ["simplify", write_ply(tmp_path / "m.ply", *sphere()), "--out", out, "--faces", "100"],
+            "run": ["run", tmp_path / "r.toml", "--out", out]}[command]
+    (tmp_path / "r.toml").write_text(RECIPE)
+    code, line, err = run(argv, capsys)
+    assert code == 2, err
+    assert f"{out}: another slscan is writing it (process " in line, line
+    assert f"slscan decode s --out {out.name})" in line and str(lock) in line, line
+    assert not out.exists() and lock.is_file()
+    assert [p.name for p in tmp_path.glob(f".{out.name}*")] == [lock.name]
+
+
+def test_the_out_lock_is_gone_after_a_run_and_after_a_refusal(session, tmp_path, capsys):
+    assert main(["decode", str(session), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    assert not list(tmp_path.glob(".out*"))
+    assert_refused(["decode", session, "--out", tmp_path / "out"], capsys, "not empty")
+    assert not list(tmp_path.glob(".out*"))
+
+
+# --- recipes: the file and the key, and nothing written ---------------------------------
+
+
+@pytest.mark.parametrize(
+    ("change", "expected"),
+    [
+        ('scene = "tile"\nviews = 0', "r.toml: [capture].views: expected at least 1 view, got 0"),
+        ('scene = "__import__(\'os\').system(\'ls\')"', "r.toml: [capture].scene: expected one of object, tile"),
+        ('scene = "missing.ply"', "missing.ply: mesh file not found (stage [capture] of "),
+    ],
+    ids=["views-0", "code-like-scene", "missing-scene-file"],
+)
+@pytest.mark.parametrize("before", ["new", "earlier-run"])
+def test_a_refused_recipe_names_file_and_key_and_writes_nothing(tmp_path, capsys, change, expected, before):
+    recipe = tmp_path / "r.toml"
+    recipe.write_text(RECIPE.replace('scene = "tile"', change))
+    out = tmp_path / "out"
+    if before == "earlier-run":
+        out.mkdir()
+        (out / "recipe.resolved.toml").write_text("# an earlier run's\n")
+    line = assert_refused(["run", recipe, "--out", out, "--quiet"], capsys, expected,
+                          nothing_at=out if before == "new" else None)
+    assert str(recipe) in line, line
+    if before == "earlier-run":
+        assert [p.name for p in out.iterdir()] == ["recipe.resolved.toml"]
+        assert (out / "recipe.resolved.toml").read_text() == "# an earlier run's\n"
+
+
+@pytest.mark.parametrize("pose", [[[float("nan")] * 4] * 4, [[0.0] * 4] * 4, [1, 2, 3]],
+                         ids=["nan", "singular", "short"])
+def test_range_maps_with_a_bad_pose_are_refused(session, tmp_path, capsys, pose):
+    assert main(["decode", str(session), "--out", str(tmp_path / "dec"), "--quiet"]) == 0
+    summary = json.loads((tmp_path / "dec" / "range_maps.json").read_text())
+    summary["views"][1]["rig_from_object"] = pose
+    (tmp_path / "dec" / "range_maps.json").write_text(json.dumps(summary))
+    assert_refused(["register", tmp_path / "dec", "--out", tmp_path / "out"], capsys,
+                   "range_maps.json: views[1].rig_from_object: expected a finite, invertible 4x4 pose",
+                   nothing_at=tmp_path / "out")
+
+
+DEMO_RECIPE = Path(__file__).parents[2] / "recipes" / "demo.toml"
+
+
+@pytest.mark.parametrize(
+    ("setting", "expected"),
+    [
+        ("simplify.faces=0", "[simplify].faces: expected at least 4, got 0"),
+        ("simplify.method=best", "[simplify].method: expected one of fast, quadric, got 'best'"),
+        ("register.max_neighbours=-2", "[register].max_neighbours: expected >= 0"),
+        ("register.pose_tolerance=-1.0", "[register].pose_tolerance: expected >= 0 mm"),
+        ("capture.levels=0", "[capture].levels: expected at least 1, got 0"),
+        ("capture.projector_scale=0.0", "[capture].projector_scale: expected a positive number, got 0.0"),
+    ],
+)
+def test_a_late_stages_bad_setting_is_refused_before_the_first_stage_runs(tmp_path, capsys, setting, expected):
+    """Not after capturing, decoding and fusing: the whole recipe is checked when it is read."""
+    assert_refused(["run", DEMO_RECIPE, "--set", setting, "--out", tmp_path / "out"], capsys,
+                   f"{DEMO_RECIPE}: {expected}", nothing_at=tmp_path / "out")

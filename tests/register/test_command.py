@@ -173,7 +173,7 @@ def test_max_neighbours_reaches_the_config(blob, tmp_path, spy):
     config = RegisterConfig(source=str(folder), poses=str(tmp_path / "truth.json"), max_neighbours=0)
     assert _run_register(StageContext(out=tmp_path / "aligned", inputs={}), config)["aligned"] == 4
     assert spy[1]["config"].max_neighbours == 0
-    with pytest.raises(SlscanError, match="register.max_neighbours: expected >= 0"):
+    with pytest.raises(SlscanError, match="max_neighbours: expected >= 0"):
         _run_register(StageContext(out=tmp_path / "y", inputs={}),
                       RegisterConfig(source=str(folder), max_neighbours=-2))
 

@@ -248,3 +248,39 @@ def test_culling_leaves_the_bake_unchanged():
     assert culled.observed.sum() > 0.5 * culled.covered.sum()
     for name in ("linear", "covered", "observed", "view_count", "vertex_colors", "vertex_observed"):
         assert np.array_equal(getattr(culled, name), getattr(every, name)), name
+
+
+def test_model_share_is_the_share_of_the_views_object_the_model_covers():
+    """A plane seen whole: the model lies on every object pixel; the same plane moved by half
+    its width: on about half of them; moved out of view: on none (and nothing is seen)."""
+    import logging
+
+    from slscan.texture.bake import DepthMap, model_share
+    from slscan.texture.pipeline import check_seen
+
+    vertices, faces = grid_plane(21, 200.0, 0.0)
+    view = render_view("front", look_at([0, 0, -400], [0, 0, 0]), vertices, faces, lambda p, i: pattern(p))
+    object_pixels = np.all(np.isfinite(view.albedo), axis=2)
+    assert 0.1 < object_pixels.mean() < 0.9  # the plane fills part of the frame
+    for shift, expected in [(0.0, 1.0), (100.0, 0.5), (5000.0, 0.0)]:
+        moved = vertices + [shift, 0, 0]
+        atlas = planar_atlas(moved, faces, 64)
+        baked = bake(moved, faces, atlas, [view])
+        assert baked.view_model_share["front"] == pytest.approx(expected, abs=0.03), shift
+        if shift == 5000.0:
+            assert not baked.observed.any()
+            with pytest.raises(SlscanError, match=r"m\.ply: no view of albedo sees the model"):
+                check_seen(baked, "m.ply", "albedo")
+        else:
+            records = []
+            handler = logging.Handler()
+            handler.emit = records.append
+            logging.getLogger("slscan.texture.pipeline").addHandler(handler)
+            try:
+                check_seen(baked, "m.ply", "albedo")
+            finally:
+                logging.getLogger("slscan.texture.pipeline").removeHandler(handler)
+            warned = [r.getMessage() for r in records if "covers only" in r.getMessage()]
+            assert bool(warned) == (expected < 0.75), warned
+    empty = DepthMap(np.full(view.albedo.shape[:2], np.inf, np.float32), np.zeros(view.albedo.shape[:2], np.float32))
+    assert model_share(empty, view) == 0.0

@@ -222,6 +222,38 @@ def test_texture_command_and_bad_input(run, tmp_path):
     assert not any((tmp_path / n).exists() for n in "abcd")
 
 
+def test_texture_warns_about_a_model_the_views_did_not_see_and_refuses_one_none_sees(run, tmp_path, capsys,
+                                                                                        caplog):
+    """The right model: no warning. The model 2 m away (seen share 5 %, measured in
+    ``benchmarks/texture_seen.py``): textured, with both warnings naming the model. The model
+    100 m above the turntable, out of every view: refused, nothing written."""
+    from dataclasses import replace
+
+    from slscan.fuse import read_mesh, write_mesh
+
+    mesh = read_mesh(run / "simplify" / "mesh.ply")
+    for name, shift in [("far.ply", [2000.0, 0, 0]), ("gone.ply", [0, 100_000.0, 0])]:
+        write_mesh(replace(mesh, vertices=mesh.vertices + shift), tmp_path / name)
+
+    def texture(model: Path, out: str) -> tuple[int, list[str]]:
+        caplog.clear()
+        code = main(["texture", str(model), "--views", str(run / "albedo"), "--poses", str(run / "register"),
+                     "--out", str(tmp_path / out), "--size", "128", "--no-preview", "--quiet"])
+        return code, [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+
+    code, warnings = texture(run / "simplify" / "mesh.ply", "right")
+    assert code == 0 and not [w for w in warnings if "seen by a view" in w or "covers only" in w], warnings
+    code, warnings = texture(tmp_path / "far.ply", "far")
+    assert code == 0
+    assert any(w.startswith(f"{tmp_path / 'far.ply'}: only ") and "seen by a view of" in w for w in warnings), warnings
+    assert any(w.startswith(f"{tmp_path / 'far.ply'}: the model covers only ") for w in warnings), warnings
+    capsys.readouterr()
+    code, _ = texture(tmp_path / "gone.ply", "gone")
+    err = " ".join(capsys.readouterr().err.split())
+    assert code == 2 and f"{tmp_path / 'gone.ply'}: no view of {run / 'albedo'} sees the model" in err, err
+    assert not (tmp_path / "gone").exists()
+
+
 def test_auto_size_gives_about_the_texels_asked_for():
     assert auto_size(20_000) == 512
     assert auto_size(100_000) == 2048

@@ -204,10 +204,10 @@ def test_bad_placement_and_rig_give_one_line(tmp_path, capsys, args, expected):
 @pytest.mark.parametrize(
     ("table", "expected"),
     [
-        ('scene_units = "furlong"', "[capture]: scene_units: unknown units 'furlong'"),
-        ('scene_pose = "1,2"', "[capture]: scene_pose: expected"),
+        ('scene_units = "furlong"', "r.toml: [capture].scene_units: unknown units 'furlong'"),
+        ('scene_pose = "1,2"', "r.toml: [capture].scene_pose: expected"),
         ("[capture.rig_params]\nworking_distance = -1.0",
-         "[capture].rig_params: working_distance: expected a positive number"),
+         "r.toml: [capture].rig_params.working_distance: expected a positive number"),
         ("[capture.rig_params]\ncamera_size = [1280]", "[capture].rig_params.camera_size: expected a list of 2"),
         ("[capture.rig_params]\nfocal = 3", "[capture].rig_params: unknown key 'focal'"),
         ('rig_file = "rig.json"\n[capture.rig_params]\nlights = 2', "rig_file and rig_params: give one"),

@@ -86,3 +86,36 @@ def test_executor_parallel():
     assert not POOL.parallel(1)
     assert POOL.parallel(2)
     assert Executor(scheduler="tcp://127.0.0.1:1").parallel(1)
+
+
+class InProcessPool:
+    """A fake executor: "parallel", but it renders the views here, one after another, so
+    that what the workers log is seen by the test."""
+
+    def parallel(self, n: int) -> bool:
+        return True
+
+    def start(self, n: int, modules=()) -> None:
+        pass
+
+    def map(self, fn, jobs):
+        return map(fn, jobs)
+
+
+def test_a_mesh_in_metres_is_reported_once(tmp_path, caplog):
+    """The units guess ("taking it to be in metres") is made, and said, once: the workers get
+    the units this process resolved (each said it again before)."""
+    import open3d as o3d
+
+    from slscan.virtual.device import _scene
+
+    ball = o3d.geometry.TriangleMesh.create_sphere(radius=0.15, resolution=16)  # 0.3 units: metres
+    ball.compute_vertex_normals()
+    o3d.io.write_triangle_mesh(str(tmp_path / "ball.ply"), ball)
+    _scene.cache_clear()
+    config = VirtualCaptureConfig(scene=str(tmp_path / "ball.ply"), views=2, camera_scale=0.2, projector_scale=0.2,
+                                  levels=5, lit_images=False)
+    session = capture_session(config, tmp_path / "pooled", executor=InProcessPool())
+    said = [r.getMessage() for r in caplog.records if "taking it to be in metres" in r.getMessage()]
+    assert len(said) == 1, said
+    assert len(session.views) == 2

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import logging
 import math
@@ -1116,7 +1117,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         handlers=[RichHandler(console=_console(), show_path=False, show_time=False)],
     )
     try:
-        return int(args.func(args) or 0)
+        with _output_held(args, argv):
+            return int(args.func(args) or 0)
     except SlscanError as exc:
         _print_error(str(exc))
         return 2
@@ -1133,6 +1135,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         _print_error(f"internal error, a bug in slscan: {type(exc).__name__}: {_first_line(exc)} "
                      f"(re-run with -v for the traceback and please report it)")
         return EXIT_BUG
+
+
+def _output_held(args: argparse.Namespace, argv: Sequence[str] | None) -> contextlib.AbstractContextManager:
+    """The lock on the command's ``--out`` (:func:`slscan.fsio.output_lock`): a second
+    ``slscan`` writing the same output at the same time fails instead of replacing it."""
+    out = getattr(args, "out", None)
+    if not isinstance(out, Path):
+        return contextlib.nullcontext()
+    from slscan.fsio import output_lock
+
+    words = list(sys.argv[1:] if argv is None else argv)
+    return output_lock(out, command=" ".join(["slscan", *map(str, words)]))
 
 
 EXIT_BUG = 70

@@ -275,6 +275,158 @@ def remove_stale_leftovers(folder: str | os.PathLike, *, name: str | None = None
     return removed
 
 
+LOCK_SUFFIX = ".lock"
+"""``.NAME.lock`` beside output ``NAME``: who is writing it (:func:`output_lock`)."""
+
+_HELD_LOCKS: dict[Path, int] = {}
+"""Output locks this process holds, with how many nested blocks hold each."""
+
+
+def lock_path(path: str | os.PathLike) -> Path:
+    """The lock file of output ``path``: ``.NAME.lock`` in the folder it is written to."""
+    target = Path(path)
+    return target.parent / f".{target.name}{LOCK_SUFFIX}"
+
+
+def _lock_owner(lock: Path) -> tuple[dict[str, Any], int, float] | None:
+    """(what the lock holds, its inode, its ctime), or None when it is gone. A lock that is
+    empty or unreadable (its writer was killed between creating and filling it) holds {}."""
+    try:
+        with open(lock, "rb") as fh:
+            stat = os.fstat(fh.fileno())
+            data = fh.read(4096)
+    except FileNotFoundError:
+        return None
+    try:
+        owner = json.loads(data)
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        owner = {}
+    return (owner if isinstance(owner, dict) else {}), stat.st_ino, stat.st_ctime
+
+
+def _lock_is_stale(owner: dict[str, Any], changed: float, host: str) -> bool:
+    """Whether a lock written at ``changed`` by ``owner`` (pid, host) has no live writer: on
+    this host, its process is gone or its id was recycled; a lock of another host is never
+    stale (its process cannot be seen from here). An empty lock older than a minute is stale."""
+    if not owner:
+        return time.time() - changed > 60.0
+    if owner.get("host") != host:
+        return False
+    pid = owner.get("pid")
+    if not isinstance(pid, int):
+        return True
+    if pid == os.getpid():  # this process, but not in a block that holds it: left behind
+        return True
+    return not _owner_alive(pid, changed)
+
+
+def _take_over(lock: Path, inode: int) -> None:
+    """Remove the stale lock ``lock`` (inode ``inode``) unless another process took it over
+    first: it is renamed aside (atomic), and put back if what was renamed is a fresh lock."""
+    aside = lock.with_name(f"{lock.name}.stale-{os.getpid()}")
+    try:
+        os.rename(lock, aside)
+    except FileNotFoundError:
+        return
+    if os.stat(aside).st_ino != inode:  # another process's fresh lock: give it back
+        with contextlib.suppress(FileExistsError):
+            os.link(aside, lock)
+    aside.unlink(missing_ok=True)
+
+
+@contextlib.contextmanager
+def output_lock(path: str | os.PathLike, *, command: str = "") -> Iterator[Path]:
+    """Hold the output ``path`` (a file or a folder) for this process while the block runs.
+
+    A second writer of the same output (another ``slscan … --out path`` at the same time)
+    fails at once, naming the output, the process that holds it and the lock file, instead
+    of one result silently replacing the other. The lock is ``.NAME.lock`` beside the
+    output (:func:`lock_path`), created atomically (``O_CREAT | O_EXCL``, also on NFS v3+)
+    and holding the writer's process id, host, start time and ``command`` as JSON; it is
+    removed when the block ends, however it ends. A lock whose process is gone (killed,
+    a power cut; on the same host) is taken over; one of another host is not (remove it
+    by hand when that host's run is known to be dead). Nested blocks of one process on the
+    same output share the lock. Folders missing above the output are made, and removed
+    again at the end when still empty.
+
+    Raises
+    ------
+    SlscanError
+        Another live process holds the output, or the lock cannot be created.
+    """
+    import socket
+
+    target = Path(path)
+    lock = lock_path(target)
+    key = Path(os.path.abspath(lock))
+    if key in _HELD_LOCKS:
+        _HELD_LOCKS[key] += 1
+        try:
+            yield lock
+        finally:
+            _HELD_LOCKS[key] -= 1
+        return
+    host = socket.gethostname()
+    made = []
+    parent = lock.parent if str(lock.parent) else Path(".")
+    for folder in reversed([parent, *parent.parents]):
+        if not folder.exists():
+            made.append(folder)
+    record = json.dumps({"pid": os.getpid(), "host": host,
+                         "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "command": command}).encode()
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+        for _ in range(5):
+            try:
+                fd = os.open(lock, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+            except FileExistsError:
+                found = _lock_owner(lock)
+                if found is None:
+                    continue
+                owner, inode, changed = found
+                if not _lock_is_stale(owner, changed, host):
+                    who = (f"process {owner.get('pid')} on {owner.get('host')}, since {owner.get('started')}"
+                           + (f": {owner['command']}" if owner.get("command") else ""))
+                    raise SlscanError(
+                        f"{target}: another slscan is writing it ({who}); wait for it to finish or "
+                        f"choose another --out (if that run is dead, remove {lock})"
+                    ) from None
+                _take_over(lock, inode)
+                continue
+            try:
+                inode = os.fstat(fd).st_ino
+                os.write(fd, record)
+            finally:
+                os.close(fd)
+            break
+        else:
+            raise SlscanError(f"{target}: could not take its lock {lock} (other writers keep changing it)")
+    except OSError as exc:
+        _remove_made(made)
+        if exc.errno in WRITE_ERRNOS:
+            raise write_error(lock, exc) from None
+        raise SlscanError(f"{target}: cannot write here ({exc.strerror})") from None
+    except BaseException:
+        _remove_made(made)
+        raise
+    _HELD_LOCKS[key] = 1
+    try:
+        yield lock
+    finally:
+        del _HELD_LOCKS[key]
+        with contextlib.suppress(OSError):
+            if os.stat(lock).st_ino == inode:  # still ours
+                lock.unlink()
+        _remove_made(made)
+
+
+def _remove_made(folders: list[Path]) -> None:
+    """Remove the folders an output's lock made (deepest first), where still empty."""
+    for folder in reversed(folders):
+        with contextlib.suppress(OSError):
+            folder.rmdir()
+
+
 def glob_results(folder: str | os.PathLike, pattern: str) -> list[Path]:
     """``sorted(folder.glob(pattern))`` without hidden entries: pathlib's ``*`` matches a
     leading dot, so ``*.ply`` would also find a temporary ``.view_000.ply.partial-….ply``."""

@@ -203,12 +203,22 @@ def simplify_file(
     *,
     method: str = "fast",
     preserve_boundary: bool = True,
+    option: str = "target_faces",
 ) -> Mesh:
-    """Read a mesh file, simplify it (:func:`simplify_mesh`), write the result atomically."""
+    """Read a mesh file, simplify it (:func:`simplify_mesh`), write the result atomically.
+
+    A mesh with no more faces than ``target_faces`` is written unchanged, with a warning
+    naming the file, its face count and the ``option`` that set the target (``--faces``,
+    ``[simplify] faces``). Not an error: the target is a ceiling (the archival model's
+    size), which a small mesh already meets, and a recipe run at reduced size must not
+    fail on it; but a user who asked for more faces than there are is told so.
+    """
     from slscan.fuse import read_mesh, write_mesh
 
-    mesh = simplify_mesh(
-        read_mesh(source), target_faces, method=method, preserve_boundary=preserve_boundary
-    )
-    write_mesh(mesh, target)
-    return mesh
+    mesh = read_mesh(source)
+    result = simplify_mesh(mesh, target_faces, method=method, preserve_boundary=preserve_boundary)
+    if result is mesh:
+        log.warning("%s: has %s faces, not more than %s %s: written unchanged, not simplified",
+                    source, f"{mesh.n_faces:,}", option, f"{int(target_faces):,}")
+    write_mesh(result, target)
+    return result

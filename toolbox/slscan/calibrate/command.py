@@ -35,7 +35,7 @@ EPILOG = """\
 examples:
   slscan calibrate board-session --out rig.json --board 9x7 --square 50
   slscan calibrate kamino --out rig.json --square 75 --method inverse-camera --export-xml rig.xml
-  slscan calibrate --import calibration_result.xml --session kamino --out ref.json
+  slscan calibrate --import calibration_result.xml --session kamino --projector-scale 0.5 --out ref.json
   slscan calibrate --import cal.yml --keys camera=K_c,camera_dist=d_c,projector=K_p,projector_dist=d_p,rotation=R,translation=T --projector-size 1024x768 --camera-size 1280x1024 --out rig.json
   slscan calibrate --import Calib_Results_stereo.m --units-mm 1 --session two-cameras --out two-cameras
 """

@@ -516,6 +516,21 @@ def _check_consistent(session: Session, meta_path: Path) -> None:
             )
 
 
+def _check_unique_names(session: Session, meta_path: Path) -> None:
+    """Each view's name must be distinct: every output is named for its view, and a second
+    view of one name would silently replace the first's range map, albedo and mesh."""
+    seen: dict[str, int] = {}
+    for i, view in enumerate(session.views):
+        if not isinstance(view.name, str) or not view.name:
+            raise SlscanError(f"{meta_path}: views[{i}].name: expected a non-empty string, got {view.name!r}")
+        if view.name in seen:
+            raise SlscanError(
+                f"{meta_path}: views[{i}].name: {view.name!r} is also the name of views[{seen[view.name]}]; "
+                "expected distinct view names (each names its folder and its outputs)"
+            )
+        seen[view.name] = i
+
+
 def _check_inside(session: Session, meta_path: Path) -> None:
     """Every file the session names must resolve (symlinks followed) inside its folder."""
     root = session.root.resolve()
@@ -620,6 +635,7 @@ def load_session(path: str | os.PathLike, *, validate: bool = True) -> Session:
             f"{meta_path}: projector rotation {session.projector_rotation} is not one of {ROTATIONS} (degrees)"
         )
     _check_consistent(session, meta_path)
+    _check_unique_names(session, meta_path)
     _check_inside(session, meta_path)
     if validate:
         validate_session(session)

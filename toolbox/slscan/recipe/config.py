@@ -77,7 +77,10 @@ def from_mapping(cls: type, data: Mapping[str, Any], where: str) -> Any:
     kwargs = {name: _convert(hints[name], data[name], f"{where}.{name}") for name in data}
     try:
         return cls(**kwargs)
-    except SlscanError as exc:
+    except SlscanError as exc:  # a check of the dataclass; "KEY: why" names the key
+        key, sep, why = str(exc).partition(": ")
+        if sep and key in settable:
+            raise SlscanError(f"{where}.{key}: {why}") from None
         raise SlscanError(f"{where}: {exc}") from None
 
 

@@ -25,6 +25,7 @@ writer's are left alone.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -37,7 +38,14 @@ from typing import Any
 
 from slscan import __version__
 from slscan.errors import SlscanError
-from slscan.fsio import atomic_output_file, read_json, remove_stale_leftovers, write_json
+from slscan.fsio import (
+    atomic_output_file,
+    output_lock,
+    read_json,
+    remove_stale_leftovers,
+    write_bytes,
+    write_json,
+)
 from slscan.recipe.config import dumps_toml, from_mapping, parse_override, set_in, to_mapping
 from slscan.recipe.stages import SUMMARIES, Stage, StageContext, stages
 
@@ -397,23 +405,61 @@ def run_recipe(recipe: Recipe, out: str | os.PathLike, *, force: bool = False, r
         stages that would provide them are not run and later stages read these folders
     unrecorded : kinds of result whose stages do not log to ``rec``
     executor : where per-view stages run (:class:`slscan.executor.Executor`)
+
+    ``out`` is held (:func:`slscan.fsio.output_lock`) while the recipe runs: a second run
+    into the same folder at the same time fails instead of mixing its stages with these.
     """
+    with output_lock(out):
+        return _run_recipe(recipe, Path(out), force=force, rec=rec, reporter=reporter, given=given,
+                           unrecorded=unrecorded, executor=executor)
+
+
+def _run_recipe(recipe: Recipe, out: Path, *, force: bool, rec, reporter: Reporter | None,
+                given: dict[str, Path] | None, unrecorded: tuple[str, ...], executor) -> list[StageRun]:
     given = {k: Path(v) for k, v in (given or {}).items()}
-    out = Path(out)
     reporter = reporter or Reporter()
+    made = not out.exists()
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise SlscanError(f"{out}: cannot write here ({exc.strerror})") from None
-    with atomic_output_file(out / "recipe.resolved.toml") as tmp:
-        header = (f"# {recipe.name}: resolved by slscan {__version__}"
-                  + (f" from {recipe.path}" if recipe.path else "") + "\n")
-        tmp.write_text(header + dumps_toml(recipe.resolved()))
+    resolved = out / "recipe.resolved.toml"
+    try:
+        before = resolved.read_bytes()
+    except OSError:
+        before = None
+    results: list[StageRun] = []
+    try:
+        with atomic_output_file(resolved) as tmp:
+            header = (f"# {recipe.name}: resolved by slscan {__version__}"
+                      + (f" from {recipe.path}" if recipe.path else "") + "\n")
+            tmp.write_text(header + dumps_toml(recipe.resolved()))
+        _run_stages(recipe, out, results, force=force, rec=rec, reporter=reporter, given=given,
+                     unrecorded=unrecorded, executor=executor)
+    except BaseException:
+        if not any(r.ran for r in results):  # refused before any stage wrote: leave things as they were
+            if before is None:
+                resolved.unlink(missing_ok=True)
+                if made:
+                    with contextlib.suppress(OSError):
+                        out.rmdir()
+            elif resolved.read_bytes() != before:
+                write_bytes(resolved, before)
+        raise
+    return results
+
+
+def _stage_context(recipe: Recipe, stage: Stage) -> str:
+    """`` (stage [NAME] of RECIPE.toml)``: where a stage's error comes from."""
+    return f" (stage [{stage.name}] of {recipe.path if recipe.path else 'recipe ' + repr(recipe.name)})"
+
+
+def _run_stages(recipe: Recipe, out: Path, results: list[StageRun], *, force: bool, rec,
+                reporter: Reporter, given: dict[str, Path], unrecorded: tuple[str, ...], executor) -> None:
     removed = remove_stale_leftovers(out)
     if removed:
         _note(reporter, f"removed {len(removed)} temporary file(s)/folder(s) left by an interrupted run: "
                         + ", ".join(p.name for p in removed[:3]) + (" …" if len(removed) > 3 else ""))
-    results: list[StageRun] = []
     provided: dict[str, tuple[Path, str]] = {}  # kind -> (folder, fingerprint)
     for stage, config in recipe.steps:
         if stage.provides in given:
@@ -445,7 +491,10 @@ def run_recipe(recipe: Recipe, out: str | os.PathLike, *, force: bool = False, r
             t = time.perf_counter()
             stage_rec = None if stage.provides in unrecorded else rec
             ctx = StageContext(folder, {k: v[0] for k, v in inputs.items()}, stage_rec, reporter.step, executor)
-            summary = stage.run(ctx, config)
+            try:
+                summary = stage.run(ctx, config)
+            except SlscanError as exc:
+                raise SlscanError(f"{exc}{_stage_context(recipe, stage)}") from None
             seconds = time.perf_counter() - t
             files = output_manifest(folder)
             digest = manifest_digest(files)
@@ -456,7 +505,6 @@ def run_recipe(recipe: Recipe, out: str | os.PathLike, *, force: bool = False, r
         reporter.stage_finished(run)
         results.append(run)
         provided[stage.provides] = (folder, fingerprint)
-    return results
 
 
 def describe_stages() -> str:

@@ -178,12 +178,20 @@ class RegisterConfig:
     conf: str = ""
     """The .conf to read when ``source`` is a Stanford folder holding several (file name)."""
     allow_outside: bool = False
-    """Let a ``source`` .mlp name scans outside its folder (as ``--allow-outside`` does);
+    """Let a ``source`` .mlp or .conf name scans outside its folder (as ``--allow-outside`` does);
     they are reported. False: such a project is refused."""
     max_neighbours: int = 8
     """With poses, align each scan with at most this many partners, its best candidates
     by estimated overlap (the graph kept connected); 0: every candidate pair (quadratic in
     the number of views). The default is ``MultiviewConfig.max_neighbours``."""
+
+    def __post_init__(self) -> None:  # "KEY: why": a recipe's error names [register].KEY
+        if self.max_neighbours < 0:
+            raise SlscanError(f"max_neighbours: expected >= 0 (0: every candidate pair), "
+                              f"got {self.max_neighbours}")
+        if self.pose_tolerance < 0:
+            raise SlscanError(f"pose_tolerance: expected >= 0 mm (0: from the start poses' misfit), "
+                              f"got {self.pose_tolerance}")
 
 
 @dataclass(frozen=True)
@@ -196,14 +204,17 @@ class SimplifyConfig:
     """{"fast", "quadric"}: fast-simplification, or pymeshlab's quadric edge collapse."""
     preserve_boundary: bool = True
 
+    def __post_init__(self) -> None:  # checked when the recipe is read, not after fusing
+        if self.faces < 4:
+            raise SlscanError(f"faces: expected at least 4, got {self.faces}")
+        if self.method not in ("fast", "quadric"):  # slscan.simplify.METHODS, without importing open3d
+            raise SlscanError(f"method: expected one of fast, quadric, got {self.method!r}")
+
 
 def _run_register(ctx: StageContext, config: RegisterConfig) -> dict[str, Any]:
     from slscan.register.command import load_poses, load_scans, save_registration
     from slscan.register.multiview import median_pair_rmse, register_scans
 
-    if config.max_neighbours < 0:
-        raise SlscanError(f"register.max_neighbours: expected >= 0 (0: every candidate pair), "
-                          f"got {config.max_neighbours}")
     if config.poses and not config.use_poses:
         raise SlscanError("register: register.poses is set but register.use_poses is false")
     if config.source:
@@ -256,7 +267,8 @@ def _run_simplify(ctx: StageContext, config: SimplifyConfig) -> dict[str, Any]:
 
     with atomic_output_dir(ctx.out, overwrite=True) as tmp:
         mesh = simplify_file(ctx.inputs["mesh"] / "mesh.ply", tmp / "mesh.ply", config.faces,
-                             method=config.method, preserve_boundary=config.preserve_boundary)
+                             method=config.method, preserve_boundary=config.preserve_boundary,
+                             option="[simplify] faces")
         write_mesh_project(tmp / "mesh.ply")  # mesh.mlp: MeshLab opens the model upright
     from slscan.viewer.log_register import log_simplified_mesh
 

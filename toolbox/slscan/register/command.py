@@ -31,7 +31,7 @@ def load_scans(
       it (required when the folder has several);
     - any folder of PLY meshes (no poses: features align them).
 
-    A project's mesh files outside its folder are read only with ``allow_outside``.
+    A project's (or a .conf's) mesh files outside its folder are read only with ``allow_outside``.
     """
     from slscan.fsio import glob_results, read_json
     from slscan.register.meshlab import load_scan_project
@@ -47,17 +47,26 @@ def load_scans(
         if not (path / conf).is_file():
             found = ", ".join(p.name for p in glob_results(path, "*.conf")) or "none"
             raise SlscanError(f"{path / conf}: not found (.conf files in {path}: {found})")
-        return load_stanford_dir(path, conf=conf)
+        return load_stanford_dir(path, conf=conf, allow_outside=allow_outside)
     if (path / "aligned.mlp").is_file():
         return load_scan_project(path / "aligned.mlp", allow_outside=allow_outside)
     if (path / "range_maps.json").is_file():
         summary = read_json(path / "range_maps.json", "range-maps summary")
         scans, poses = [], {}
-        for entry in summary["views"]:
+        for i, entry in enumerate(summary["views"]):
             scan = load_range_scan(path / entry["file"])
             scans.append(scan)
             if entry.get("rig_from_object") is not None:
-                poses[scan.name] = np.linalg.inv(np.asarray(entry["rig_from_object"], float))
+                try:
+                    pose = np.asarray(entry["rig_from_object"], float).reshape(4, 4)
+                except (TypeError, ValueError):
+                    pose = np.full((4, 4), np.nan)
+                if not np.isfinite(pose).all() or abs(np.linalg.det(pose[:3, :3])) < 1e-9:
+                    raise SlscanError(
+                        f"{path / 'range_maps.json'}: views[{i}].rig_from_object: expected a finite, "
+                        f"invertible 4x4 pose, got {entry['rig_from_object']!r}"
+                    )
+                poses[scan.name] = np.linalg.inv(pose)
         return scans, (poses if len(poses) == len(scans) else None)
     confs = glob_results(path, "*.conf")
     if len(confs) > 1:
@@ -66,7 +75,7 @@ def load_scans(
             "(--conf NAME; register.conf in a recipe)"
         )
     if confs:
-        return load_stanford_dir(path, conf=confs[0].name)
+        return load_stanford_dir(path, conf=confs[0].name, allow_outside=allow_outside)
     plys = glob_results(path, "*.ply")
     if not plys:
         raise SlscanError(f"{path}: no range maps found (expected .ply files, range_maps.json, a .conf or a .mlp)")
@@ -103,6 +112,9 @@ def load_poses(path: Path, names: list[str]) -> dict[str, np.ndarray]:
             poses = {str(k): np.asarray(v, float).reshape(4, 4) for k, v in data["poses"].items()}
         except (KeyError, TypeError, AttributeError, ValueError):
             raise SlscanError(f"{path}: expected a 'poses' object of scan name -> 4x4 matrix") from None
+        bad = [k for k, m in poses.items() if not np.isfinite(m).all()]
+        if bad:
+            raise SlscanError(f"{path}: poses.{bad[0]} holds non-finite numbers; expected a finite 4x4 matrix")
     else:
         raise SlscanError(f"{path}: expected a .conf, a registration.json or a .mlp pose file")
     unknown = [n for n in poses if n not in names]
@@ -247,7 +259,7 @@ def _cmd_simplify(args: argparse.Namespace) -> int:
     with (recording_from_args(args, recording_name=f"simplify {args.mesh.name}", blueprint=register_blueprint()) as rec,
           ProgressBar(1, f"simplifying ({args.method})", args.quiet) as bar):
         mesh = simplify_file(args.mesh, args.out, args.faces, method=args.method,
-                             preserve_boundary=not args.free_boundary)
+                             preserve_boundary=not args.free_boundary, option="--faces")
         bar.step(f"{len(mesh.faces):,} faces")
         rlog.log_simplified_mesh(rec, mesh)
     project = write_mesh_project(args.out)
@@ -294,7 +306,8 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
                    help="the .conf to read in a Stanford folder (needed when it holds several)")
     p.add_argument("--reference", help="scan that keeps its pose (default: the first)")
     p.add_argument("--allow-outside", action="store_true",
-                   help="read mesh files a .mlp names outside its folder (each is named in a warning)")
+                   help="read mesh files a .mlp (or a Stanford .conf) names outside its folder (each "
+                        "is named in a warning)")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_recording_arguments(p)

@@ -454,19 +454,21 @@ def read_mlp(
     return out
 
 
-def _check_outside(path: Path, files: Sequence[Path], what: str, allow_outside: bool) -> None:
-    """Refuse (or, with ``allow_outside``, warn about) ``files`` of project ``path`` that
-    resolve outside its folder."""
+def _check_outside(
+    path: Path, files: Sequence[Path], what: str, allow_outside: bool, *, owner: str = "project"
+) -> None:
+    """Refuse (or, with ``allow_outside``, warn about) ``files`` of project ``path`` (the
+    ``owner``: a project, a .conf) that resolve outside its folder."""
     base = path.parent.resolve()
     outside = [str(f) for f in files if not Path(f).resolve().is_relative_to(base)]
     if not outside:
         return
     if not allow_outside:
         raise SlscanError(
-            f"{path}: the project names {what} files outside its folder: {', '.join(outside)} "
+            f"{path}: the {owner} names {what} files outside its folder: {', '.join(outside)} "
             "(pass --allow-outside to read them)"
         )
-    log.warning("%s: reading %s files outside the project's folder: %s", path, what, ", ".join(outside))
+    log.warning("%s: reading %s files outside the %s's folder: %s", path, what, owner, ", ".join(outside))
 
 
 def read_mlp_rasters(

@@ -384,8 +384,17 @@ def _conf_entries(path: Path, units: str) -> list[tuple[int, str, np.ndarray]]:
             raise SlscanError(
                 f"{path}:{number}: expected 'bmesh FILE tx ty tz qx qy qz qw'"
             ) from None
-        if len(parts) != 9 or np.linalg.norm(q) == 0:
+        if len(parts) != 9:
             raise SlscanError(f"{path}:{number}: expected 'bmesh FILE tx ty tz qx qy qz qw'")
+        if not (np.isfinite(t).all() and np.isfinite(q).all()):
+            raise SlscanError(
+                f"{path}:{number}: the pose of {parts[1]} holds non-finite numbers; expected finite "
+                "'tx ty tz qx qy qz qw'"
+            )
+        if np.linalg.norm(q) == 0:
+            raise SlscanError(
+                f"{path}:{number}: the rotation quaternion of {parts[1]} is zero; expected a unit quaternion"
+            )
         pose = np.eye(4)
         pose[:3, :3] = quaternion_matrix(q).T
         pose[:3, 3] = t
@@ -408,13 +417,17 @@ def quaternion_matrix(q: np.ndarray) -> np.ndarray:
 
 
 def load_stanford_dir(
-    folder: str | os.PathLike, *, conf: str = "bun.conf", units: str = "m"
+    folder: str | os.PathLike, *, conf: str = "bun.conf", units: str = "m", allow_outside: bool = False
 ) -> tuple[list[RangeScan], dict[str, np.ndarray]]:
     """Every scan a Stanford ``.conf`` names (in its order), and their poses (mm).
 
     Scan files are found relative to the folder; a ``bmesh`` line naming a file that is
-    not there is an error naming the ``.conf``, the line and the file.
+    not there is an error naming the ``.conf``, the line and the file. As with a MeshLab
+    project, scan files that resolve (symlinks followed) outside the folder (``../x.ply``,
+    an absolute path) are refused unless ``allow_outside``, and then named in a warning.
     """
+    from slscan.register.meshlab import _check_outside
+
     folder = Path(folder)
     path = folder / conf
     entries = _conf_entries(path, units)
@@ -425,6 +438,7 @@ def load_stanford_dir(
             f"{'; '.join(missing)}: scan file not found in {folder} (the .conf names "
             f"{'it' if len(missing) == 1 else 'them'}; fix the line or add the file)"
         )
+    _check_outside(path, [folder / file for _, file, _ in entries], "scan", allow_outside, owner=".conf")
     poses = {Path(file).stem: pose for _, file, pose in entries}
     scans = [load_stanford_scan(folder / file, units=units) for _, file, _ in entries]
     return scans, poses

@@ -106,6 +106,9 @@ class BakedTexture:
     vertex_colors : (n, 3) float32 linear RGB per input vertex (filled, no NaN)
     vertex_observed : (n,) bool
     seconds : wall time per phase
+    view_model_share : {view name: share of the view's known-albedo pixels on which the
+        model lies} (:func:`model_share`): near 1 where the model is the object the view saw,
+        where the view saw it
     """
 
     linear: np.ndarray
@@ -115,6 +118,7 @@ class BakedTexture:
     vertex_colors: np.ndarray
     vertex_observed: np.ndarray
     seconds: dict = field(default_factory=dict)
+    view_model_share: dict = field(default_factory=dict)
 
     @property
     def size(self) -> int:
@@ -197,6 +201,16 @@ def _raycasting_scene(vertices: np.ndarray, faces: np.ndarray):
         o3d.core.Tensor(np.ascontiguousarray(faces, np.uint32)),
     )
     return scene
+
+
+def model_share(depth: DepthMap, view: TextureView) -> float:
+    """Share of ``view``'s pixels of known albedo (the object it saw) on which the model
+    lies (finite ``depth``); NaN for a view with no known albedo. The right model, where the
+    views saw it, covers nearly all of them (silhouette pixels aside); another object, or
+    the model moved or turned, leaves many uncovered (``benchmarks/texture_seen.py``)."""
+    known = np.all(np.isfinite(view.albedo), axis=2)
+    n = int(known.sum())
+    return float((known & np.isfinite(depth.depth)).sum() / n) if n else float("nan")
 
 
 def depth_map(scene, view: TextureView, options: BakeOptions) -> DepthMap:
@@ -591,4 +605,5 @@ def bake(
     return BakedTexture(
         padded, covered, observed.reshape(size, size), view_count.reshape(size, size),
         vertex_colors, vertex_seen, seconds,
+        {view.name: model_share(d, view) for view, d in zip(views, depths)},
     )

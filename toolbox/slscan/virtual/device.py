@@ -35,6 +35,7 @@ from slscan.capture.session import (
     write_capture,
 )
 from slscan.errors import SlscanError
+from slscan.meshes import MESH_SUFFIXES
 from slscan.patterns import PatternImage, render, standard_set
 from slscan.rig import Rig, default_rig, transform_points
 from slscan.virtual.devices import VirtualRig, check_view_geometry, exposure_record, turntable_pose
@@ -49,7 +50,7 @@ from slscan.virtual.render import (
     trace_view,
 )
 from slscan.virtual.rigs import RigParams, load_rig_file
-from slscan.virtual.scenes import Scene, scene_by_name
+from slscan.virtual.scenes import BUILTIN_SCENES, Scene, scene_by_name
 from slscan.virtual.sensor import Sensor, jpeg_round_trip
 
 log = logging.getLogger(__name__)
@@ -107,6 +108,21 @@ class VirtualCaptureConfig:
     effects: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
+        if isinstance(self.views, int) and self.views < 1:
+            raise SlscanError(f"views: expected at least 1 view, got {self.views}")
+        for key in ("camera_scale", "projector_scale"):
+            if not getattr(self, key) > 0:
+                raise SlscanError(f"{key}: expected a positive number, got {getattr(self, key)}")
+        if isinstance(self.levels, int) and self.levels < 1:
+            raise SlscanError(f"levels: expected at least 1, got {self.levels}")
+        if (isinstance(self.scene, str) and self.scene not in BUILTIN_SCENES
+                and Path(self.scene).suffix.lower() not in MESH_SUFFIXES):
+            suffix = Path(self.scene).suffix
+            raise SlscanError(
+                f"scene: expected one of {', '.join(BUILTIN_SCENES)} or a mesh file "
+                f"({', '.join(MESH_SUFFIXES)}), got {self.scene!r}"
+                + (f" (unknown mesh format {suffix!r})" if suffix else "")
+            )
         check_placement_settings(self)
         names = parse_effects(self.effects, "effects")
         object.__setattr__(self, "effects", names)
@@ -407,7 +423,10 @@ def _capture_pooled(config: VirtualCaptureConfig, world: VirtualRig, poses: list
     with writer:
         # absolute paths: workers (a Dask cluster's) need not share this process's folder
         scene_file = config.scene if os.path.isfile(config.scene) else None
-        job_config = dataclasses.replace(config, scene=os.path.abspath(scene_file)) if scene_file else config
+        # the units as this process resolved them: a worker reading the file again must not
+        # guess (and warn about the guess) once more
+        job_config = dataclasses.replace(config, scene=os.path.abspath(scene_file),
+                                         scene_units=world.scene.mm_per_unit) if scene_file else config
         jobs = [_ViewJob(job_config, rig, pose, v, str(writer.view_folder(f"view_{v:03d}").absolute()))
                 for v, pose in enumerate(poses)]
         executor.start(len(jobs), ("slscan.virtual.device",))
