@@ -216,3 +216,14 @@ def test_run_help_lists_every_recipe_stage(capsys):
     out = capsys.readouterr().out
     for stage in stages().values():
         assert f"  {stage.name:<10} {stage.summary}" in out
+
+
+def test_python_dash_m_slscan_runs_the_cli():
+    """``python -m slscan`` is the ``slscan`` script (e.g. where the script is not on PATH)."""
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-m", "slscan", "--version"], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.startswith("slscan ")
