@@ -10,8 +10,8 @@ from rerun.chunk import RrdReader
 from slscan.albedo.lights import LightCalibration
 from slscan.errors import SlscanError
 from slscan.rig import default_rig
+from slscan.viewer.layouts import albedo_blueprint
 from slscan.viewer.log_albedo import (
-    albedo_blueprint,
     albedo_error_image,
     log_albedo_error,
     log_albedo_mesh,

@@ -479,7 +479,8 @@ def run(args: argparse.Namespace) -> int:
     from slscan.capture.driver import ScanPlan, scan
     from slscan.devices.specs import CAMERA_KINDS, PROJECTOR_KINDS, parse_spec
     from slscan.viewer.log import log_rig
-    from slscan.viewer.log_scan import frame_logger, scan_blueprint
+    from slscan.viewer.layouts import scan_blueprint
+    from slscan.viewer.log_scan import frame_logger
     from slscan.viewer.recording import recording_from_args
 
     if args.out is None and not args.check_exposure:

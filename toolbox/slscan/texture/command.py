@@ -28,7 +28,7 @@ def _cmd_texture(args: argparse.Namespace) -> int:
     from slscan.errors import SlscanError
     from slscan.texture.atlas import MAX_SIZE, MIN_SIZE
     from slscan.texture.pipeline import TextureConfig, texture_model
-    from slscan.viewer.log_texture import texture_blueprint
+    from slscan.viewer.layouts import texture_blueprint
     from slscan.viewer.recording import recording_from_args
 
     if args.size is not None and not MIN_SIZE <= args.size <= MAX_SIZE:

@@ -34,7 +34,21 @@ import rerun as rr
 from slscan.colour import srgb8
 from slscan.errors import SlscanError
 from slscan.meshes import vertex_normals
-from slscan.viewer.recording import FRAME_TIMELINE, LOSSLESS_ATTR, VIEW_TIMELINE
+from slscan.viewer.paths import (
+    CAMERA_IMAGE_PATH,
+    CAMERA_PATH,
+    CAPTURE_LOG_PATH,
+    CAPTURE_PATH,
+    LIGHTS_PATH,
+    MESH_PATH,
+    PATTERN_PATH,
+    PROJECTOR_IMAGE_PATH,
+    PROJECTOR_PATH,
+    TRUTH_PATH,
+    WORLD_PATH,
+    scan_path,
+)
+from slscan.viewer.recording import FRAME_TIMELINE, LOSSLESS_ATTR, VIEW_TIMELINE, first_static
 
 if TYPE_CHECKING:  # imported lazily: capture modules import these loggers
     from slscan.capture.session import GroundTruth
@@ -51,16 +65,6 @@ JPEG_QUALITY = 90
 VISIBILITY_COLORS = ((0, 0, 0), (60, 60, 150), (255, 210, 60))
 """Display colours of the visibility labels background, projector shadow, lit."""
 
-CAPTURE_PATH = "world/camera/image/capture"
-PATTERN_PATH = "world/projector/image/pattern"
-TRUTH_PATH = "world/camera/image/truth"
-MESH_PATH = "world/scene/mesh"
-CAPTURE_LOG_PATH = "log/capture"
-
-
-def scan_path(view_index: int) -> str:
-    """Entity path of one view's scan data, ``world/scans/view_NNN``."""
-    return f"world/scans/view_{view_index:03d}"
 
 
 # --- small helpers --------------------------------------------------------------------------
@@ -121,24 +125,34 @@ def _pinhole(
 def log_rig(rec: rr.RecordingStream | None, rig: Rig) -> None:
     """Log the rig, static: world axes, camera and projector frusta, ring lights.
 
+    Once per recording (and per session subtree): the same rig again is not re-sent; a
+    different rig (a calibrated one) replaces it.
+
     The camera frustum is drawn to :data:`CAMERA_IMAGE_PLANE_MM`; the projector's reaches
     ``rig.working_distance`` so it meets the object. Light positions are mm, rig frame.
     """
     if rec is None:
         return
-    rec.log("world", rr.ViewCoordinates.RDF, static=True)
+    # static, once per recording: a second stage logging the same rig changes nothing
+    lenses = (rig.camera.K, rig.camera.width, rig.camera.height, rig.projector.rig_from_projector,
+              rig.projector.lens.K, rig.projector.lens.width, rig.projector.lens.height, rig.working_distance)
+    key = tuple(np.asarray(v, float).round(9).tobytes() for v in lenses)
+    if not first_static(rec, CAMERA_IMAGE_PATH, key):
+        return
+    if first_static(rec, WORLD_PATH):
+        rec.log(WORLD_PATH, rr.ViewCoordinates.RDF, static=True)
     identity = rr.Transform3D(translation=[0.0, 0.0, 0.0], mat3x3=np.eye(3))
-    rec.log("world/camera", identity, static=True)
+    rec.log(CAMERA_PATH, identity, static=True)
     rec.log(
-        "world/camera/image",
+        CAMERA_IMAGE_PATH,
         _pinhole(rig.camera, CAMERA_IMAGE_PLANE_MM, CAMERA_COLOR),
         static=True,
     )
     pose = rig.projector.rig_from_projector
     rig_from_projector = rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3])
-    rec.log("world/projector", rig_from_projector, static=True)
+    rec.log(PROJECTOR_PATH, rig_from_projector, static=True)
     rec.log(
-        "world/projector/image",
+        PROJECTOR_IMAGE_PATH,
         _pinhole(rig.projector.lens, rig.working_distance, PROJECTOR_COLOR),
         static=True,
     )
@@ -147,7 +161,7 @@ def log_rig(rec: rr.RecordingStream | None, rig: Rig) -> None:
         intensity = np.array([light.intensity for light in rig.lights], float)
         colors = intensity / np.maximum(intensity.max(axis=1, keepdims=True), 1e-9)
         rec.log(
-            "world/lights",
+            LIGHTS_PATH,
             rr.Points3D(
                 positions,
                 radii=LIGHT_RADIUS_MM,
@@ -316,16 +330,17 @@ def log_ground_truth(
         projector_width = float(np.ceil(finite.max())) if finite.size else 1.0
     rec.log(f"{TRUTH_PATH}/projector_column", _png(projector_column_image(column, projector_width)))
 
-    rec.log(
-        f"{TRUTH_PATH}/visibility",
-        rr.AnnotationContext(
-            [
-                rr.AnnotationInfo(id=k, label=VISIBILITY_LABELS[k], color=VISIBILITY_COLORS[k])
-                for k in VISIBILITY_LABELS
-            ]
-        ),
-        static=True,
-    )
+    if first_static(rec, f"{TRUTH_PATH}/visibility"):
+        rec.log(
+            f"{TRUTH_PATH}/visibility",
+            rr.AnnotationContext(
+                [
+                    rr.AnnotationInfo(id=k, label=VISIBILITY_LABELS[k], color=VISIBILITY_COLORS[k])
+                    for k in VISIBILITY_LABELS
+                ]
+            ),
+            static=True,
+        )
     rec.log(f"{TRUTH_PATH}/visibility", rr.SegmentationImage(gt.visibility.astype(np.uint8)))
 
     step = TRUTH_POINT_STRIDE

@@ -16,7 +16,6 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 import rerun as rr
-import rerun.blueprint as rrb
 
 from slscan.viewer.log_register import (
     MAX_LOGGED_FACES,
@@ -26,11 +25,10 @@ from slscan.viewer.log_register import (
     log_object_frame,
 )
 
+from slscan.viewer.paths import ATLAS_PATH, TEXTURE_PLOT_PATH, VIEW_COUNT_PATH, VIEWS_PATH
+
 TEXTURED_STAGE = "textured"
 STAGES.setdefault(TEXTURED_STAGE, len(STAGES))
-VIEWS_PATH = "object/views"
-ATLAS_PATH = "texture/atlas"
-VIEW_COUNT_PATH = "texture/view_count"
 MAX_LOGGED_TEXTURE = 4096
 
 
@@ -97,29 +95,4 @@ def log_textured_model(rec: rr.RecordingStream | None, atlas, texture: np.ndarra
     rec.log(VIEW_COUNT_PATH, rr.SegmentationImage(view_count), static=True)
     for name, value in metrics.items():
         if value is not None and np.isfinite(value):
-            rec.log(f"plot/texture/{name}", rr.Scalars(float(value)))
-
-
-def texture_blueprint() -> rrb.Blueprint:
-    """Texture stage: the textured model (and, in a second tab, among the view cameras);
-    the atlas and the per-texel view count beside it; the metrics below."""
-    from slscan.viewer.layouts import stage_blueprint
-    from slscan.viewer.recording import STAGE_TIMELINE
-
-    model = rrb.Tabs(
-        rrb.Spatial3DView(origin="object", contents=["+ $origin/model/textured"], name="Textured model"),
-        rrb.Spatial3DView(origin="object", contents=["+ $origin/model/textured", "+ $origin/views/**"],
-                          name="Model and views"),
-        name="Model",
-    )
-    images = rrb.Tabs(
-        rrb.Spatial2DView(origin=ATLAS_PATH, name="Atlas"),
-        rrb.Spatial2DView(origin=VIEW_COUNT_PATH, name="Views per texel"),
-        name="Texture",
-    )
-    metrics = rrb.TimeSeriesView(origin="plot/texture", name="Texture metrics")
-    return stage_blueprint(
-        rrb.Horizontal(model, rrb.Vertical(images, metrics, row_shares=[3, 1]), column_shares=[3, 2],
-                       name="Texture"),
-        STAGE_TIMELINE,
-    )
+            rec.log(f"{TEXTURE_PLOT_PATH}/{name}", rr.Scalars(float(value)))

@@ -11,6 +11,10 @@ Timelines (the layouts in ``viewer_layouts/`` open on them):
 - :data:`VIEW_TIMELINE` — the view (range map) index;
 - :data:`FRAME_TIMELINE` — the pattern / frame index within a view;
 - :data:`STAGE_TIMELINE` — the pipeline stage.
+
+A second session logged into the same recording (the light-calibration panel beside the
+scanned object) goes through :func:`session_stream`: its own entity subtree, its own
+timelines, its own static intrinsics.
 """
 
 from __future__ import annotations
@@ -36,6 +40,8 @@ FRAME_TIMELINE = "frame"
 STAGE_TIMELINE = "stage"
 
 LOSSLESS_ATTR = "slscan_lossless_images"
+STATIC_LOGGED_ATTR = "slscan_static_logged"
+"""Attribute of a recording stream: what static data it has been sent, by entity path."""
 """Attribute of a recording stream opened here: log camera frames losslessly."""
 DEFAULT_PORT = 9876
 DEFAULT_CONNECT_URL = f"rerun+http://127.0.0.1:{DEFAULT_PORT}/proxy"
@@ -166,6 +172,80 @@ def open_recording(
             if not os.path.getsize(tmp):
                 raise SlscanError(f"{save}: Rerun wrote nothing (is the folder writable?)")
             _check_rrd(tmp, save)
+
+
+def first_static(rec, path: str, key: object = None) -> bool:
+    """True when static data ``key`` at ``path`` is new on ``rec`` (the caller then logs it).
+
+    Static data is logged once per recording: a stage that logs the same thing again (the
+    object frame, an annotation context, the rig) is a no-op. ``key`` tells contents apart
+    (e.g. the lens of a camera): a different key at the same path is logged, and replaces
+    the earlier one, as Rerun's static data does.
+    """
+    done = getattr(rec, STATIC_LOGGED_ATTR, None)
+    if done is None:
+        done = {}
+        setattr(rec, STATIC_LOGGED_ATTR, done)
+    if path in done and done[path] == key:
+        return False
+    done[path] = key
+    return True
+
+
+class SessionStream:
+    """A recording stream seen through a session's own subtree and timelines.
+
+    ``log("world/camera/image", ...)`` goes to ``world/<name>/camera/image`` (every path
+    gets ``name`` after its first part: ``log/<name>/capture``, ``plot/<name>/...``), and
+    ``set_time("view", ...)`` sets ``<name>_view``: a session logged beside another (the
+    light-calibration panel beside the scanned object) never writes into its entities or
+    onto its timeline values, and keeps its own static intrinsics. Other attributes are
+    the wrapped stream's. Use it as a context manager: the time cursor is cleared on entry
+    and on exit, so neither session's time leaks into the other's data.
+    """
+
+    def __init__(self, rec: rr.RecordingStream, name: str) -> None:
+        if not name or "/" in name:
+            raise ValueError(f"session name must be one path part, got {name!r}")
+        self._rec = rec
+        self.name = name
+        setattr(self, STATIC_LOGGED_ATTR, {})
+        setattr(self, LOSSLESS_ATTR, bool(getattr(rec, LOSSLESS_ATTR, False)))
+
+    def entity_path(self, path: str) -> str:
+        """``a/b/c`` -> ``a/<name>/b/c``."""
+        head, _, rest = path.strip("/").partition("/")
+        return f"{head}/{self.name}" + (f"/{rest}" if rest else "")
+
+    def timeline(self, timeline: str) -> str:
+        return f"{self.name}_{timeline}"
+
+    def log(self, entity_path: str, *args, **kwargs) -> None:
+        self._rec.log(self.entity_path(entity_path), *args, **kwargs)
+
+    def set_time(self, timeline: str, **kwargs) -> None:
+        self._rec.set_time(self.timeline(timeline), **kwargs)
+
+    def disable_timeline(self, timeline: str) -> None:
+        self._rec.disable_timeline(self.timeline(timeline))
+
+    def __getattr__(self, name: str):
+        return getattr(self._rec, name)
+
+    def __enter__(self) -> SessionStream:
+        self._rec.reset_time()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._rec.reset_time()
+
+
+def session_stream(rec: rr.RecordingStream | None, name: str) -> contextlib.AbstractContextManager:
+    """A context yielding ``rec`` seen through session ``name``'s subtree (:class:`SessionStream`),
+    or ``None`` when ``rec`` is ``None`` (logging off)."""
+    if rec is None:
+        return contextlib.nullcontext(None)
+    return SessionStream(rec, name)
 
 
 RRD_FOOTER = b"RRF2FOOT"
