@@ -76,7 +76,7 @@ def test_albedo_stage_round_trip(tmp_path):
         for x in ("lit", "shadow", "highlight", "unshaded", "normal", "error")
     }
     expected |= {
-        "/world/scans/view_000/albedo",
+        "/world/albedo/view_000",
         "/world/lights/calibrated",
         "/plot/albedo/valid_share",
         "/log/albedo",

@@ -342,7 +342,7 @@ def albedo_blueprint() -> rrb.Blueprint:
     )
     scans = rrb.Spatial3DView(
         origin="world",
-        contents=["+ $origin/scans/**/albedo", "+ $origin/lights/**", "+ $origin/camera"],
+        contents=["+ $origin/albedo/**", "+ $origin/lights/**", "+ $origin/camera"],
         name="Range maps with albedo",
     )
     metrics = rrb.TimeSeriesView(origin="plot/albedo", name="Per-view metrics")

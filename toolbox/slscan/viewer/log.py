@@ -92,12 +92,24 @@ def _check_image(image: np.ndarray, what: str) -> np.ndarray:
 
 
 def _png(image: np.ndarray, *, draw_order: float | None = None) -> rr.EncodedImage:
-    """Lossless PNG of an (h, w) or (h, w, 3) RGB uint8 image."""
-    bgr = image[..., ::-1] if image.ndim == 3 else image
-    ok, data = cv2.imencode(".png", np.ascontiguousarray(bgr), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    """Lossless PNG of an (h, w), (h, w, 3) RGB or (h, w, 4) RGBA uint8 image."""
+    if image.ndim == 3:
+        image = image[..., [2, 1, 0, 3]] if image.shape[2] == 4 else image[..., ::-1]
+    ok, data = cv2.imencode(".png", np.ascontiguousarray(image), [cv2.IMWRITE_PNG_COMPRESSION, 1])
     if not ok:
         raise SlscanError("could not PNG-encode an image for Rerun")
     return rr.EncodedImage(contents=data.tobytes(), media_type="image/png", draw_order=draw_order)
+
+
+def _overlay(mask: np.ndarray, color: tuple[int, int, int, int], *, draw_order: float = 10.0) -> rr.EncodedImage:
+    """A mask drawn in ``color`` (RGBA) over a camera frame, transparent elsewhere.
+
+    PNG-encoded: Rerun 0.41 draws no JPEG frame (:func:`log_capture`) under a raw RGBA
+    ``rr.Image`` in the same 2D view, but blends encoded images as expected.
+    """
+    rgba = np.zeros(mask.shape + (4,), np.uint8)
+    rgba[mask] = color
+    return _png(rgba, draw_order=draw_order)
 
 
 def _colors_u8(colors: np.ndarray) -> np.ndarray:

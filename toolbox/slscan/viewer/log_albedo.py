@@ -8,7 +8,7 @@ Entity tree, continuing :mod:`slscan.viewer.log`::
     world/camera/image/albedo/unshaded     the un-shaded (albedo) image, sRGB  [view]
     world/camera/image/albedo/normal       normals used, RGB of (n + 1) / 2  [view]
     world/camera/image/albedo/error        |albedo - truth| / |truth|, Turbo (virtual rig)  [view]
-    world/scans/view_NNN/albedo            Mesh3D of the range map coloured by albedo  [view]
+    world/albedo/view_NNN                  Mesh3D of the range map coloured by albedo  [view]
     world/lights/calibrated                Points3D of the calibrated lights (static)
     log/albedo                             TextLog naming each lit frame  [view, frame]
     plot/albedo/<metric>                   per-view scalars  [view]
@@ -29,6 +29,7 @@ from slscan.viewer.log import (
     JPEG_QUALITY,
     LIGHT_RADIUS_MM,
     _check_image,
+    _overlay,
     _png,
     _set_view,
     _to_uint8,
@@ -39,7 +40,7 @@ from slscan.viewer.paths import (
     ALBEDO_PATH,
     ALBEDO_PLOT_PATH,
     CALIBRATED_LIGHTS_PATH,
-    scan_path,
+    albedo_mesh_path,
 )
 from slscan.viewer.recording import first_static
 
@@ -52,12 +53,6 @@ HIGHLIGHT_COLOR = (255, 230, 0, 190)
 CALIBRATED_LIGHT_COLOR = (255, 80, 200)
 ERROR_RANGE = 0.10
 """Relative albedo error shown at the top of the error colour map (10 %)."""
-
-
-def _overlay(mask: np.ndarray, color: tuple[int, int, int, int]) -> rr.Image:
-    rgba = np.zeros(mask.shape + (4,), np.uint8)
-    rgba[mask] = color
-    return rr.Image(rgba, color_model="RGBA", draw_order=10.0)
 
 
 def log_lit_image(
@@ -173,7 +168,7 @@ def log_albedo_mesh(
     colors[~known] = 96
     _set_view(rec, view_index)
     rec.log(
-        f"{scan_path(view_index)}/albedo",
+        albedo_mesh_path(view_index),
         rr.Mesh3D(
             vertex_positions=np.asarray(vertices, np.float32),
             triangle_indices=np.asarray(faces, np.uint32),

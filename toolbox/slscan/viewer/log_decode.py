@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 import rerun as rr
 
-from slscan.viewer.log import _colors_u8, _png, _set_view
+from slscan.viewer.log import _colors_u8, _overlay, _png, _set_view
 from slscan.viewer.paths import DECODE_PATH, DECODE_PLOT_PATH, scan_path
 from slscan.viewer.recording import first_static
 
@@ -131,9 +131,7 @@ def log_decode_maps(
     rec.log(f"{DECODE_PATH}/mask", _png(mask.astype(np.uint8) * 255))
     rec.log(f"{DECODE_PATH}/codes", _png(colormap(codes.astype(np.float64), code_max)))
     if saturated is not None:
-        overlay = np.zeros(saturated.shape + (4,), np.uint8)
-        overlay[saturated] = SATURATION_COLOR
-        rec.log(f"{DECODE_PATH}/saturation", rr.Image(overlay, color_model="RGBA", draw_order=10.0))
+        rec.log(f"{DECODE_PATH}/saturation", _overlay(saturated, SATURATION_COLOR))
 
 
 def log_projector_codes(

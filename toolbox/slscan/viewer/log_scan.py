@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import rerun as rr
 
-from slscan.viewer.log import _png, _set_view, log_capture, log_pattern
+from slscan.viewer.log import _overlay, _png, _set_view, log_capture, log_pattern
 from slscan.viewer.paths import COVERAGE_PATH, DECODE_PATH, HOLES_PATH, SCAN_LOG_PATH
 HOLE_COLOR = (255, 40, 200, 160)  # magenta: lit but no range-map triangle
 
@@ -43,9 +43,7 @@ def log_holes(
     if rec is None:
         return
     _set_view(rec, view_index)
-    overlay = np.zeros(holes.shape + (4,), np.uint8)
-    overlay[holes] = HOLE_COLOR
-    rec.log(HOLES_PATH, rr.Image(overlay, color_model="RGBA", draw_order=10.0))
+    rec.log(HOLES_PATH, _overlay(holes, HOLE_COLOR))
     rec.log(COVERAGE_PATH, rr.Scalars(float(coverage)))
 
 

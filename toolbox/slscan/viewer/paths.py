@@ -37,6 +37,10 @@ ALBEDO_PATH = "world/camera/image/albedo"
 CALIBRATED_LIGHTS_PATH = "world/lights/calibrated"
 ALBEDO_LOG_PATH = "log/albedo"
 ALBEDO_PLOT_PATH = "plot/albedo"
+ALBEDO_MESHES_PATH = "world/albedo"
+"""The range maps coloured by albedo, one entity per view (``world/albedo/view_NNN``): a
+subtree of their own, since a view's contents can only take whole subtrees (``a/**``;
+Rerun supports no ``**`` inside a path)."""
 
 # --- calibrate (slscan.viewer.log_calibrate) ---------------------------------------------------
 CALIBRATE_CAMERA_PATH = "world/camera/image/calibrate"
@@ -79,6 +83,11 @@ LIGHTS_PANEL = "lights_panel"
 def scan_path(view_index: int) -> str:
     """Entity path of one view's scan data in the rig frame, ``world/scans/view_NNN``."""
     return f"{SCANS_WORLD_PATH}/view_{view_index:03d}"
+
+
+def albedo_mesh_path(view_index: int) -> str:
+    """Entity path of one view's range map coloured by albedo, ``world/albedo/view_NNN``."""
+    return f"{ALBEDO_MESHES_PATH}/view_{view_index:03d}"
 
 
 def board_path(view_index: int) -> str:
