@@ -427,7 +427,20 @@ def test_every_tab_of_the_pipeline_layout_renders_what_the_user_expects(demo, tm
                     change = np.abs(seen[view].astype(int) - seen[0]).mean()
                     if change > 1.0:
                         failures.append(f"Register: view {view} differs from view 0 by {change:.1f} levels")
-    assert not blank, f"blank views (screenshots in {tmp_path}): {blank}"
+        # the views per texel, in the colours of the legend (not the raw counts 0-3: black)
+        viewer.show_tab("slscan pipeline", "Texture")
+        views = viewer.show_tab("Texture", "Views per texel")
+        picture = viewer.screenshot("views per texel", _view_id(views, "Views per texel"))
+        legend = json.loads((demo[0] / "texture" / "texture.json").read_text())["model"].get("view_count_legend")
+        if legend is None:
+            failures.append("texture.json: no view_count_legend")
+        for label in ("1 view", "2 views") if legend else ():
+            share = (np.abs(picture.astype(int) - legend[label]).max(axis=-1) <= 8).mean()
+            if share < 0.005:
+                failures.append(f"Views per texel: the colour of {label!r} covers {share:.4f} of the view")
+        failures += [f"the viewer logged an error: {e.target}: {e.message[:200]}"
+                     for e in viewer.client.get_logs() if e.level == "ERROR"]
+    failures += [f"blank view: {name}" for name in blank]
     assert not failures, f"screenshots in {tmp_path}:\n" + "\n".join(failures)
 
 

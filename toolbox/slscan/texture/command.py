@@ -17,7 +17,7 @@ the capture session for the camera model); --poses the registration (`slscan reg
 folder, its registration.json or aligned.mlp); without it the session's recorded poses
 are used. Outputs in --out: model.glb (glTF, metres, Y up), model.obj/.mtl +
 model_albedo.png (mm), model_vertex_colors.ply, model.mlp (MeshLab: the model and the
-views as registered rasters), views/VIEW.png, view_count.png, texture.json, and
+views as registered rasters), views/VIEW.png, view_count.png (coloured; raw counts: view_count_raw.png), texture.json, and
 preview.png when Blender is found (bash .ci/setup installs it in .venv-blender).
 """
 
