@@ -395,8 +395,7 @@ def test_every_tab_of_the_pipeline_layout_renders_what_the_user_expects(demo, tm
             views = viewer.show_tab("slscan pipeline", tab)
             assert views, tab
             viewer.set_time("view", 0)
-            viewer.screenshot(f"{tab}")  # the window, kept beside the views' for a human look
-            shots = {}
+            shots = {}  # at view 0, kept in tmp_path for a human look
             for view_id, kind, name in views:
                 if kind in ("2D", "3D"):
                     shots[name] = viewer.screenshot(f"{tab} - {name}", view_id)
@@ -405,8 +404,10 @@ def test_every_tab_of_the_pipeline_layout_renders_what_the_user_expects(demo, tm
             if tab == "Capture":
                 # the figurine's captures, whole: not the grey light panel, not a quarter of them
                 for view in (0, 3):
-                    viewer.set_time("view", view)
-                    picture = viewer.screenshot(f"capture at view {view}", _view_id(views, "Capture"))
+                    if view:
+                        viewer.set_time("view", view)
+                    picture = shots["Capture"] if view == 0 else viewer.screenshot(
+                        f"capture at view {view}", _view_id(views, "Capture"))
                     mask = _foreground(picture, 50)
                     ys, xs = np.nonzero(mask)
                     centre = (xs.mean() / mask.shape[1], ys.mean() / mask.shape[0]) if len(xs) else (0, 0)
@@ -415,11 +416,12 @@ def test_every_tab_of_the_pipeline_layout_renders_what_the_user_expects(demo, tm
                                         f"object centre at {centre[0]:.2f}, {centre[1]:.2f} of the view")
             if tab == "Register":
                 # one upright object, the same at every view of the scan
-                seen = {}
+                seen = {0: shots["Range maps at their poses"]}
                 for view in (0, 3, 7):
-                    viewer.set_time("view", view)
-                    seen[view] = viewer.screenshot(f"register at view {view}",
-                                                   _view_id(views, "Range maps at their poses"))
+                    if view:
+                        viewer.set_time("view", view)
+                        seen[view] = viewer.screenshot(f"register at view {view}",
+                                                       _view_id(views, "Range maps at their poses"))
                     ok, why = _upright_figurine(seen[view])
                     if not ok:
                         failures.append(f"Register at view {view}: {why}")
@@ -427,6 +429,14 @@ def test_every_tab_of_the_pipeline_layout_renders_what_the_user_expects(demo, tm
                     change = np.abs(seen[view].astype(int) - seen[0]).mean()
                     if change > 1.0:
                         failures.append(f"Register: view {view} differs from view 0 by {change:.1f} levels")
+        # the light panel's own captures, on its own timeline
+        viewer.show_tab("slscan pipeline", "Albedo")
+        views = viewer.show_tab("Albedo", "Light panel")
+        viewer.set_time("lights_panel_view", 2)
+        picture = viewer.screenshot("light panel", _view_id(views, "Light panel"))
+        if _foreground(picture).mean() < 0.1 or _colourful(picture) > 0.001:
+            failures.append(f"Light panel: {_foreground(picture).mean():.3f} of the view drawn, "
+                            f"{_colourful(picture):.4f} coloured (the panel is grey)")
         # the views per texel, in the colours of the legend (not the raw counts 0-3: black)
         viewer.show_tab("slscan pipeline", "Texture")
         views = viewer.show_tab("Texture", "Views per texel")

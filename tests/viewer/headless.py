@@ -42,6 +42,14 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def drawn_share(picture: np.ndarray, level: int = 40) -> float:
+    """Share of the pixels away from the picture's most common colour (its background)."""
+    flat = picture.reshape(-1, 3)
+    colours, counts = np.unique(flat[:: max(1, len(flat) // 20000)], axis=0, return_counts=True)
+    background = colours[np.argmax(counts)].astype(int)
+    return float((np.abs(picture.astype(int) - background).max(axis=-1) > level).mean())
+
+
 class HeadlessViewer:
     """A headless ``rerun`` showing one recording; a context manager that quits it."""
 
@@ -111,10 +119,19 @@ class HeadlessViewer:
     def set_time(self, timeline: str, value: int) -> None:
         self.client.set_time(timeline, sequence=value, play_state="paused")
 
-    def screenshot(self, name: str, view_id: str | None = None) -> np.ndarray:
-        """(h, w, 3) uint8 RGB picture of the window, or of one view."""
+    def screenshot(self, name: str, view_id: str | None = None, *, settle_s: float = 10.0) -> np.ndarray:
+        """(h, w, 3) uint8 RGB picture of the window, or of one view.
+
+        A view still blank (:func:`drawn_share` under 1 %: e.g. only the loading dots) is
+        taken again for up to ``settle_s``: images are decoded in the background after the
+        time cursor moves.
+        """
         path = self.shots / f"{name}.png"
-        self.client.save_screenshot(str(path), view_id=view_id)
-        picture = cv2.imread(str(path))
-        assert picture is not None, f"no screenshot at {path}"
-        return np.ascontiguousarray(picture[..., ::-1])
+        deadline = time.monotonic() + settle_s
+        while True:
+            self.client.save_screenshot(str(path), view_id=view_id)
+            picture = cv2.imread(str(path))
+            assert picture is not None, f"no screenshot at {path}"
+            if drawn_share(picture) > 0.01 or time.monotonic() > deadline:
+                return np.ascontiguousarray(picture[..., ::-1])
+            time.sleep(0.5)

@@ -324,7 +324,9 @@ def albedo_blueprint() -> rrb.Blueprint:
     highlight (yellow) masks over it; below it tabs with the un-shaded image, the error
     against ground truth (virtual rig) and the normals used. Right: 3D view of the range
     maps coloured by albedo with the calibrated lights, and the per-view metrics.
-    Scrub the frame timeline to step through the lights.
+    Scrub the frame timeline to step through the lights. In a recipe's recording, the
+    "Light panel" tab shows the light calibration's own captures (``world/lights_panel``,
+    on the ``lights_panel_view`` timeline).
     """
     image = "world/camera/image"
     lit = rrb.Spatial2DView(
@@ -338,6 +340,9 @@ def albedo_blueprint() -> rrb.Blueprint:
         ),
         rrb.Spatial2DView(origin=image, contents="$origin/albedo/error", name="Albedo error"),
         rrb.Spatial2DView(origin=image, contents="$origin/albedo/normal", name="Normals"),
+        # a recipe's light calibration: its own session (pick the lights_panel_view timeline)
+        rrb.Spatial2DView(origin=f"world/{LIGHTS_PANEL}/camera/image", contents="$origin/capture",
+                          name="Light panel"),
         name="Albedo",
     )
     scans = rrb.Spatial3DView(
