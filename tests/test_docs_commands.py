@@ -232,7 +232,8 @@ def test_commands_that_write_have_out_and_overwrite():
     recording = {"--save", "--spawn", "--connect"}
     # commands that only read, or write a fixed set of files (layouts), or resume into
     # their folder by design (run: --force; regress: --keep is a new folder)
-    no_overwrite = {"info", "view", "layouts", "run", "regress"}
+    # (stage: drives a turntable, writes nothing)
+    no_overwrite = {"info", "view", "layouts", "run", "regress", "stage"}
     for name, parser in SUBCOMMANDS.items():
         options = {s for a in parser._actions for s in a.option_strings}
         if name not in no_overwrite:

@@ -198,3 +198,61 @@ def test_decode_complete_refuses_cut_files():
     png = _encode(_image(13))
     assert decode_complete(png[:-20], "x.png") is None
     assert decode_complete(png + b"\0" * 10, "x.png") is not None
+
+
+def test_scan_asks_for_every_shot_with_a_bell_on_stderr(tmp_path, capsys):
+    """A watch-folder camera in a real scan: before each frame the driver asks the operator
+    (bell + "shoot view V, frame F (...) now" on stderr); a FAKE trigger answers each prompt
+    by saving the virtual camera's frame into the folder, as tethering software would."""
+    from slscan.capture.driver import ScanDevices, scan
+    from slscan.devices.base import NoLights
+    from slscan.devices.folder import bell_prompt
+    from slscan.virtual.device import VirtualCaptureConfig, scan_plan, virtual_devices
+
+    config = VirtualCaptureConfig(camera_scale=0.2, projector_scale=0.2, levels=2, lit_images=False)
+    world = virtual_devices(config)
+    folder = tmp_path / "tether"
+    folder.mkdir()
+    shots: list[str] = []
+
+    def fake_trigger(message: str) -> None:  # FAKE: the operator pressing the shutter
+        bell_prompt(message)
+        shots.append(message)
+        rgb = world.camera.capture().image
+        (folder / f"IMG_{len(shots):04d}.png").write_bytes(_encode(rgb))
+
+    camera = FolderCamera(folder, resolution=world.camera.resolution, stable_s=0.02, poll_s=0.005,
+                          timeout_s=10, prompt=fake_trigger)
+    devices = ScanDevices(world.projector, camera, NoLights(), world.stage)
+    plan = scan_plan(config, world.rig)
+    result = scan(devices, plan, tmp_path / "s", views=1)
+    err = capsys.readouterr().err
+    assert len(result.session.views) == 1
+    assert "\ashoot view 1, reference frame (projector dark) now\n" in err
+    assert "\ashoot view 1, frame 1 (white) now\n" in err
+    assert "\ashoot view 1, frame 2 (black) now\n" in err
+    assert err.count("\a") == len(shots) == len(plan.patterns) + 1
+
+
+def test_preview_asks_for_its_four_shots(tmp_path, capsys):
+    from slscan.capture.preview import measure_once
+    from slscan.devices.folder import bell_prompt
+    from slscan.virtual.device import VirtualCaptureConfig, virtual_devices
+
+    world = virtual_devices(VirtualCaptureConfig(camera_scale=0.2, projector_scale=0.2, scene="tile"))
+    world.stage.move_to(0, 1)
+    folder = tmp_path / "tether"
+    folder.mkdir()
+
+    def fake_trigger(message: str) -> None:  # FAKE: the operator pressing the shutter
+        bell_prompt(message)
+        n = len(list(folder.iterdir()))
+        (folder / f"IMG_{n:04d}.png").write_bytes(_encode(world.camera.capture().image))
+
+    camera = FolderCamera(folder, resolution=world.camera.resolution, stable_s=0.02, poll_s=0.005, prompt=fake_trigger)
+    m = measure_once(world.projector, camera)
+    err = capsys.readouterr().err
+    assert [line for line in err.splitlines() if line.startswith("\a")] == [
+        "\ashoot preview, black now", "\ashoot preview, white now", "\ashoot preview, stripes now",
+        "\ashoot preview, inverse stripes now"]
+    assert m.overlap > 0.1 and m.focus > 0.2

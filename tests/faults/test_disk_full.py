@@ -280,11 +280,11 @@ def test_layouts_on_a_full_disk_end_in_one_line(full_disk, capsys):
 
 
 def test_texture_export_on_a_full_disk(full_disk):
-    from slscan.texture.export import write_glb, write_obj, write_vertex_color_ply
+    from slscan.texture.export import write_glb, write_obj, write_vertex_color_ply, write_wedge_uv_ply
 
     sphere = o3d.geometry.TriangleMesh.create_sphere(radius=10.0, resolution=30)
     vertices, faces = np.asarray(sphere.vertices), np.asarray(sphere.triangles)
-    atlas = SimpleNamespace(vertices=vertices, faces=faces,
+    atlas = SimpleNamespace(vertices=vertices, faces=faces, source_vertex=np.arange(len(vertices)),
                             uvs=np.random.default_rng(1).random((len(vertices), 2)))
     texture = np.random.default_rng(2).integers(0, 255, (128, 128, 3), np.uint8)  # ~50 KB as PNG
     disk = full_disk(20_000)
@@ -292,7 +292,8 @@ def test_texture_export_on_a_full_disk(full_disk):
                         (lambda p: write_obj(p, atlas, texture), "model_albedo.png"),
                         (lambda p: write_vertex_color_ply(p, vertices, faces,
                                                           np.full((len(vertices), 3), 200, np.uint8)),
-                         "model_vertex_colors.ply")]:
+                         "model_vertex_colors.ply"),
+                        (lambda p: write_wedge_uv_ply(p, vertices, faces, atlas, "model_albedo.png"), "model.ply")]:
         target = disk / (name if name.endswith((".glb", ".ply")) else "model.obj")
         with pytest.raises(SlscanError) as exc:
             write(target)

@@ -425,3 +425,33 @@ def test_simplify_options():
         simplify_mesh(mesh, 100, method="magic")
     with pytest.raises(SlscanError, match="at least 4"):
         simplify_mesh(mesh, 2)
+
+
+def test_fuse_and_simplify_commands_write_a_meshlab_project_beside_the_mesh(sphere_views, tmp_path, capsys):
+    """`slscan fuse` / `slscan simplify --out X.ply` write X.mlp, which MeshLab (pymeshlab)
+    opens with the mesh at the identity (the mesh is in the object frame already)."""
+    import pymeshlab
+
+    from slscan.cli import main
+    from slscan.register.meshlab import read_mlp, write_scan_project
+
+    scans, poses = sphere_views
+    aligned = write_scan_project(tmp_path / "aligned", scans[:3], poses)
+    fused, simple = tmp_path / "fused.ply", tmp_path / "simple.ply"
+    assert main(["fuse", str(aligned), "--voxel", "3", "--out", str(fused), "--quiet"]) == 0
+    assert main(["simplify", str(fused), "--faces", "500", "--out", str(simple), "--quiet"]) == 0
+    for mesh_file in (fused, simple):
+        project = mesh_file.with_suffix(".mlp")
+        ((named, matrix),) = read_mlp(project)
+        assert named == mesh_file and np.array_equal(matrix, np.eye(4))
+        ms = pymeshlab.MeshSet()
+        ms.load_project(str(project))
+        assert ms.mesh_number() == 1
+        assert ms.current_mesh().face_number() == len(read_mesh(mesh_file).faces)
+    capsys.readouterr()
+    simple.unlink()  # the project left beside it is not replaced without --overwrite
+    assert main(["simplify", str(fused), "--faces", "500", "--out", str(simple), "--quiet"]) == 2
+    assert f"{simple.with_suffix('.mlp')}: exists (pass --overwrite" in " ".join(capsys.readouterr().err.split())
+    assert not simple.exists()
+    assert main(["simplify", str(fused), "--faces", "500", "--out", str(tmp_path / "s.mlp"), "--quiet"]) == 2
+    assert "expected a mesh file" in capsys.readouterr().err

@@ -35,6 +35,9 @@ def test_every_recipe_runs_at_reduced_size_and_resumes(path, tmp_path, request):
     assert resolved == recipe.resolved()
     for project in out.rglob("*.mlp"):
         assert_mlp_files_exist(project)
+    for stage, _ in recipe.steps:  # every model a stage writes opens as a MeshLab project
+        if stage.name in ("fuse", "simplify"):
+            assert_mesh_project(out / stage.name)
     if path.stem == "demo":
         assert_demo_model_upright(out)
     if path.stem == "bunny":  # the Stanford frame is y up; six scans were taken on a turntable
@@ -57,6 +60,21 @@ def assert_mlp_files_exist(project: Path) -> None:
         assert (project.parent / name).is_file(), f"{project}: names {name}, which is not beside it"
 
 
+def assert_mesh_project(folder: Path) -> None:
+    """``mesh.mlp`` opens ``mesh.ply`` as it is (identity matrix) in MeshLab (pymeshlab)."""
+    import numpy as np
+    import pymeshlab
+
+    from slscan.fuse import read_mesh
+    from slscan.register.meshlab import read_mlp
+
+    ((mesh_file, matrix),) = read_mlp(folder / "mesh.mlp")
+    assert mesh_file == folder / "mesh.ply" and np.array_equal(matrix, np.eye(4))
+    ms = pymeshlab.MeshSet()
+    ms.load_project(str(folder / "mesh.mlp"))
+    assert ms.current_mesh().face_number() == len(read_mesh(mesh_file).faces)
+
+
 def assert_demo_model_upright(out: Path) -> None:
     """The demo's model is written in the upright object frame: the figurine's up (the
     scene's -y, the turntable axis) is +Y, it stands on y = 0, and the glb is the OBJ
@@ -74,7 +92,7 @@ def assert_demo_model_upright(out: Path) -> None:
     up = frame.object_from_reference[:3, :3] @ [0.0, -1.0, 0.0]  # the reference: the scene's frame
     assert np.degrees(np.arccos(np.clip(up[1], -1, 1))) < 1.0
     scene_height = np.ptp(builtin_object().vertices[:, 1])
-    for mesh_file in sorted((out / "simplify").glob("*.ply")):  # within a voxel (2 mm, reduced)
+    for mesh_file in [out / "fuse" / "mesh.ply", out / "simplify" / "mesh.ply"]:  # within a voxel (2 mm, reduced)
         v = read_mesh(mesh_file).vertices
         assert abs(np.percentile(v[:, 1], 0.1)) < 2.5, mesh_file
         assert np.percentile(v[:, 1], 99.9) == pytest.approx(scene_height, rel=0.05), mesh_file
@@ -177,3 +195,39 @@ def test_a_file_a_setting_names_is_part_of_the_fingerprint(tmp_path, monkeypatch
     assert second != first
     (tmp_path / "rig.json").write_text("{}")
     assert _fingerprint(stage, Config(), {}) != second
+
+
+def test_shipped_recipes_are_found_by_name_from_any_folder(tmp_path, monkeypatch):
+    from slscan.recipe.runner import find_recipe, shipped_recipe, shipped_recipes
+
+    monkeypatch.chdir(tmp_path)  # no recipes/ here
+    assert set(shipped_recipes()) == {p.stem for p in RECIPES}
+    demo = shipped_recipe("demo")
+    assert demo.read_text() == (Path(__file__).parents[2] / "recipes" / "demo.toml").read_text()
+    for spec in ("demo", "demo.toml", "recipes/demo.toml", Path("recipes") / "demo.toml"):
+        assert find_recipe(spec) == demo, spec
+    with pytest.raises(SlscanError, match=r"nosuch: recipe not found \(slscan's own recipes, by name: .*demo"):
+        find_recipe("nosuch")
+    with pytest.raises(SlscanError, match=r"elsewhere/demo\.toml: recipe not found"):
+        find_recipe("elsewhere/demo.toml")  # a path elsewhere is that path, never a shipped recipe
+    (tmp_path / "recipes").mkdir()
+    mine = tmp_path / "recipes" / "demo.toml"
+    mine.write_text('[recipe]\nname = "mine"\nstages = ["capture"]\n')
+    assert find_recipe("recipes/demo.toml") == Path("recipes/demo.toml")  # a file here wins
+    assert load_recipe(find_recipe("recipes/demo.toml")).name == "mine"
+
+
+def test_slscan_run_takes_a_recipe_name_from_any_folder(tmp_path, monkeypatch, capsys):
+    """`slscan run demo` and `slscan run recipes/demo.toml` outside the source tree load the
+    shipped recipe (stopped here at an unknown setting, which names the file it came from)."""
+    from slscan.cli import main
+    from slscan.recipe.runner import shipped_recipe
+
+    monkeypatch.chdir(tmp_path)
+    for spec in ("demo", "recipes/demo.toml"):
+        assert main(["run", spec, "--set", "capture.no_such_setting=1", "--out", "run"]) == 2
+        err = " ".join(capsys.readouterr().err.split())
+        assert f"{shipped_recipe('demo')}: [capture]: unknown key 'no_such_setting'" in err
+    assert not (tmp_path / "run").exists()
+    assert main(["run", "nosuch", "--out", "run"]) == 2
+    assert "nosuch: recipe not found" in capsys.readouterr().err

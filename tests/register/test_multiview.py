@@ -303,3 +303,22 @@ def test_the_rim_of_a_scan_is_its_outline_and_the_edges_of_its_holes():
     expected = outline | ring(hole) | {hole} | ring(bad)  # the hole's lone vertex is on no face
     assert set(np.flatnonzero(usable_rim(scan, 0.05))) == expected
     assert bad not in expected and at[2, 1] not in expected
+
+
+def test_a_pair_matched_nowhere_is_rejected_not_averaged():
+    """A pair the joint refinement matched no sample of (fitness 0, RMS NaN) has no residual:
+    it goes to the rejected pairs, and summaries never show a NaN median."""
+    import math
+
+    from slscan.register.multiview import PairResidual, RejectedPair, _matched_pairs, median_pair_rmse
+
+    good = [PairResidual("a", "b", 0.6, 0.2, 0.2, 3.0), PairResidual("b", "c", 0.5, 0.4, 0.3, 3.0)]
+    empty = PairResidual("a", "c", 0.0, math.nan, math.nan, 3.0)
+    already = PairResidual("c", "d", 0.0, math.nan, 0.9, 3.0)
+    rejected = {("c", "d"): RejectedPair("c", "d", "overlap 3.0% < 20%", 0.03, 0.9)}
+    kept = _matched_pairs([good[0], empty, good[1], already], rejected)
+    assert kept == tuple(good)
+    assert rejected[("a", "c")].reason == "no samples matched under the final poses"
+    assert rejected[("c", "d")].reason == "overlap 3.0% < 20%"  # its own reason kept
+    assert median_pair_rmse(kept) == pytest.approx(0.3)
+    assert median_pair_rmse([empty]) is None and median_pair_rmse([]) is None

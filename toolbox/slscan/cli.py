@@ -179,8 +179,8 @@ textured model: the demo recipe (recipes/demo.toml, shipped with slscan), run ex
   lights/    the ring lights calibrated on a matte panel (lights.json)
   albedo/    the un-shaded colour of every view
   register/  the range maps aligned (aligned.mlp for MeshLab, registration.json)
-  fuse/      the fused mesh (mesh.ply)
-  simplify/  the simplified mesh (mesh.ply)
+  fuse/      the fused mesh (mesh.ply; mesh.mlp opens it in MeshLab)
+  simplify/  the simplified mesh (mesh.ply; mesh.mlp opens it in MeshLab)
   texture/   the textured model: model.glb, OBJ, PLY, model.mlp
 
 plus OUT/<stage>.stage.json and OUT/recipe.resolved.toml (the recipe as run). At the
@@ -501,9 +501,9 @@ class _StageReporter:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    from slscan.recipe.runner import load_recipe
+    from slscan.recipe.runner import find_recipe, load_recipe
 
-    recipe = load_recipe(args.recipe, overrides=args.set or [], reduced=args.reduced)
+    recipe = load_recipe(find_recipe(args.recipe), overrides=args.set or [], reduced=args.reduced)
     _run(args, recipe, args.out or Path(recipe.out or f"{recipe.name}-run"), force=args.force)
     return 0
 
@@ -531,9 +531,9 @@ def _cmd_baseline(args: argparse.Namespace) -> int:
     import shlex
 
     from slscan.recipe.regress import make_baseline
-    from slscan.recipe.runner import load_recipe
+    from slscan.recipe.runner import find_recipe, load_recipe
 
-    recipe = load_recipe(args.recipe, overrides=args.set or [], reduced=args.reduced)
+    recipe = load_recipe(find_recipe(args.recipe), overrides=args.set or [], reduced=args.reduced)
     command = shlex.join(["slscan", "baseline", str(args.recipe), *(["--reduced"] if args.reduced else []),
                           *(f"--set={s}" for s in args.set or []), "--out", str(args.out), "--overwrite"])
     make_baseline(recipe, args.out, reporter=_StageReporter(args.quiet), overwrite=args.overwrite,
@@ -822,6 +822,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_scan_command(sub)
 
+    from slscan.capture.stage_command import add_commands as add_stage_commands
+
+    add_stage_commands(sub)
+
     from slscan.decode.options import DEFAULT_ESTIMATOR, ESTIMATORS
     from slscan.viewer.recording import add_recording_arguments
 
@@ -944,11 +948,14 @@ def build_parser() -> argparse.ArgumentParser:
                     "(.NAME.partial-PID-...) are removed. "
                     "The recipe with every default filled in is written to OUT/recipe.resolved.toml.",
         epilog="stages:\n" + describe_stages() + "\n\nexamples:\n"
+               "  slscan run demo --out demo-run        # a recipe shipped with slscan, by name\n"
                "  slscan run recipes/demo.toml --out demo-run\n"
                "  slscan run recipes/paper.toml --set capture.views=4 --set decode.estimator=centroid",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("recipe", type=Path, help="recipe file (TOML), e.g. recipes/demo.toml")
+    p.add_argument("recipe", type=Path,
+                   help="recipe file (TOML), or the name of one shipped with slscan, e.g. demo "
+                        "(recipes/NAME.toml finds it from any folder too)")
     p.add_argument("--out", type=Path, help="output folder (default: the recipe's, or NAME-run)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="override a setting, e.g. capture.views=4 (repeatable)")
@@ -970,7 +977,7 @@ def build_parser() -> argparse.ArgumentParser:
                "  the stored demo baseline: see tests/data/baselines/README.md",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("recipe", type=Path, help="recipe file (TOML)")
+    p.add_argument("recipe", type=Path, help="recipe file (TOML), or the name of one shipped with slscan")
     p.add_argument("--out", required=True, type=Path, help="baseline folder to create")
     p.add_argument("--overwrite", action="store_true",
                    help="replace --out if it exists (once the new baseline is complete)")

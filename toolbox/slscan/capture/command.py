@@ -21,14 +21,15 @@ log = logging.getLogger(__name__)
 
 DESCRIPTION = """\
 Scan with a projector and a camera: every view projects white, black and the coded
-patterns (hybrid or Gray code), then switches the ring lights one at a time, and is
-written to the capture session as soon as it is complete. Between views you are asked to
+patterns (hybrid, Gray code or phase shifting), then switches the ring lights one at a
+time, and is written to the capture session as soon as it is complete. Between views you are asked to
 move the object (the virtual rig turns its turntable). After each view a quick decode
 shows its range map and its holes in Rerun, so you see what is missing before moving on.
 
 device specs:
   --projector screen[:N]   borderless full-screen window on monitor N (pip install 'slscan[screen]')
-  --camera opencv[:N]      UVC/V4L2 webcam N, or opencv:FILE for a video or image sequence
+  --camera opencv[:N]      UVC/V4L2 webcam N, or opencv:FILE for a video or image sequence;
+                           opencv:N:WIDTHxHEIGHT@FPS asks for a mode, e.g. opencv:0:1920x1080@30
   --camera gphoto2[:PORT]  tethered still camera through libgphoto2 (pip install 'slscan[gphoto2]')
   --camera folder:DIR      a folder your tethering software saves each shot to
   --camera virtual         the virtual rig (projector, camera, lights and turntable simulated)
@@ -43,6 +44,9 @@ examples:
               --calibration rig.json --lights manual --spawn
   slscan scan --projector screen:1 --camera gphoto2 --board 9x7 --square 25 --views 8 --out board
   slscan scan ... --out bust --resume        continue an interrupted scan with its next view
+  slscan scan --camera virtual --preview --preview-seconds 3     live focus, clipping and overlap; no scan
+  slscan scan --projector screen:1 --camera opencv:0:1920x1080@30 --stage serial:/dev/ttyUSB0 --preview \
+              --turntable-axis turntable.json --views 8 --out bust
 """
 
 
@@ -54,18 +58,32 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
         "scan", help="scan with a projector and a camera (real or virtual), live in Rerun",
         description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--out", type=Path, help="capture-session folder to write (not needed with --check-exposure)")
+    p.add_argument("--out", type=Path, help="capture-session folder to write (not needed with --check-exposure, "
+                   "or with --preview to preview only)")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--resume", action="store_true", help="continue the session in --out with its next view")
     dev = p.add_argument_group("devices")
     dev.add_argument("--projector", default=None, metavar="SPEC",
                      help="screen[:N] or virtual (default: virtual with --camera virtual, else screen:1)")
     dev.add_argument("--camera", default="virtual", metavar="SPEC",
-                     help="opencv[:N|:FILE], gphoto2[:PORT], folder:DIR, virtual (default) or loop")
+                     help="opencv[:N[:WxH@FPS]|:FILE], gphoto2[:PORT], folder:DIR, virtual (default) or loop")
     dev.add_argument("--lights", choices=("manual", "none", "virtual"), default=None,
                      help="ring lights for the albedo images: manual (you are asked to switch each), none; "
                           "default: virtual on the virtual rig, none on a real one")
     dev.add_argument("--light-count", type=int, default=6, help="manual lights: how many (default 6)")
+    add_stage_arguments(dev)
+    dev.add_argument("--turntable-axis", type=Path, default=None, metavar="AXIS.json",
+                     help="the turntable's axis (slscan turntable-axis): each view then records its pose, so "
+                          "registration starts from it")
+    dev.add_argument("--preview", action="store_true",
+                     help="before scanning, show the live camera in Rerun with focus, clipping and projector "
+                          "overlap (as slscan preview) until you press Enter or --preview-seconds pass")
+    dev.add_argument("--preview-seconds", type=float, default=None, metavar="S",
+                     help="with --preview: stop the preview after S seconds instead of waiting for Enter")
+    dev.add_argument("--preview-frames", type=int, default=None, metavar="N",
+                     help="with --preview: stop the preview after N refreshes")
+    dev.add_argument("--preview-period", type=int, default=4, metavar="PX",
+                     help="with --preview: the focus stripes' period, projector px (default 4: 2 px stripes)")
     pat = p.add_argument_group("patterns")
     from slscan.patterns import add_pattern_arguments
 
@@ -110,6 +128,61 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
     add_recording_arguments(p)
     p.set_defaults(func=run)
     return p
+
+
+def add_stage_arguments(p) -> None:
+    """``--stage`` and the turntable's settings (``slscan scan``, ``slscan stage``)."""
+    p.add_argument("--stage", default=None, metavar="SPEC",
+                   help="what turns the object between views: manual (you are asked; default on a real rig), "
+                        "serial:PORT[:grbl|marlin][:BAUD] (a stepper turntable speaking G-code, e.g. "
+                        "serial:/dev/ttyUSB0; pip install 'slscan[serial]'), or virtual (the virtual rig's)")
+    p.add_argument("--stage-axis", default="X", metavar="LETTER",
+                   help="the G-code axis the turntable's stepper is on (default X; A on 4-axis builds)")
+    p.add_argument("--stage-units-per-degree", type=float, default=1.0, metavar="U",
+                   help="G-code units per degree of table rotation (default 1: the firmware's steps per unit "
+                        "make one unit one degree)")
+    p.add_argument("--stage-home", action="store_true", help="home the turntable first ($H / G28)")
+    p.add_argument("--stage-sweep", type=float, default=360.0, metavar="DEG",
+                   help="the views' angles span this many degrees (default 360: a full turn in equal steps; "
+                        "less: from --stage-start to start + sweep, both included, e.g. 80 for a board)")
+    p.add_argument("--stage-start", type=float, default=0.0, metavar="DEG",
+                   help="the first view's turntable angle, degrees (default 0)")
+    p.add_argument("--stage-timeout", type=float, default=5.0, metavar="S",
+                   help="seconds the controller may take to answer a command (default 5)")
+    p.add_argument("--stage-boot", type=float, default=2.0, metavar="S",
+                   help="seconds to wait after opening the port, while the controller reboots (default 2; "
+                        "0 for a board that does not reset when the port opens)")
+
+
+def open_stage(args):
+    """The turntable of ``--stage serial:...`` opened with the ``--stage-*`` settings (and
+    ``--turntable-axis`` where the command has it)."""
+    from slscan.devices.turntable import SerialTurntable, parse_turntable_spec
+
+    spec = parse_turntable_spec(args.stage)
+    point = direction = None
+    if getattr(args, "turntable_axis", None) is not None:
+        from slscan.calibrate.turntable import load_turntable_axis
+
+        axis = load_turntable_axis(args.turntable_axis)
+        point, direction = axis.point, axis.direction
+    if not (math.isfinite(args.stage_timeout) and args.stage_timeout > 0):
+        raise SlscanError(f"--stage-timeout must be positive, got {args.stage_timeout}")
+    if not (math.isfinite(args.stage_boot) and 0 <= args.stage_boot <= 60):
+        raise SlscanError(f"--stage-boot must be in [0, 60] s, got {args.stage_boot}")
+    return SerialTurntable(spec.port, firmware=spec.firmware, baud=spec.baud, axis=args.stage_axis,
+                           units_per_degree=args.stage_units_per_degree, timeout_s=args.stage_timeout,
+                           sweep_deg=args.stage_sweep, start_deg=args.stage_start, axis_point=point,
+                           axis_direction=direction, home=args.stage_home, boot_s=args.stage_boot)
+
+
+def _stage_kind(args) -> str:
+    text = (args.stage or "").strip().lower()
+    if text in ("", "manual", "virtual"):
+        return text or "default"
+    if text.startswith("serial:"):
+        return "serial"
+    raise SlscanError(f"--stage {args.stage!r}: expected manual, virtual or serial:PORT[:grbl|marlin][:BAUD]")
 
 
 def add_placement_arguments(p: argparse.ArgumentParser) -> None:
@@ -221,7 +294,9 @@ def _open_rig(args, camera_spec, projector_spec) -> _Rig:
     from slscan.capture.driver import ScanDevices
     from slscan.devices.base import NoLights
     from slscan.devices.specs import SIMULATED_CAMERAS, open_camera, open_projector
+    from slscan.devices.turntable import view_angles
     from slscan.virtual.device import VirtualCaptureConfig, scan_devices, virtual_devices
+    from slscan.virtual.devices import turntable_pose
     from slscan.virtual.sensor import Sensor
 
     board = _board(args)
@@ -236,14 +311,31 @@ def _open_rig(args, camera_spec, projector_spec) -> _Rig:
             scene=args.scene, camera_scale=args.scale, projector_scale=args.scale, seed=args.seed,
             lit_images=board is None, sensor=Sensor(exposure=args.exposure), **placement_settings(args),
         )
-        scene = poses = None
+        if _stage_kind(args) in ("serial", "manual"):
+            raise SlscanError(f"--stage {args.stage}: the virtual rig turns its own turntable (--stage virtual)")
+        if args.turntable_axis is not None:
+            raise SlscanError("--turntable-axis is for a real turntable: the virtual rig records its true poses")
+        scene = poses = angles = None
+        turned = args.stage_sweep != 360.0 or args.stage_start != 0.0
         if board is not None:
             from slscan.virtual.boards import board_poses, board_scene, default_edge_sigma
 
             rig = config.rig()
             scene = board_scene(board, edge_sigma=default_edge_sigma(rig))
-            poses = board_poses(rig, board, args.views)
+            if turned:  # the board stands on the turntable: captures for slscan turntable-axis
+                from slscan.calibrate.turntable import board_on_turntable
+
+                angles = view_angles(args.views, sweep_deg=args.stage_sweep, start_deg=args.stage_start)
+                poses = [turntable_pose(rig, a, board_on_turntable(board)) for a in angles]
+            else:
+                poses = board_poses(rig, board, args.views)
+        elif turned:
+            rig = config.rig()
+            scene = config.build_scene()
+            angles = view_angles(args.views, sweep_deg=args.stage_sweep, start_deg=args.stage_start)
+            poses = [turntable_pose(rig, a, scene.placement) for a in angles]
         world = virtual_devices(config, scene=scene, poses=poses, latency_s=args.latency)
+        world.turntable_angles = angles
         lens = world.rig.projector.lens
         patterns = _pattern_set(args, lens.width, lens.height)
         if camera_spec.kind == "virtual":
@@ -280,16 +372,29 @@ def _open_rig(args, camera_spec, projector_spec) -> _Rig:
             raise SlscanError(f"{option} is for the virtual rig (--camera virtual or loop); a real rig's geometry "
                               "comes from --calibration")
 
-    projector = open_projector(projector_spec or _default_projector())
-    opened = [projector]
+    projector_spec = projector_spec or _default_projector()
+    if projector_spec.kind != "screen":
+        open_projector(projector_spec)  # refuses it, naming the real ones, before anything opens
+    camera = open_camera(camera_spec)  # before the projector: a missing camera is reported before a window opens
+    opened = [camera]
     try:
-        camera = open_camera(camera_spec)
-        opened.append(camera)
+        projector = open_projector(projector_spec)
+        opened.append(projector)
         lights_kind = args.lights or "none"
         if lights_kind == "virtual":
             raise SlscanError("--lights virtual needs the virtual rig (--camera virtual)")
         lights = ManualLights(args.light_count) if lights_kind == "manual" and board is None else NoLights()
-        devices = ScanDevices(projector, camera, lights, FirstViewInPlace(ManualStage()))
+        kind = _stage_kind(args)
+        if kind == "virtual":
+            raise SlscanError("--stage virtual is the virtual rig's turntable (--camera virtual)")
+        if kind == "serial":
+            stage = open_stage(args)
+        else:
+            if args.turntable_axis is not None:
+                raise SlscanError("--turntable-axis needs a turntable: give --stage serial:PORT")
+            stage = FirstViewInPlace(ManualStage())
+        opened.append(stage)
+        devices = ScanDevices(projector, camera, lights, stage)
         w, h = projector.resolution
         patterns = _pattern_set(args, w, h)
         calibration = measured = camera_model = None
@@ -456,6 +561,60 @@ def _settle(args, rig: _Rig, rec) -> float:
     return latency.settle_s
 
 
+def _preview(args, rig: _Rig, settle: float, rec, *, then_scan: bool) -> None:
+    """The live preview (focus, clipping, overlap) until Enter, --preview-seconds or
+    --preview-frames; one line per refresh on the terminal, everything in Rerun."""
+    import sys
+    import threading
+
+    from slscan.capture.preview import run_preview
+    from slscan.viewer.log_preview import log_preview
+
+    seconds, frames = args.preview_seconds, args.preview_frames
+    if seconds is not None and not (math.isfinite(seconds) and seconds >= 0):
+        raise SlscanError(f"--preview-seconds must be a number of seconds >= 0, got {seconds}")
+    if frames is not None and frames < 1:
+        raise SlscanError(f"--preview-frames must be at least 1, got {frames}")
+    stop = None
+    if seconds is None and frames is None:
+        if sys.stdin is None or not sys.stdin.isatty():
+            raise SlscanError("--preview waits for Enter from an operator at a terminal: give --preview-seconds N "
+                              "or --preview-frames N to preview without one")
+        pressed = threading.Event()
+
+        def wait_for_enter() -> None:
+            try:
+                sys.stdin.readline()
+            finally:
+                pressed.set()
+
+        threading.Thread(target=wait_for_enter, daemon=True).start()
+        stop = pressed.is_set
+    console = _console()
+    until = "press Enter to " + ("start the scan" if then_scan else "stop") if stop is not None else (
+        f"for {seconds:g} s" if seconds is not None else f"{frames} refresh(es)")
+    console.print(f"[cyan]preview[/] ({until}): turn the focus ring for the highest focus; keep clipped near 0 %",
+                  highlight=False)
+
+    def show(index: int, measures) -> None:
+        log_preview(rec, index, measures)
+        console.print(f"[cyan]preview {index + 1}[/] {measures.line()}", highlight=False)
+
+    if rec is not None and then_scan:  # the preview's layout while it runs, then the scan's
+        from slscan.viewer.log_preview import preview_blueprint
+
+        rec.send_blueprint(preview_blueprint(), make_active=True, make_default=False)
+    try:
+        run_preview(rig.devices.projector, rig.devices.camera, seconds=seconds, frames=frames, stop=stop,
+                    on_measures=show, period_px=args.preview_period, settle_s=settle)
+    except DeviceError as exc:
+        raise SlscanError(f"preview: {exc}") from None
+    if rec is not None and then_scan:
+        from slscan.viewer.log_scan import scan_blueprint
+
+        rec.send_blueprint(scan_blueprint(), make_active=True, make_default=False)
+
+
 def _exposure(args, rig: _Rig, settle: float, rec) -> None:
     from rich.table import Table
 
@@ -483,8 +642,11 @@ def run(args: argparse.Namespace) -> int:
     from slscan.viewer.log_scan import frame_logger
     from slscan.viewer.recording import recording_from_args
 
-    if args.out is None and not args.check_exposure:
+    if args.out is None and not (args.check_exposure or args.preview):
         raise SlscanError("--out: name the capture-session folder to write")
+    preview_only = args.preview and args.out is None and not args.check_exposure
+    if not args.preview and (args.preview_seconds is not None or args.preview_frames is not None):
+        raise SlscanError("--preview-seconds and --preview-frames go with --preview")
     if args.out is None:
         args.out = Path("check-exposure")  # never written
     if args.views < 1:
@@ -504,12 +666,22 @@ def run(args: argparse.Namespace) -> int:
     rig = _open_rig(args, camera_spec, projector_spec)
     devices = rig.devices
     try:
-        with recording_from_args(args, recording_name=f"scan {args.out.name}", blueprint=scan_blueprint()) as rec:
+        if preview_only:
+            from slscan.viewer.log_preview import preview_blueprint
+
+            layout, name = preview_blueprint(), "preview"
+        else:
+            layout, name = scan_blueprint(), f"scan {args.out.name}"
+        with recording_from_args(args, recording_name=name, blueprint=layout) as rec:
             if rig.calibration is not None:
                 log_rig(rec, rig.calibration)
             if rig.world is not None:
                 devices.stage.move_to(0, args.views)  # the object in view for latency and exposure
             settle = _settle(args, rig, rec)
+            if args.preview:
+                _preview(args, rig, settle, rec, then_scan=not preview_only)
+                if preview_only:
+                    return 0
             if args.check_exposure or args.auto_exposure:
                 if args.check_exposure:
                     from slscan.capture.driver import find_exposure

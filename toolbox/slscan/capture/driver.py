@@ -177,7 +177,7 @@ class _Shooter:
         self.previous: np.ndarray | None = None
 
     def shoot(self, light_change: Callable[[], None], timing: ViewTiming, where: str,
-              *, identical_only: bool = False) -> np.ndarray:
+              *, identical_only: bool = False, label: str = "") -> np.ndarray:
         cam = self.devices.camera
         t = time.perf_counter()
         light_change()
@@ -190,6 +190,8 @@ class _Shooter:
             timing.settle += time.perf_counter() - t
             t = time.perf_counter()
             cam.flush()
+            if label:
+                cam.about_to_capture(label if attempt == 0 else f"{label} again")
             image = _check_frame(cam.capture(), cam, where)
             timing.capture += time.perf_counter() - t
             if self.plan.stale_retries == 0 or not is_stale(self.previous, image, identical_only=identical_only):
@@ -278,13 +280,14 @@ def scan(
                 lights.all_off()
                 if plan.reference_frame and plan.stale_retries:
                     shooter.shoot(proj.blank, timing, f"{name} reference frame (projector dark)",
-                                  identical_only=True)
+                                  identical_only=True, label=f"view {v + 1}, reference frame (projector dark)")
                 pattern_exposure = None  # what the lit images' exposure replaced, to restore exactly
                 for frame_index, record in enumerate(records):
                     where = f"{name} image {record.file}"
+                    label = f"view {v + 1}, frame {frame_index + 1} ({_frame_label(record)})"
                     if record.kind == "pattern":
                         shown = images[frame_index]
-                        image = shooter.shoot(lambda img=shown: proj.show(img), timing, where)
+                        image = shooter.shoot(lambda img=shown: proj.show(img), timing, where, label=label)
                     else:
                         shown = None
                         if record.light == 0:
@@ -296,7 +299,7 @@ def scan(
                                 lights.switch(k - 1, False)
                             lights.switch(k, True)
 
-                        image = shooter.shoot(switch, timing, where, identical_only=True)
+                        image = shooter.shoot(switch, timing, where, identical_only=True, label=label)
                     t = time.perf_counter()
                     writer.write_image(name, record, image)
                     timing.write += time.perf_counter() - t
@@ -316,7 +319,7 @@ def scan(
                     gt_file = "ground_truth.npz"
                     gt.save(writer.view_folder(name) / gt_file)
                 record = ViewRecord(name, tuple(records), placement.rig_from_object, placement.pose_source,
-                                    exposure, gt_file)
+                                    exposure, gt_file, placement.turntable_deg)
                 t = time.perf_counter()
                 writer.add_view(record)
                 timing.write += time.perf_counter() - t
@@ -333,6 +336,12 @@ def scan(
                 after_view(v, record, writer.session())
         proj.blank()
     return ScanResult(writer.session(), tuple(timings), done)
+
+
+def _frame_label(record: ImageRecord) -> str:
+    """What a frame shows, for the operator: the pattern's id ("white", "gray-col-3") or
+    "ring light 2 on" (numbered from 1)."""
+    return record.pattern if record.kind == "pattern" else f"ring light {record.light + 1} on"
 
 
 def capture_records(patterns, n_lights: int, *, jpeg: bool = False) -> list[ImageRecord]:
@@ -519,13 +528,14 @@ def find_exposure(
 
     def measure() -> ExposureTrial:
         shots = []
-        for img in (None, white_img, lines_img):
+        for name, img in (("black", None), ("white", white_img), ("finest pattern", lines_img)):
             if img is None and shots:
                 continue
             projector.blank() if img is None else projector.show(img)
             if settle_s:
                 time.sleep(settle_s)
             camera.flush()
+            camera.about_to_capture(f"exposure check, {name}")
             shots.append(camera.capture().image)
         dark, white = shots[0], shots[1]
         lines = shots[2] if len(shots) > 2 else None

@@ -85,6 +85,8 @@ class ViewRecord:
     pose_source : e.g. "ground-truth" (virtual rig), "turntable", or None
     exposure : free-form capture settings (exposure time factor, gain, ...)
     ground_truth : name of the view's ground-truth file, or None
+    turntable_deg : the angle a turntable stage was turned to for this view (degrees, the
+        controller's own zero), or None (no turntable)
     """
 
     name: str
@@ -93,6 +95,7 @@ class ViewRecord:
     pose_source: str | None = None
     exposure: dict = field(default_factory=dict)
     ground_truth: str | None = None
+    turntable_deg: float | None = None
 
     def pattern_images(self) -> list[ImageRecord]:
         return [r for r in self.images if r.kind == "pattern"]
@@ -113,8 +116,17 @@ class ViewRecord:
             "pose_source": self.pose_source,
             "exposure": self.exposure,
             "ground_truth": self.ground_truth,
+            **({} if self.turntable_deg is None else {"turntable_deg": self.turntable_deg}),
             "images": [r.to_dict() for r in self.images],
         }
+
+
+def _turntable_deg(value, where: str) -> float | None:
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
+        raise SlscanError(f"{where}: turntable_deg must be a number of degrees, got {value!r}")
+    return float(value)
 
 
 @dataclass(frozen=True)
@@ -574,6 +586,7 @@ def load_session(path: str | os.PathLike, *, validate: bool = True) -> Session:
                     v["name"], images,
                     None if pose is None else _as_pose(pose, f"{meta_path}: view {v['name']} pose"),
                     v.get("pose_source"), v.get("exposure", {}), v.get("ground_truth"),
+                    _turntable_deg(v.get("turntable_deg"), f"{meta_path}: view {v['name']}"),
                 )
             )
         session = Session(

@@ -163,6 +163,12 @@ class Camera(Device):
     def flush(self) -> None:
         """Discard frames buffered before now (called after every pattern change)."""
 
+    def about_to_capture(self, label: str) -> None:
+        """Called by the driver just before each :meth:`capture`, with what the frame is for,
+        as an operator reads it (e.g. ``"view 3, frame 5 (white)"``, numbered from 1). A
+        camera that someone else triggers (a watch folder) asks for the shot here; the
+        default does nothing."""
+
     @abc.abstractmethod
     def capture(self) -> Frame:
         """Expose and read one frame, taken after this call started."""
@@ -204,10 +210,12 @@ class Placement:
 
     rig_from_object : (4, 4) mm, or None when unknown (a hand-placed object)
     pose_source : how the pose is known, e.g. "ground-truth", "turntable", or None
+    turntable_deg : the angle a turntable was turned to (degrees), or None
     """
 
     rig_from_object: np.ndarray | None = None
     pose_source: str | None = None
+    turntable_deg: float | None = None
 
 
 class Stage(Device):

@@ -12,6 +12,11 @@ returned one per capture in modification-time order (then by name); ``metadata["
 says how many more were waiting. :meth:`FolderCamera.flush` discards nothing: every file in
 the folder is a shot someone took on purpose.
 
+Someone else presses the shutter, so before every capture the camera asks for the shot:
+:meth:`FolderCamera.about_to_capture` rings the terminal bell and writes one line to
+stderr, e.g. ``shoot view 3, frame 5 (white) now`` (``prompt=`` replaces it, e.g. with a
+remote trigger).
+
 The user's files are only read, never moved, changed or deleted.
 """
 
@@ -20,7 +25,9 @@ from __future__ import annotations
 import fnmatch
 import logging
 import os
+import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -36,6 +43,15 @@ log = logging.getLogger(__name__)
 IMAGE_PATTERNS = ("*.jpg", "*.jpeg", "*.png", "*.tif", "*.tiff")
 _PNG_END = b"IEND\xaeB`\x82"
 _JPEG_END = b"\xff\xd9"
+
+
+def bell_prompt(message: str) -> None:
+    """Ring the terminal bell and write ``message`` as one line to stderr (the default
+    prompt of :class:`FolderCamera`: it does not wait, the new file is the answer)."""
+    stream = sys.stderr
+    if stream is not None:
+        stream.write(f"\a{message}\n")
+        stream.flush()
 
 
 @dataclass
@@ -79,6 +95,9 @@ class FolderCamera(Camera):
     poll_s : how often the folder is looked at (s)
     resolution : (width, height) px the images must have; by default that of the newest image
         already in the folder (e.g. a test shot), else of the first captured image
+    prompt : asks for each shot with a message such as ``"shoot view 3, frame 5 (white) now"``
+        (default :func:`bell_prompt`: bell and a line on stderr); None in ``prompt=`` keeps
+        the default, ``prompt=False`` asks nothing (a camera on an automatic trigger)
     """
 
     def __init__(
@@ -90,8 +109,10 @@ class FolderCamera(Camera):
         stable_s: float = 0.3,
         poll_s: float = 0.05,
         resolution: tuple[int, int] | None = None,
+        prompt: Callable[[str], None] | None | bool = None,
     ) -> None:
         self.folder = Path(folder)
+        self._prompt = None if prompt is False else (bell_prompt if prompt in (None, True) else prompt)
         self.name = f"folder camera {self.folder}"
         if not self.folder.is_dir():
             raise DeviceError(f"{self.name}: not a folder")
@@ -122,6 +143,11 @@ class FolderCamera(Camera):
     @property
     def bit_depth(self) -> int:
         return 16 if self._dtype == np.uint16 else 8
+
+    def about_to_capture(self, label: str) -> None:
+        """Ask for the shot: ``shoot {label} now`` through the prompt (bell + stderr line)."""
+        if self._prompt is not None:
+            self._prompt(f"shoot {label} now")
 
     def capture(self) -> Frame:
         """Wait for the next new, completely written image; return it as (h, w, 3) RGB with

@@ -1,10 +1,13 @@
 """Webcams and video sources through OpenCV's ``VideoCapture``: UVC/V4L2 webcams, video
 files, image sequences and network streams as a :class:`~slscan.devices.base.Camera`.
 
-Sources (``slscan scan --camera opencv[:N|:SOURCE]``):
+Sources (``slscan scan --camera opencv[:N|:SOURCE][:WIDTHxHEIGHT][@FPS]``):
 
 - an ``int`` N: the webcam ``/dev/videoN`` through V4L2 on Linux (OpenCV's default
   back-end elsewhere);
+- a mode after the webcam, e.g. ``opencv:0:1920x1080@30``: the frame size and rate asked
+  of the driver (``CAP_PROP_FRAME_WIDTH``/``HEIGHT``/``FPS``), refused when the camera
+  delivers another (:func:`slscan.devices.specs.split_webcam_mode`);
 - a ``str``: anything OpenCV opens, e.g. ``/dev/video2``, ``scan.avi``, an image sequence
   ``frames/%03d.png`` (read exactly, frame by frame, 16-bit PNG/TIFF kept as uint16) or a
   stream URL ``rtsp://...``.
@@ -115,6 +118,8 @@ class OpenCVCamera(Camera):
     source : webcam index N (``/dev/videoN``) or any OpenCV source string
         (``/dev/video2``, ``scan.avi``, ``frames/%03d.png``, ``rtsp://...``)
     width, height : ask the webcam for this frame size (px); an error if it delivers another
+    fps : ask the webcam for this frame rate (frames per second); an error if the driver
+        reports another (within 0.5 fps), a warning if it reports none
     exposure, gain : set at open, in the driver's units (see the module docstring)
     flush_frames : frames :meth:`flush` discards (the driver's buffer depth, or more)
     timeout_s : read timeout asked of the back-end (V4L2 and FFmpeg streams honour it)
@@ -129,6 +134,7 @@ class OpenCVCamera(Camera):
         *,
         width: int | None = None,
         height: int | None = None,
+        fps: float | None = None,
         exposure: float | None = None,
         gain: float | None = None,
         flush_frames: int = 4,
@@ -150,6 +156,8 @@ class OpenCVCamera(Camera):
         self._cap = self._open()
         try:
             self._configure(width, height, exposure, gain)
+            if fps is not None:
+                self._set_fps(float(fps))
             first = self._read("reading its first frame")
             if not self._live:
                 self._cap.release()
@@ -267,6 +275,24 @@ class OpenCVCamera(Camera):
         not_done = [k for k, v in s.items() if v is False]
         if not_done:
             log.info("%s: the driver did not take %s", self.name, ", ".join(not_done))
+
+    def _set_fps(self, fps: float) -> None:
+        """Ask for ``fps`` frames per second; refuse a rate the driver reports it did not take."""
+        cap = self._require_open()
+        if not self._live:
+            raise DeviceError(f"{self.name}: a file or image sequence has no frame rate to set")
+        cap.set(cv2.CAP_PROP_FPS, fps)
+        got = float(cap.get(cv2.CAP_PROP_FPS))
+        if got <= 0:
+            log.warning("%s: asked for %g fps; the driver does not say which rate it took", self.name, fps)
+            self._settings["fps_asked"] = fps
+            return
+        if abs(got - fps) > 0.5:
+            raise DeviceError(
+                f"{self.name}: asked for {fps:g} fps, the driver set {got:g} fps "
+                "(pick one of its modes: v4l2-ctl --list-formats-ext)"
+            )
+        self._settings["fps"] = got
 
     def _find_ranges(self) -> dict[str, tuple[float, float]]:
         ranges: dict[str, tuple[float, float]] = {}

@@ -332,8 +332,7 @@ def _flag(fam: Family, opt: Option) -> str:
 def add_pattern_arguments(parser, *, flag: str = "--patterns", default: str = "hybrid") -> None:
     """Add the pattern-set choice (``flag``) and every family's options (:class:`Option`)
     to an ``argparse`` parser; :func:`pattern_options` reads the options back."""
-    summaries = "; ".join(f"{name}: {fam.summary}" for fam in families() for name in fam.sets
-                          if name == fam.name or name == "xor")
+    summaries = "; ".join(f"{fam.name}: {fam.summary}" for fam in families())
     parser.add_argument(
         flag, type=pattern_set_name, default=default, metavar="SET",
         help=f"coded patterns after white and black (default: {default}): {', '.join(set_names())}, or "

@@ -7,7 +7,8 @@ check every stage of it, and nothing that can be recomputed and is not compared:
   capture session (``capture/``: images re-encoded losslessly, without the virtual rig's
   ground truth) and the ring-light calibration (``lights/lights.json``);
 - for every later stage the **references** it is compared with, small and in open
-  formats: range maps and meshes as geometry-only binary PLY, the registration's poses
+  formats: the calibration (``calibration.json``), range maps and meshes as geometry-only
+  binary PLY, the registration's poses
   (``registration.json``), the albedo images, the textured model as a PLY with per-vertex
   texture coordinates beside its atlas PNG (opens textured in MeshLab);
 - ``recipe.resolved.toml`` and ``baseline.json``: the stages' metrics, the tolerances,
@@ -18,6 +19,9 @@ check every stage of it, and nothing that can be recomputed and is not compared:
 :func:`compare` checks it stage by stage against the tolerances in ``baseline.json``
 (defaults: :class:`Tolerances`):
 
+- calibrate: the board calibrated with, the camera's and the projector's intrinsics and
+  distortion, the projector's pose (inverse camera), the light-plane model and its planes
+  (largest angle and change of distance from the camera centre), and every residual;
 - decode: each range map's symmetric surface distance (mean, p95) and its metrics;
 - albedo: each view's PSNR over the pixels valid in both, and the overlap (IoU) of the
   valid masks;
@@ -142,6 +146,17 @@ class Tolerances:
     filled_psnr_db: float = 25.0
     """Texture: least PSNR where either model's colour was filled in from the vertices
     (no view saw it there): the fill follows the atlas layout."""
+    calibration_px: float = 0.05
+    """Calibration: camera and projector intrinsics (focal lengths, principal point) and the
+    light-plane model's ``fx``, ``cx`` (px)."""
+    calibration_distortion: float = 1e-3
+    """Calibration: each lens distortion coefficient (absolute)."""
+    calibration_deg: float = 0.01
+    """Calibration: the projector's rotation (inverse camera, light-plane model) and the
+    largest angle between corresponding light planes (degrees)."""
+    calibration_mm: float = 0.05
+    """Calibration: the projector's position (inverse camera, light-plane model) and the
+    largest change of a light plane's distance from the camera centre (mm)."""
 
     @classmethod
     def from_json(cls, data: dict[str, Any] | None, where: str) -> Tolerances:
@@ -466,6 +481,126 @@ def _compare_mesh(stage: Stage, old: Path, new: Path, tol: Tolerances, ref: dict
     ]
 
 
+CALIBRATION = "calibration.json"
+PLANE_COLUMNS = 33
+"""Projector columns (evenly spaced, both edges included) at which light planes are compared."""
+
+
+def _store_calibration(run: Path, dest: Path) -> dict[str, Any]:
+    from slscan.calibrate.io import load_calibration
+
+    load_calibration(run / CALIBRATION)  # a calibration this slscan reads back
+    dest.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(run / CALIBRATION, dest / CALIBRATION)
+    return {}
+
+
+def _rotation_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """Angle (degrees) of the rotation between the rotation parts of poses ``a`` and ``b``."""
+    cos = (np.trace(np.asarray(b)[:3, :3] @ np.asarray(a)[:3, :3].T) - 1.0) / 2.0
+    return math.degrees(math.acos(float(np.clip(cos, -1.0, 1.0))))
+
+
+def _lens_checks(stage: str, what: str, a, b, tol: Tolerances) -> list[Check]:
+    """A lens (:class:`slscan.rig.PinholeModel`): size equal, intrinsics in px, distortion."""
+    if (a.width, a.height) != (b.width, b.height):
+        return [Check(stage, f"{what} size", f"{a.width}x{a.height}", f"{b.width}x{b.height}", "equal", False)]
+    checks = [
+        _at_most(stage, f"{what} {name} px", abs(getattr(b, name) - getattr(a, name)), tol.calibration_px)
+        for name in ("fx", "fy", "cx", "cy")
+    ]
+    checks.append(_at_most(stage, f"{what} distortion", float(np.max(np.abs(np.subtract(b.dist, a.dist)))),
+                           tol.calibration_distortion))
+    return checks
+
+
+def _pose_checks(stage: str, what: str, a: np.ndarray, b: np.ndarray, tol: Tolerances) -> list[Check]:
+    return [
+        _at_most(stage, f"{what} rotation deg", _rotation_deg(a, b), tol.calibration_deg),
+        _at_most(stage, f"{what} position mm",
+                 float(np.linalg.norm(np.asarray(b)[:3, 3] - np.asarray(a)[:3, 3])), tol.calibration_mm),
+    ]
+
+
+def _plane_checks(stage: str, a, b, tol: Tolerances) -> list[Check]:
+    """The light-plane models: their parameters, then the planes themselves at
+    :data:`PLANE_COLUMNS` columns: the largest angle between corresponding planes and the
+    largest change of their distance from the camera centre (the rig origin)."""
+    if a.width != b.width:
+        return [Check(stage, "light planes width px", a.width, b.width, "equal", False)]
+    columns = np.linspace(0.0, a.width - 1.0, PLANE_COLUMNS)
+    pa, pb = a.planes(columns), b.planes(columns)
+    pb = pb * np.where(np.einsum("ij,ij->i", pa[:, :3], pb[:, :3]) < 0, -1.0, 1.0)[:, None]
+    cos = np.clip(np.einsum("ij,ij->i", pa[:, :3], pb[:, :3]), -1.0, 1.0)
+    return [
+        _at_most(stage, "light planes fx px", abs(b.fx - a.fx), tol.calibration_px),
+        _at_most(stage, "light planes cx px", abs(b.cx - a.cx), tol.calibration_px),
+        *_pose_checks(stage, "light planes centre", a.rig_from_projector, b.rig_from_projector, tol),
+        _at_most(stage, "light planes angle deg", float(np.degrees(np.arccos(cos)).max()),
+                 tol.calibration_deg),
+        _at_most(stage, "light planes offset mm", float(np.abs(pb[:, 3] - pa[:, 3]).max()),
+                 tol.calibration_mm),
+    ]
+
+
+def _residual_numbers(value: Any, prefix: str = "") -> dict[str, float]:
+    """The numbers of a calibration's ``residuals`` by path (``camera/rms_px``,
+    ``inverse_camera/views/2/projector_rms_px``); lists of rejected views by their count;
+    names and other text left out (a view's file name holds the run's folder)."""
+    out: dict[str, float] = {}
+    if isinstance(value, dict):
+        for key, item in value.items():
+            if key == "rejected" and isinstance(item, list):
+                out[f"{prefix}{key} count"] = float(len(item))
+            else:
+                out.update(_residual_numbers(item, f"{prefix}{key}/"))
+    elif isinstance(value, list):
+        for k, item in enumerate(value):
+            out.update(_residual_numbers(item, f"{prefix}{k}/"))
+    elif isinstance(value, (int, float)) and not isinstance(value, bool):
+        out[prefix.rstrip("/")] = float(value)
+    return out
+
+
+def _compare_calibration(stage: Stage, old: Path, new: Path, tol: Tolerances, ref: dict) -> list[Check]:
+    """Camera and projector (inverse camera and light-plane model), and the residuals."""
+    from slscan.calibrate.io import load_calibration
+
+    if not (old / CALIBRATION).is_file():
+        return [Check(stage.name, f"{CALIBRATION} in the baseline", "missing", "", "present", False)]
+    if not (new / CALIBRATION).is_file():
+        return [_missing(stage.name, CALIBRATION)]
+    a, b = load_calibration(old / CALIBRATION), load_calibration(new / CALIBRATION)
+    name = stage.name
+    board_a = None if a.board is None else a.board.to_dict()
+    board_b = None if b.board is None else b.board.to_dict()
+    checks = [
+        Check(name, "board", _board_text(board_a), _board_text(board_b), "equal", board_a == board_b),
+        Check(name, "models", "+".join(a.methods) or "none", "+".join(b.methods) or "none", "equal",
+              a.methods == b.methods),
+        *_lens_checks(name, "camera", a.camera, b.camera, tol),
+    ]
+    if a.projector is not None and b.projector is not None:
+        checks += _lens_checks(name, "projector", a.projector.lens, b.projector.lens, tol)
+        checks += _pose_checks(name, "projector", a.projector.rig_from_projector,
+                               b.projector.rig_from_projector, tol)
+    if a.light_planes is not None and b.light_planes is not None:
+        checks += _plane_checks(name, a.light_planes, b.light_planes, tol)
+    if a.raw_planes is not None or b.raw_planes is not None:
+        checks.append(_count(name, "raw light planes", 0 if a.raw_planes is None else len(a.raw_planes),
+                             0 if b.raw_planes is None else len(b.raw_planes), tol.count))
+    ra, rb = _residual_numbers(a.residuals), _residual_numbers(b.residuals)
+    checks += _metric_checks({f"{name}/residuals {k}": v for k, v in ra.items()},
+                             {f"{name}/residuals {k}": v for k, v in rb.items()}, tol)
+    return checks
+
+
+def _board_text(board: dict | None) -> str:
+    if board is None:
+        return "unknown"
+    return f"{board.get('kind')} {board.get('columns')}x{board.get('rows')}, {board.get('square')} mm"
+
+
 MODEL = "model.ply"
 MODEL_TEXTURE = "model_albedo.png"
 MODEL_SEEN = "view_count.png"
@@ -511,6 +646,7 @@ STORE: dict[str, Store] = {
     "lights": _store_json_files,
     "range_maps": _store_range_maps,
     "albedo": _store_albedo,
+    "calibration": _store_calibration,
     "aligned": _store_registration,
     "mesh": _store_mesh,
     "model": _store_model,
@@ -519,6 +655,7 @@ STORE: dict[str, Store] = {
 COMPARE: dict[str, Compare] = {
     "range_maps": _compare_range_maps,
     "albedo": _compare_albedo,
+    "calibration": _compare_calibration,
     "aligned": _compare_registration,
     "mesh": _compare_mesh,
     "model": _compare_model,

@@ -163,6 +163,45 @@ def shipped_recipe(name: str) -> Path:
     return path
 
 
+def shipped_recipes() -> list[str]:
+    """Names of the recipes that ship with slscan (``demo``, ``paper``, ...), sorted."""
+    try:
+        folder = shipped_recipe("demo").parent
+    except SlscanError:
+        return []
+    return sorted(p.stem for p in folder.glob("*.toml"))
+
+
+def find_recipe(spec: str | os.PathLike) -> Path:
+    """The recipe file ``spec`` names, from any current folder.
+
+    An existing file is itself. Otherwise a bare name (``demo``, ``demo.toml``) or a path
+    into a ``recipes/`` folder that is not here (``recipes/demo.toml``, as the examples
+    write it, run outside the source tree) is the recipe shipped with slscan of that name
+    (:func:`shipped_recipe`).
+
+    Raises
+    ------
+    SlscanError
+        Neither a file nor a shipped recipe; the message lists the shipped ones.
+    """
+    path = Path(spec)
+    if path.is_file():
+        return path
+    if path.is_dir():
+        raise SlscanError(f"{path}: is a folder; expected a recipe file (TOML) or a recipe's name")
+    parts = path.parts
+    by_name = not path.is_absolute() and (
+        len(parts) == 1 or (len(parts) == 2 and parts[0] == "recipes")
+    ) and path.suffix in ("", ".toml")
+    names = shipped_recipes()
+    stem = path.name[: -len(".toml")] if path.suffix == ".toml" else path.name
+    if by_name and stem in names:
+        return shipped_recipe(stem)
+    shipped = f" (slscan's own recipes, by name: {', '.join(names)})" if names else ""
+    raise SlscanError(f"{path}: recipe not found{shipped}")
+
+
 def _fingerprint(stage: Stage, config: Any, inputs: dict[str, str]) -> str:
     mapping = to_mapping(config)
     blob = json.dumps({"stage": stage.name, "config": mapping, "inputs": inputs,

@@ -204,7 +204,7 @@ class SimplifyConfig:
 
 def _run_register(ctx: StageContext, config: RegisterConfig) -> dict[str, Any]:
     from slscan.register.command import load_poses, load_scans, save_registration
-    from slscan.register.multiview import register_scans
+    from slscan.register.multiview import median_pair_rmse, register_scans
 
     if config.max_neighbours < 0:
         raise SlscanError(f"register.max_neighbours: expected >= 0 (0: every candidate pair), "
@@ -233,15 +233,15 @@ def _run_register(ctx: StageContext, config: RegisterConfig) -> dict[str, Any]:
     result, frame = to_object_frame(scans, result)
     rlog.log_registration_result(ctx.rec, result)
     save_registration(ctx.out, scans, result, overwrite=True, frame=frame)
-    rmse = [p.rmse for p in result.pairs]
+    median = median_pair_rmse(result.pairs)
     return {"aligned": len(result.poses), "left_out": len(result.left_out), "up_from": frame.up_from,
-            "median_pair_rmse_mm": round(float(np.median(rmse)), 4) if rmse else None}
+            "median_pair_rmse_mm": None if median is None else round(median, 4)}
 
 
 def _run_fuse(ctx: StageContext, config) -> dict[str, Any]:
     from slscan.fsio import atomic_output_dir
     from slscan.fuse import fuse_scans, write_mesh
-    from slscan.register.meshlab import load_scan_project
+    from slscan.register.meshlab import load_scan_project, write_mesh_project
 
     scans, poses = load_scan_project(ctx.inputs["aligned"] / "aligned.mlp")
     from slscan.viewer.log_register import log_fused_mesh
@@ -249,17 +249,20 @@ def _run_fuse(ctx: StageContext, config) -> dict[str, Any]:
     result = fuse_scans(scans, poses, config=config, progress=ctx.progress)
     with atomic_output_dir(ctx.out, overwrite=True) as tmp:
         write_mesh(result.mesh, tmp / "mesh.ply")
+        write_mesh_project(tmp / "mesh.ply")  # mesh.mlp: MeshLab opens the model upright
     log_fused_mesh(ctx.rec, result.mesh)
     return {"faces": len(result.mesh.faces), "vertices": len(result.mesh.vertices)}
 
 
 def _run_simplify(ctx: StageContext, config: SimplifyConfig) -> dict[str, Any]:
     from slscan.fsio import atomic_output_dir
+    from slscan.register.meshlab import write_mesh_project
     from slscan.simplify import simplify_file
 
     with atomic_output_dir(ctx.out, overwrite=True) as tmp:
         mesh = simplify_file(ctx.inputs["mesh"] / "mesh.ply", tmp / "mesh.ply", config.faces,
                              method=config.method, preserve_boundary=config.preserve_boundary)
+        write_mesh_project(tmp / "mesh.ply")  # mesh.mlp: MeshLab opens the model upright
     from slscan.viewer.log_register import log_simplified_mesh
 
     log_simplified_mesh(ctx.rec, mesh)

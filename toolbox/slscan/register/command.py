@@ -146,7 +146,7 @@ def save_registration(folder: Path, scans, result, *, overwrite: bool = False, f
 
 def _cmd_register(args: argparse.Namespace) -> int:
     from slscan.register.frame import preview_frame, to_object_frame
-    from slscan.register.multiview import MultiviewConfig, register_scans
+    from slscan.register.multiview import MultiviewConfig, median_pair_rmse, register_scans
     from slscan.viewer import log_register as rlog
     from slscan.viewer.recording import recording_from_args
 
@@ -175,10 +175,10 @@ def _cmd_register(args: argparse.Namespace) -> int:
         rlog.log_registration_result(rec, result)
     project = save_registration(args.out, scans, result, overwrite=args.overwrite, frame=frame)
     out = console()
-    rmse = [p.rmse for p in result.pairs]
+    median = median_pair_rmse(result.pairs)
+    residual = "no pair residual" if median is None else f"median residual {median:.3f} mm"
     out.print(f"[green]aligned[/] {len(result.poses)} of {len(scans)} scans in {time.perf_counter() - t0:.1f} s; "
-              f"{len(result.pairs)} overlapping pairs, median residual {np.median(rmse) if rmse else float('nan'):.3f} mm "
-              f"-> {project}", highlight=False)
+              f"{len(result.pairs)} overlapping pairs, {residual} -> {project}", highlight=False)
     if result.rejected:
         n = len(result.rejected)
         out.print(f"{n} candidate pair{'s' * (n != 1)} rejected (all in registration.json):",
@@ -197,6 +197,7 @@ def _cmd_register(args: argparse.Namespace) -> int:
 
 def _cmd_fuse(args: argparse.Namespace) -> int:
     from slscan.fuse import FuseConfig, fuse_scans, poisson_reconstruct, write_mesh
+    from slscan.register.meshlab import write_mesh_project
     from slscan.viewer import log_register as rlog
     from slscan.viewer.layouts import register_blueprint
     from slscan.viewer.recording import recording_from_args
@@ -216,20 +217,26 @@ def _cmd_fuse(args: argparse.Namespace) -> int:
                 mesh = poisson_reconstruct(scans, poses, voxel_size=args.voxel)
         rlog.log_fused_mesh(rec, mesh)
     write_mesh(mesh, args.out)
+    project = write_mesh_project(args.out)
     console().print(f"[green]fused[/] {len(scans)} scans at {args.voxel} mm: {len(mesh.faces):,} faces in "
-                    f"{time.perf_counter() - t0:.1f} s -> {args.out}", highlight=False)
+                    f"{time.perf_counter() - t0:.1f} s -> {args.out} (MeshLab: {project})", highlight=False)
     return 0
 
 
 def _check_mesh_out(out: Path, overwrite: bool) -> None:
-    """Refuse to replace an existing mesh file ``out`` unless ``overwrite`` (before any work)."""
+    """Refuse to replace an existing mesh file ``out``, or the MeshLab project written beside
+    it (``OUT.mlp``), unless ``overwrite`` (before any work)."""
     if out.is_dir():
         raise SlscanError(f"{out}: is a folder; expected a mesh file such as model.ply")
-    if out.exists() and not overwrite:
-        raise SlscanError(f"{out}: exists (pass --overwrite to replace it)")
+    if out.suffix.lower() == ".mlp":
+        raise SlscanError(f"{out}: expected a mesh file such as model.ply (the .mlp is written beside it)")
+    for path in (out, out.with_suffix(".mlp")):
+        if path.exists() and not overwrite:
+            raise SlscanError(f"{path}: exists (pass --overwrite to replace it)")
 
 
 def _cmd_simplify(args: argparse.Namespace) -> int:
+    from slscan.register.meshlab import write_mesh_project
     from slscan.simplify import simplify_file
     from slscan.viewer import log_register as rlog
     from slscan.viewer.layouts import register_blueprint
@@ -243,8 +250,9 @@ def _cmd_simplify(args: argparse.Namespace) -> int:
                              preserve_boundary=not args.free_boundary)
         bar.step(f"{len(mesh.faces):,} faces")
         rlog.log_simplified_mesh(rec, mesh)
+    project = write_mesh_project(args.out)
     console().print(f"[green]simplified[/] {args.mesh} to {len(mesh.faces):,} faces in "
-                    f"{time.perf_counter() - t0:.1f} s -> {args.out}", highlight=False)
+                    f"{time.perf_counter() - t0:.1f} s -> {args.out} (MeshLab: {project})", highlight=False)
     return 0
 
 
@@ -301,7 +309,8 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("aligned", type=Path, help="aligned.mlp (or its folder) from slscan register or MeshLab")
-    p.add_argument("--out", required=True, type=Path, help="mesh file to write (PLY)")
+    p.add_argument("--out", required=True, type=Path,
+                   help="mesh file to write (PLY); a MeshLab project OUT.mlp opening it is written beside")
     p.add_argument("--voxel", type=float, default=0.57, help="voxel size, mm (default 0.57, the paper's)")
     p.add_argument("--method", choices=("tsdf", "poisson"), default="tsdf", help="default: tsdf")
     p.add_argument("--allow-outside", action="store_true",
@@ -320,7 +329,8 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("mesh", type=Path, help="mesh file (PLY/OBJ)")
-    p.add_argument("--out", required=True, type=Path, help="mesh file to write")
+    p.add_argument("--out", required=True, type=Path,
+                   help="mesh file to write; a MeshLab project OUT.mlp opening it is written beside")
     p.add_argument("--faces", type=int, default=1_000_000, help="target face count (default 1000000)")
     p.add_argument("--method", choices=("fast", "quadric"), default="fast", help="default: fast")
     p.add_argument("--free-boundary", action="store_true", help="let boundary edges collapse")

@@ -353,6 +353,25 @@ def write_mlp(
     return path
 
 
+def write_mesh_project(mesh: str | os.PathLike, project: str | os.PathLike | None = None) -> Path:
+    """Write a MeshLab project opening one model, atomically: ``NAME.mlp`` beside ``NAME.ply``.
+
+    The model keeps its own frame: the project's matrix is the identity. The fused and
+    simplified meshes of the pipeline are written in the upright object frame (mm, y up;
+    see :mod:`slscan.register.frame`), so MeshLab opens them upright, like the aligned set
+    (``aligned.mlp``) and the textured model (``model.mlp``).
+
+    mesh : the mesh file (it need not exist yet: the stages write both into a temporary
+        folder); named in the project relative to the project's folder
+    project : the project's path (default: ``mesh`` with the suffix ``.mlp``)
+    """
+    mesh = Path(mesh)
+    project = Path(project) if project is not None else mesh.with_suffix(".mlp")
+    if project.suffix.lower() != ".mlp" or project.resolve() == mesh.resolve():
+        raise SlscanError(f"{project}: a MeshLab project must be a .mlp file beside its mesh {mesh.name}")
+    return write_mlp(project, [(mesh.resolve(), np.eye(4))])
+
+
 def write_scan_project(
     folder: str | os.PathLike,
     scans: Sequence[RangeScan],

@@ -846,6 +846,7 @@ def register_scans(
         )
         for (i, j), (fit, rmse) in zip(pairs, stats)
     )
+    residuals = _matched_pairs(residuals, rejected)
 
     left_out = {}
     for k in range(n):
@@ -868,6 +869,33 @@ def register_scans(
         reference=names[root],
         rejected=tuple(rejected.values()),
     )
+
+
+def _matched_pairs(
+    residuals: Sequence[PairResidual], rejected: dict[tuple[str, str], RejectedPair]
+) -> tuple[PairResidual, ...]:
+    """The residuals of pairs the joint refinement matched; a pair it matched no sample of
+    (fitness 0, RMS undefined) has no residual to report or average: it goes to ``rejected``
+    (unless it is there already, with its own reason)."""
+    kept = []
+    for r in residuals:
+        if r.fitness > 0 and math.isfinite(r.rmse):
+            kept.append(r)
+            continue
+        log.info("pair %s-%s: the joint refinement matched no samples; not a residual", r.source, r.target)
+        rejected.setdefault(
+            (r.source, r.target),
+            RejectedPair(r.source, r.target, "no samples matched under the final poses", float(r.fitness),
+                         float(r.rmse)),
+        )
+    return tuple(kept)
+
+
+def median_pair_rmse(pairs: Sequence[PairResidual]) -> float | None:
+    """Median point-to-plane RMS (mm) over the pairs with a residual; None when there are none
+    (never NaN: a summary shows no number rather than ``nan``)."""
+    values = [p.rmse for p in pairs if math.isfinite(p.rmse)]
+    return float(np.median(values)) if values else None
 
 
 def _median_displacement(found: np.ndarray, init: np.ndarray, world_points: np.ndarray,

@@ -16,8 +16,9 @@ examples:
 the capture session for the camera model); --poses the registration (`slscan register`'s
 folder, its registration.json or aligned.mlp); without it the session's recorded poses
 are used. Outputs in --out: model.glb (glTF, metres, Y up), model.obj/.mtl +
-model_albedo.png (mm), model_vertex_colors.ply, model.mlp (MeshLab: the model and the
-views as registered rasters), views/VIEW.png, view_count.png (coloured; raw counts: view_count_raw.png), texture.json, and
+model_albedo.png (mm), model.ply (texture coordinates per face corner, as MeshLab writes
+them), model_vertex_colors.ply, model.mlp (MeshLab: model.ply and the views as registered
+rasters), views/VIEW.png, view_count.png (coloured; raw counts: view_count_raw.png), texture.json, and
 preview.png when Blender is found (bash .ci/setup installs it in .venv-blender).
 """
 

@@ -9,6 +9,12 @@
 - ``model.obj`` + ``model.mtl`` + ``model_albedo.png``: the same in the object frame (mm);
   the MTL is matte white under the texture (``Kd 1``, ``Ks 0``), so viewers show the
   texture's own colours rather than trimesh's grey, glossy defaults (``Kd``/``Ks 0.4``).
+- ``model.ply`` + ``model_albedo.png``: the model (not split at seams) in the object frame
+  (mm) with texture coordinates per face corner ("wedge" ``texcoord``) and a
+  ``TextureFile`` comment naming the atlas: MeshLab's own way of storing a textured mesh,
+  which every MeshLab reads. ``model.mlp`` names this file, not the OBJ: MeshLab 2020.09
+  (the ``meshlab`` package of Debian 12 and Ubuntu 22.04) aborts in its OBJ reader
+  (vcglib ``import_obj.h``: an assertion on its count of vertices and faces) on the OBJ.
 - ``model_vertex_colors.ply``: the model (not split at seams) with per-vertex sRGB colour.
 - ``views/VIEW.png``: each view's un-shaded image, sRGB, resampled to a pure pinhole
   camera with the same fx, fy and the principal point at the image centre (MeshLab
@@ -171,6 +177,57 @@ def write_obj(path: str | os.PathLike, atlas, texture: np.ndarray, normals: np.n
     write_png(path.parent / image_name, texture)
     write_bytes(path.parent / f"{stem}.mtl", mtl)
     write_bytes(path, text.encode())
+    return path
+
+
+def write_wedge_uv_ply(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, atlas,
+                       texture_file: str, normals: np.ndarray | None = None) -> Path:
+    """Write the model with per-corner texture coordinates as binary PLY, atomically: the
+    format MeshLab writes for a textured mesh, read by MeshLab 2020.09 and current MeshLab.
+
+    vertices : (n, 3) float64, the model's vertices (object frame, mm), written as double
+    faces : (m, 3) int indices into ``vertices``, written as ``vertex_indices``
+    atlas : the model's :class:`slscan.texture.atlas.Atlas` (face i is face i of ``faces``);
+        each face gets ``texcoord``, 6 float32 ``u0 v0 u1 v1 u2 v2`` with v up from the
+        bottom row (MeshLab's and OBJ's convention)
+    texture_file : the atlas image, relative to the PLY's folder (``comment TextureFile``)
+    normals : (n, 3) per vertex, written as float32 ``nx ny nz``, or None
+    """
+    from slscan.fsio import atomic_output_file
+
+    path = Path(path)
+    vertices = np.asarray(vertices, np.float64)
+    faces = np.asarray(faces, np.int64).reshape(-1, 3)
+    atlas_faces = np.asarray(atlas.faces, np.int64)
+    same = atlas_faces.shape == faces.shape and np.array_equal(np.asarray(atlas.source_vertex)[atlas_faces], faces)
+    if not same:
+        raise SlscanError(f"{path}: the atlas's faces are not the model's ({len(atlas_faces)} vs {len(faces)})")
+    if normals is not None and len(normals) != len(vertices):
+        raise SlscanError(f"{path}: {len(normals)} normals for {len(vertices)} vertices")
+    if not texture_file or any(c in texture_file for c in "\n\r"):
+        raise SlscanError(f"{path}: texture file name must be one non-empty line, got {texture_file!r}")
+    fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
+    if normals is not None:
+        fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
+    vertex = np.empty(len(vertices), np.dtype(fields))
+    for k, axis in enumerate("xyz"):
+        vertex[axis] = vertices[:, k]
+        if normals is not None:
+            vertex["n" + axis] = normals[:, k]
+    uv = np.asarray(atlas.uvs, np.float64)[atlas_faces]  # (m, 3, 2), v down from the top row
+    uv[..., 1] = 1.0 - uv[..., 1]
+    face = np.empty(len(faces), np.dtype([("n", "u1"), ("i", "<i4", (3,)), ("k", "u1"), ("t", "<f4", (6,))]))
+    face["n"], face["i"], face["k"], face["t"] = 3, faces, 6, uv.reshape(-1, 6)
+    names = {"<f8": "double", "<f4": "float"}
+    header = ["ply", "format binary_little_endian 1.0", "comment slscan textured model (object frame, mm)",
+              f"comment TextureFile {texture_file}", f"element vertex {len(vertex)}",
+              *(f"property {names[t]} {n}" for n, t in fields), f"element face {len(face)}",
+              "property list uchar int vertex_indices", "property list uchar float texcoord", "end_header"]
+    head = ("\n".join(header) + "\n").encode("ascii")
+    with atomic_output_file(path, size=len(head) + vertex.nbytes + face.nbytes) as tmp, open(tmp, "wb") as fh:
+        fh.write(head)
+        fh.write(vertex.tobytes())
+        fh.write(face.tobytes())
     return path
 
 

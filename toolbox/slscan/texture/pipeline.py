@@ -7,8 +7,9 @@ and writes the output folder atomically:
 ==============================  ===============================================================
 ``model.glb``                   glTF 2.0 binary with the baked texture (metres, Y up)
 ``model.obj/.mtl``, ``model_albedo.png``  the same as OBJ (mm, slscan frame)
+``model.ply``                   the model with texture coordinates per face corner (MeshLab's way)
 ``model_vertex_colors.ply``     the model with per-vertex colour (the fallback)
-``model.mlp``                   MeshLab project: the OBJ and every view as a registered raster
+``model.mlp``                   MeshLab project: ``model.ply`` and every view as a registered raster
 ``views/VIEW.png``              each view's un-shaded image (sRGB, undistorted)
 ``view_count.png``              views blended per texel as colours (legend in ``texture.json``:
                                 black outside the charts, grey 0 = filled from the vertices,
@@ -145,6 +146,8 @@ def texture_model(
         atlas_normals = normals[atlas.source_vertex]
         export.write_glb(tmp / "model.glb", atlas, texture, atlas_normals, name=model_name(out))
         export.write_obj(tmp / "model.obj", atlas, texture, atlas_normals)
+        export.write_wedge_uv_ply(tmp / "model.ply", mesh.vertices, mesh.faces, atlas, "model_albedo.png",
+                                  normals)
         export.write_vertex_color_ply(tmp / "model_vertex_colors.ply", mesh.vertices, mesh.faces,
                                       srgb8(baked.vertex_colors), normals)
         # the counts (0-3 in a typical texel) as colours one can see, and as numbers
@@ -159,8 +162,9 @@ def texture_model(
         entries = export.view_entries(views)
         rasters = [Raster(e["name"], e["image"], e["width"], e["height"], e["fx"], e["fy"], e["cx"], e["cy"],
                           np.asarray(e["world_from_camera"])) for e in entries]
-        # the mesh beside the project, by name: ``tmp`` may be relative to the current folder
-        write_mlp(tmp / "model.mlp", [(Path("model.obj"), np.eye(4))], rasters=rasters)
+        # the mesh beside the project, by name: ``tmp`` may be relative to the current folder.
+        # The PLY with wedge texture coordinates, not the OBJ, which MeshLab 2020.09 aborts on.
+        write_mlp(tmp / "model.mlp", [(Path("model.ply"), np.eye(4))], rasters=rasters)
         seconds["export"] = round(time.perf_counter() - t0, 2)
         progress("exported")
         manifest = {
@@ -168,6 +172,7 @@ def texture_model(
             "units": "mm",
             "source": {"model": str(Path(model).resolve()), "albedo": str(Path(albedo_dir).resolve())},
             "model": {"glb": "model.glb", "obj": "model.obj", "ply": "model_vertex_colors.ply",
+                      "textured_ply": "model.ply",
                       "texture": "model_albedo.png", "mlp": "model.mlp", "view_count": "view_count_raw.png",
                       "view_count_image": "view_count.png", "view_count_legend": view_count_legend(len(views)),
                       "faces": len(mesh.faces), "vertices": len(mesh.vertices)},

@@ -86,6 +86,7 @@ class VirtualRig:
             raise DeviceError(f"virtual rig: latency must be >= 0 s, got {latency_s}")
         self.scene, self.rig, self.optics, self.seed, self.latency_s = scene, rig, optics, seed, latency_s
         self.poses, self.noise_stream = poses, tuple(noise_stream)
+        self.turntable_angles: list[float] | None = None  # degrees per view, when ``poses`` are turntable turns
         self.geometry: ViewGeometry | None = None
         self.pose: np.ndarray | None = None
         self.view_index = 0
@@ -244,7 +245,8 @@ class VirtualTurntable(Stage):
         else:
             pose = turntable_pose(world.rig, 360.0 * view_index / views, world.scene.placement)
         check_view_geometry(world.place(view_index, pose), f"view_{view_index:03d}", world.scene.name)
-        return Placement(pose, "ground-truth")
+        angles = world.turntable_angles
+        return Placement(pose, "ground-truth", turntable_deg=None if angles is None else float(angles[view_index]))
 
     def ground_truth(self):
         from slscan.virtual.device import ground_truth
