@@ -22,6 +22,12 @@ from slscan.viewer.paths import (
     CALIBRATE_PLOT_PATH,
     LIGHTS_PANEL,
     PHASE_PATH,
+    PREVIEW_CLIPPED_PLOT,
+    PREVIEW_FOCUS_PLOT,
+    PREVIEW_IMAGE_PATH,
+    PREVIEW_OVERLAP_PLOT,
+    PREVIEW_PLOT_PATH,
+    PREVIEW_TEXT_PATH,
     VIEW_COUNT_PATH,
 )
 from slscan.viewer.recording import STAGE_TIMELINE, VIEW_TIMELINE
@@ -417,6 +423,28 @@ def texture_blueprint() -> rrb.Blueprint:
         rrb.Horizontal(model, rrb.Vertical(images, metrics, row_shares=[3, 1]), column_shares=[3, 2],
                        name="Texture"),
         STAGE_TIMELINE,
+    )
+
+
+def preview_blueprint() -> rrb.Blueprint:
+    """The preview's layout: the camera with the focus tiles and clipped pixels over it
+    (left), focus, clipped share and overlap plotted per refresh, and the lines (right)."""
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial2DView(origin=PREVIEW_IMAGE_PATH, contents="$origin/**",
+                              name="Camera: focus (red blurred, green sharp), clipped (magenta)"),
+            rrb.Vertical(
+                rrb.TimeSeriesView(origin=PREVIEW_FOCUS_PLOT, name="Focus (stripe contrast)"),
+                rrb.TimeSeriesView(origin=PREVIEW_PLOT_PATH,
+                                   contents=[f"+ {PREVIEW_CLIPPED_PLOT}", f"+ {PREVIEW_OVERLAP_PLOT}"],
+                                   name="Clipped % and overlap %"),
+                rrb.TextLogView(origin=PREVIEW_TEXT_PATH, name="Preview"),
+            ),
+            column_shares=[3, 2],
+            name="Preview",
+        ),
+        rrb.TimePanel(state="collapsed"),
+        collapse_panels=True,
     )
 
 

@@ -56,6 +56,16 @@ SCAN_PLOT_PATH = "plot/scan"
 COVERAGE_PATH = "plot/scan/coverage"
 SCAN_LOG_PATH = "log/scan"
 
+# --- live preview before a scan (slscan.viewer.log_preview) -----------------------------------
+PREVIEW_IMAGE_PATH = "preview/camera"
+PREVIEW_FOCUS_PATH = "preview/camera/focus"
+PREVIEW_CLIPPED_PATH = "preview/camera/clipped"
+PREVIEW_PLOT_PATH = "plot/preview"
+PREVIEW_FOCUS_PLOT = "plot/preview/focus"
+PREVIEW_CLIPPED_PLOT = "plot/preview/clipped_percent"
+PREVIEW_OVERLAP_PLOT = "plot/preview/overlap_percent"
+PREVIEW_TEXT_PATH = "log/preview"
+
 # --- register, fuse, simplify (slscan.viewer.log_register) -------------------------------------
 OBJECT_PATH = "object"
 SCANS_PATH = "object/scans"
