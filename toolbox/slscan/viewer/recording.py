@@ -25,7 +25,7 @@ import logging
 import os
 import shutil
 import sys
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -40,9 +40,9 @@ FRAME_TIMELINE = "frame"
 STAGE_TIMELINE = "stage"
 
 LOSSLESS_ATTR = "slscan_lossless_images"
+"""Attribute of a recording stream opened here: log camera frames losslessly."""
 STATIC_LOGGED_ATTR = "slscan_static_logged"
 """Attribute of a recording stream: what static data it has been sent, by entity path."""
-"""Attribute of a recording stream opened here: log camera frames losslessly."""
 DEFAULT_PORT = 9876
 DEFAULT_CONNECT_URL = f"rerun+http://127.0.0.1:{DEFAULT_PORT}/proxy"
 
@@ -173,7 +173,7 @@ def _spawn_viewer(rec: rr.RecordingStream, port: int) -> str:
                       f"{SPAWN_TIMEOUT_S:.0f} s (could its window open?); use --save FILE.rrd instead")
 
 
-def _close(rec: rr.RecordingStream, urls: list[str] = ()) -> None:
+def _close(rec: rr.RecordingStream, urls: Sequence[str] = ()) -> None:
     """Flush every sink and close them; files are complete on disk when this returns.
 
     The flush waits at most :data:`FLUSH_TIMEOUT_S`. Raises :class:`SlscanError` when it
