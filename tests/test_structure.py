@@ -78,17 +78,17 @@ def _owner(name: str) -> str | None:
     return name or None
 
 
-def runtime_imports(module: str) -> list[tuple[str, int]]:
+def runtime_imports(module: str, *, type_checking: bool = False) -> list[tuple[str, int]]:
     """(imported slscan module, line) of every import in ``module`` that can run: at module
-    level or in a function, not under ``if TYPE_CHECKING:``. ``from a import b`` counts
-    as an import of ``a.b`` when that is a module."""
+    level or in a function, not under ``if TYPE_CHECKING:`` (unless ``type_checking``).
+    ``from a import b`` counts as an import of ``a.b`` when that is a module."""
     path, is_package = MODULES[module]
     package = module if is_package else module.rpartition(".")[0]
     found = []
 
     def visit(node: ast.AST) -> None:
         for child in ast.iter_child_nodes(node):
-            if isinstance(child, ast.If) and _is_type_checking(child):
+            if isinstance(child, ast.If) and _is_type_checking(child) and not type_checking:
                 for sub in child.orelse:
                     visit(sub)
                 continue
@@ -214,3 +214,51 @@ def test_texture_takes_no_code_from_the_albedo_stage():
         if target.startswith("slscan.albedo")
     ]
     assert not bad, ", ".join(bad)
+
+
+# --- inside the viewer package: paths and timelines below, loggers and layouts beside ----------
+
+LOGGERS = sorted(m for m in MODULES if m.startswith(f"{VIEWER}.log"))
+BELOW_VIEWER = frozenset({f"{VIEWER}.paths", f"{VIEWER}.recording"})
+"""What both the loggers and the layouts use: entity paths, timelines, recording streams."""
+
+
+def test_the_viewer_package_has_no_import_cycle():
+    graph = import_graph()
+    viewer = {m: {t for t in graph[m] if _is_viewer(t)} for m in MODULES if _is_viewer(m)}
+    assert len(viewer) > 8 and f"{VIEWER}.log_albedo" in LOGGERS  # the graph sees the package
+    cycles = [sorted(c) for c in strongly_connected(viewer)]
+    assert not cycles, f"import cycles inside slscan.viewer: {cycles}"
+    # and none through stage code either (a viewer module in any cycle of the whole package)
+    mixed = [sorted(c) for c in strongly_connected(graph) if any(_is_viewer(m) for m in c)]
+    assert not mixed, f"import cycles through slscan.viewer: {mixed}"
+
+
+def test_strongly_connected_finds_a_cycle():
+    """Guard against a vacuous pass of the cycle tests."""
+    assert strongly_connected({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [{"a", "b", "c"}]
+
+
+@pytest.mark.parametrize("module", LOGGERS)
+def test_no_logger_imports_a_pipeline_or_a_layout(module):
+    """Loggers sit below the stages: no stage pipeline, not even for a type annotation, and
+    no blueprint (the layouts import the loggers' entity paths, not the loggers)."""
+    bad = [
+        f"{target} (line {line})"
+        for target, line in runtime_imports(module, type_checking=True)
+        if target.endswith(".pipeline") or target == f"{VIEWER}.layouts"
+    ]
+    assert not bad, f"{module} imports {', '.join(bad)}"
+
+
+def test_layouts_import_only_paths_and_timelines():
+    module = f"{VIEWER}.layouts"
+    bad = [
+        f"{target} (line {line})"
+        for target, line in runtime_imports(module, type_checking=True)
+        if _is_viewer(target) and target not in BELOW_VIEWER
+    ]
+    assert not bad, f"{module} imports {', '.join(bad)}: blueprints address slscan.viewer.paths only"
+    for below in BELOW_VIEWER:
+        assert not [t for t, _ in runtime_imports(below, type_checking=True) if _is_viewer(t)
+                    and t not in BELOW_VIEWER], f"{below} must not import loggers or layouts"

@@ -58,7 +58,7 @@ def test_albedo_command(tmp_path, figurine, calibrated):
     assert {
         "/world/camera/image/albedo/unshaded",
         "/world/camera/image/albedo/error",
-        "/world/scans/view_001/albedo",
+        "/world/albedo/view_001",
     } <= paths
     with pytest.raises(SlscanError, match="not empty"):
         run("albedo", session.root, "--range-maps", range_maps, "--out", out, "--quiet")

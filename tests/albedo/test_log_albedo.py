@@ -10,8 +10,8 @@ from rerun.chunk import RrdReader
 from slscan.albedo.lights import LightCalibration
 from slscan.errors import SlscanError
 from slscan.rig import default_rig
+from slscan.viewer.layouts import albedo_blueprint
 from slscan.viewer.log_albedo import (
-    albedo_blueprint,
     albedo_error_image,
     log_albedo_error,
     log_albedo_mesh,
@@ -76,7 +76,7 @@ def test_albedo_stage_round_trip(tmp_path):
         for x in ("lit", "shadow", "highlight", "unshaded", "normal", "error")
     }
     expected |= {
-        "/world/scans/view_000/albedo",
+        "/world/albedo/view_000",
         "/world/lights/calibrated",
         "/plot/albedo/valid_share",
         "/log/albedo",

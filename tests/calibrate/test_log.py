@@ -5,10 +5,12 @@ from __future__ import annotations
 import numpy as np
 import rerun.blueprint as rrb
 
+from slscan.calibrate.pipeline import _log_calibration
 from slscan.calibrate.planes import LightPlaneModel
 from slscan.calibrate.target import Board, CornerDetection
 from slscan.rig import default_rig
 from slscan.viewer import log_calibrate as rlog
+from slscan.viewer.layouts import calibrate_blueprint
 
 
 def test_loggers_do_nothing_without_a_recording():
@@ -16,7 +18,7 @@ def test_loggers_do_nothing_without_a_recording():
     rlog.log_board_image(None, np.zeros((4, 4), np.uint8), det, view_index=0)
     rlog.log_board_pose(None, Board(), np.eye(4), view_index=0)
     rlog.log_plane_residuals(None, np.ones(3), np.ones(3))
-    rlog.log_calibration(None, None, None)
+    _log_calibration(None, None, None)
 
 
 def test_plane_outlines_lie_in_their_planes():
@@ -30,7 +32,7 @@ def test_plane_outlines_lie_in_their_planes():
 
 
 def test_calibrate_blueprint_saves(tmp_path):
-    blueprint = rlog.calibrate_blueprint()
+    blueprint = calibrate_blueprint()
     assert isinstance(blueprint, rrb.Blueprint)
     blueprint.save("slscan", tmp_path / "calibrate.rbl")
     assert (tmp_path / "calibrate.rbl").stat().st_size > 100

@@ -54,6 +54,30 @@ def test_the_demo_ends_in_a_textured_glb_and_files_other_programs_open(run):
     assert metrics["observed_share"] > 0.7 and metrics["charts"] >= 1
 
 
+def test_the_view_count_picture_shows_the_counts_in_its_legend_colours(run):
+    """view_count.png is meant to be looked at (the counts are 0-3: as grey levels, black);
+    view_count_raw.png keeps the counts, and the legend in texture.json says which is which."""
+    from slscan.colour import VIEW_COUNT_OUTSIDE
+    from slscan.fsio import read_png
+
+    folder = run / "texture"
+    model = json.loads((folder / "texture.json").read_text())["model"]
+    picture, raw = read_png(folder / model["view_count_image"]), read_png(folder / model["view_count"])
+    assert picture.shape == raw.shape + (3,) and picture.dtype == np.uint8 and raw.dtype == np.uint16
+    legend = model["view_count_legend"]
+    assert len(legend) == 2 + 8  # outside, filled, then 1 to 8 views
+    named = {k: np.array(legend[f"{k} view{'s' if k > 1 else ''}"]) for k in range(1, 9)}
+    named[0] = np.array(legend["0 views (filled from the vertex colours)"])
+    outside = np.all(picture == VIEW_COUNT_OUTSIDE, axis=-1)
+    assert raw[outside].max() == 0 and 0.1 < outside.mean() < 0.9
+    for k in np.unique(raw):
+        texels = (raw == k) & ~outside
+        assert texels.any() and np.all(picture[texels] == named[int(k)]), k
+    assert raw.max() >= 2 and len({tuple(c) for c in named.values()}) == 9  # distinct colours
+    # visible: every count inside the charts is well above black
+    assert picture[~outside].max(axis=-1).min() >= 90
+
+
 def test_the_meshlab_project_loads_in_pymeshlab_with_model_and_rasters(run):
     import xml.etree.ElementTree as ET
 

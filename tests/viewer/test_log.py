@@ -181,3 +181,38 @@ def test_captures_are_jpeg_unless_lossless_is_asked(tmp_path, lossless, column):
     with open_recording(save=path, lossless_images=lossless) as rec:
         log_capture(rec, frame, view_index=0, frame_index=0, label="white")
     assert column in _capture_columns(path)
+
+
+def test_a_second_session_logs_into_its_own_subtree_and_timelines(tmp_path, rig):
+    """The light panel beside the scan: the same loggers, another entity tree and timelines;
+    each session's rig once, the scan's time cursor not carried into the panel's data."""
+    from slscan.viewer.recording import session_stream
+
+    other = default_rig(scale=0.05, projector_scale=0.25)
+    path = tmp_path / "two.rrd"
+    with open_recording(save=path) as rec:
+        log_rig(rec, rig)
+        log_capture(rec, np.zeros((rig.camera.height, rig.camera.width), np.uint8), view_index=5,
+                    frame_index=2, label="scan")
+        with session_stream(rec, "panel") as panel:
+            for _ in range(2):  # the same rig again: sent once
+                log_rig(panel, other)
+            log_capture(panel, np.zeros((other.camera.height, other.camera.width), np.uint8), view_index=1,
+                        frame_index=0, label="panel")
+        log_rig(rec, rig)  # the scan's again: sent once too
+    chunks = list(RrdReader(path).stream().to_chunks())
+    timelines = {}
+    statics: dict[str, int] = {}
+    for c in chunks:
+        timelines.setdefault(c.entity_path, set()).update(set(c.timeline_names) - {"log_time"})
+        if c.is_static:
+            statics[c.entity_path] = statics.get(c.entity_path, 0) + c.num_rows
+    assert timelines["/world/camera/image/capture"] == {VIEW_TIMELINE, FRAME_TIMELINE}
+    assert timelines["/world/panel/camera/image/capture"] == {"panel_view", "panel_frame"}
+    assert timelines["/log/panel/capture"] == {"panel_view", "panel_frame"}
+    assert statics["/world/camera/image"] == 1 and statics["/world/panel/camera/image"] == 1
+    resolution = {c.entity_path: c.to_record_batch().column("Pinhole:resolution").to_pylist()[0][0]
+                  for c in chunks if c.is_static and c.entity_path.endswith("camera/image")}
+    assert resolution["/world/camera/image"] == [rig.camera.width, rig.camera.height]
+    assert resolution["/world/panel/camera/image"] == [other.camera.width, other.camera.height]
+    assert session_stream(None, "panel").__enter__() is None  # logging off

@@ -24,7 +24,7 @@ from slscan.errors import SlscanError
 from slscan.patterns import standard_set
 from slscan.viewer.layouts import LAYOUTS, decode_blueprint, phase_blueprint
 from slscan.viewer.log_decode import colormap_range, log_display_maps, log_metrics
-from slscan.viewer.log_scan import scan_blueprint
+from slscan.viewer.layouts import scan_blueprint
 from slscan.viewer.recording import FRAME_TIMELINE, VIEW_TIMELINE, open_recording
 from slscan.virtual.device import VirtualCaptureConfig, capture_session
 

@@ -17,7 +17,8 @@ import cv2
 import numpy as np
 
 from slscan.capture.preview import PreviewMeasures
-from slscan.viewer.log_preview import log_preview, preview_blueprint
+from slscan.viewer.layouts import preview_blueprint
+from slscan.viewer.log_preview import log_preview
 from slscan.viewer.recording import open_recording
 
 from .test_render_phase import _requirements

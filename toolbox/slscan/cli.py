@@ -726,21 +726,44 @@ def _cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+VIEWER_START_S = 5.0
+"""How long ``slscan view FILE.rrd`` watches the viewer start before leaving it running."""
+
+
 def _cmd_view(args: argparse.Namespace) -> int:
     import shutil
     import subprocess
+    import tempfile
 
-    from slscan.viewer.recording import _rerun_executable, open_recording
+    from slscan.viewer.recording import _rerun_executable, display_problem, open_recording
     from slscan.viewer.show import log_result, result_kind
 
     kind = result_kind(args.result)
-    if kind == "recording":
+    if kind == "recording" and args.save is None:
         exe = shutil.which("rerun") or _rerun_executable()
         if exe is None:
             raise SlscanError("the Rerun viewer (rerun) is not installed next to slscan")
-        subprocess.Popen([exe, str(args.result)], start_new_session=True)
+        problem = display_problem()
+        if problem is not None:
+            raise SlscanError(f"{args.result}: cannot open the Rerun viewer: {problem}; open the file "
+                              f"where there is a display, or serve it to a browser: rerun --serve-web {args.result}")
+        # the viewer runs on its own; one that fails to start (no window) does so at once
+        with tempfile.TemporaryFile() as errors:
+            viewer = subprocess.Popen([exe, str(args.result)], start_new_session=True,
+                                      stdout=subprocess.DEVNULL, stderr=errors)
+            try:
+                code = viewer.wait(timeout=VIEWER_START_S)
+            except subprocess.TimeoutExpired:
+                code = None  # still running: it opened
+            if code:
+                errors.seek(0)
+                lines = [ln for ln in errors.read().decode(errors="replace").splitlines() if ln.strip()]
+                reason = lines[-1].strip() if lines else f"exit status {code}"
+                raise SlscanError(f"{args.result}: the Rerun viewer did not start ({reason})")
         _console().print(f"opening {args.result} in the Rerun viewer")
         return 0
+    if kind == "recording":
+        raise SlscanError(f"{args.result}: already a recording; copy it instead of --save")
     spawn = args.save is None
     with open_recording(save=args.save, spawn=spawn, recording_name=f"view {args.result.name}") as rec:
         blueprint = log_result(rec, args.result)

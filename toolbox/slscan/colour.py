@@ -42,3 +42,48 @@ def read_albedo_png(
     if valid_path is not None:
         out[read_png(valid_path) == 0] = np.nan
     return out
+
+
+# --- views per texel, as a picture --------------------------------------------------------------
+
+VIEW_COUNT_OUTSIDE = (0, 0, 0)
+"""Colour of the texels outside every chart of the atlas."""
+VIEW_COUNT_FILLED = (110, 110, 110)
+"""Colour of the texels no view saw (filled from the vertex colours)."""
+
+
+def view_count_colours(max_views: int) -> np.ndarray:
+    """(max_views + 1, 3) uint8 sRGB: row ``k`` is the colour of a texel blended from ``k``
+    views: grey for 0 (filled from the vertex colours), then Turbo from blue (1 view) to
+    red (``max_views``)."""
+    import cv2
+
+    n = max(int(max_views), 1)
+    t = np.linspace(0.2, 1.0, n) if n > 1 else np.array([0.6])
+    turbo = cv2.applyColorMap(np.round(t * 255).astype(np.uint8)[:, None], cv2.COLORMAP_TURBO)[:, 0, ::-1]
+    return np.vstack([np.array([VIEW_COUNT_FILLED], np.uint8), turbo.astype(np.uint8)])
+
+
+def view_count_image(count: np.ndarray, covered: np.ndarray | None, max_views: int) -> np.ndarray:
+    """The views blended per texel as a picture (h, w, 3) uint8 sRGB: :func:`view_count_colours`
+    inside the charts, black outside.
+
+    count : (h, w) int, views per texel; covered : (h, w) bool, texels inside the charts
+        (None: the texels with a count)
+    max_views : the top of the colour ramp (the number of views); higher counts take its colour
+    """
+    count = np.asarray(count)
+    colours = view_count_colours(max_views)
+    picture = colours[np.clip(count, 0, len(colours) - 1).astype(np.intp)]
+    inside = count > 0 if covered is None else np.asarray(covered, bool)
+    picture[~inside] = VIEW_COUNT_OUTSIDE
+    return picture
+
+
+def view_count_legend(max_views: int) -> dict[str, list[int]]:
+    """What each colour of :func:`view_count_image` means, for ``texture.json`` and the viewer."""
+    colours = view_count_colours(max_views)
+    legend = {"outside the charts": list(VIEW_COUNT_OUTSIDE), "0 views (filled from the vertex colours)":
+              colours[0].tolist()}
+    legend |= {f"{k} view{'s' if k > 1 else ''}": colours[k].tolist() for k in range(1, len(colours))}
+    return legend

@@ -233,7 +233,7 @@ def _cmd_calibrate_lights(args: argparse.Namespace) -> int:
 
     from slscan.albedo.lights import MattePanel, calibrate_lights, read_panel, write_lights
     from slscan.capture.session import load_session
-    from slscan.viewer.log_albedo import albedo_blueprint
+    from slscan.viewer.layouts import albedo_blueprint
     from slscan.viewer.recording import recording_from_args
 
     if args.out.exists() and not args.overwrite:
@@ -324,7 +324,7 @@ def _cmd_albedo(args: argparse.Namespace) -> int:
     from slscan.albedo.photometric import AlbedoConfig
     from slscan.capture.session import load_session
     from slscan.executor import Executor
-    from slscan.viewer.log_albedo import albedo_blueprint
+    from slscan.viewer.layouts import albedo_blueprint
     from slscan.viewer.recording import recording_from_args
 
     config = AlbedoConfig(

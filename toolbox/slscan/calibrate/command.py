@@ -256,7 +256,7 @@ def run_command(args: argparse.Namespace) -> int:
     from slscan.calibrate.pipeline import CalibrationConfig, calibrate_session, calibration_steps
     from slscan.calibrate.target import Board, parse_board_size
     from slscan.capture.session import load_session
-    from slscan.viewer.log_calibrate import calibrate_blueprint
+    from slscan.viewer.layouts import calibrate_blueprint
     from slscan.viewer.recording import recording_from_args
 
     if args.import_files or args.import_xml is not None:

@@ -367,5 +367,74 @@ def calibrate_session(
         },
     )
     run = CalibrationRun(calibration, tuple(detections), camera, inverse, planes, pcs)
-    rlog.log_calibration(rec, run, session)
+    _log_calibration(rec, run, session)
     return run
+
+
+def _log_calibration(rec, run: CalibrationRun, session: Session) -> None:
+    """Log a calibration's results to ``rec`` (an ``rr.RecordingStream``): the rig, board poses,
+    reprojections, planes, residuals, through the loggers of :mod:`slscan.viewer.log_calibrate`."""
+    if rec is None:
+        return
+    import numpy as np
+    import rerun as rr
+
+    from slscan.viewer import log_calibrate as rlog
+    from slscan.viewer.log import log_rig
+
+    cal = run.calibration
+    old = session.calibration
+    rig = cal.rig(
+        lights=old.lights if old is not None else (),
+        working_distance=old.working_distance if old is not None else 1300.0,
+    )
+    log_rig(rec, rig)
+    board = cal.board
+    index = {
+        str(session.image_path(v, v.image_for(board_image_id(session)))): i
+        for i, v in enumerate(session.views)
+    }
+    inverse = run.inverse_camera
+    distances = []
+    for det in run.camera.detections:
+        i = index.get(det.source)
+        if i is None:
+            continue
+        pose = board_pose(cal.camera, det, board)
+        distances.append(pose[2, 3])
+        rlog.log_board_pose(rec, board, pose, view_index=i)
+        local = board.object_points(det.ids) @ pose[:3, :3].T + pose[:3, 3]
+        rlog.log_reprojection(
+            rec, rlog.CAMERA_PATH, det.corners, cal.camera.project_local(local), view_index=i
+        )
+        errors = {
+            "camera_rms_px": float(
+                np.sqrt(
+                    np.mean(np.sum((cal.camera.project_local(local) - det.corners) ** 2, axis=1))
+                )
+            )
+        }
+        view_name = session.views[i].name
+        if inverse is not None and view_name in inverse.views:
+            k = inverse.views.index(view_name)
+            pts = inverse.projector_points[k]
+            obj = board.object_points(inverse.object_ids[k])
+            pose_p = inverse.projector_from_board[k]
+            reproj = cal.projector.lens.project_local(obj @ pose_p[:3, :3].T + pose_p[:3, 3])
+            rlog.log_reprojection(rec, rlog.PROJECTOR_PATH, pts, reproj, view_index=i)
+            errors["projector_rms_px"] = float(inverse.view_errors[k, 1])
+        rlog.log_view_errors(rec, errors, view_index=i)
+    if cal.light_planes is not None and distances:
+        near, far = 0.8 * min(distances), 1.1 * max(distances)
+        rlog.log_light_planes(rec, cal.light_planes, height=cal.projector_size[1], near=near, far=far)
+    if run.light_planes is not None:
+        lp = run.light_planes
+        rlog.log_plane_residuals(rec, lp.lines.rms, lp.line_rms_after)
+    summary = [f"camera RMS {run.camera.rms:.3f} px over {len(run.camera.views)} views"]
+    if inverse is not None:
+        summary.append(f"stereo RMS {inverse.stereo_rms:.3f} px")
+    if run.light_planes is not None:
+        summary.append(
+            f"planes RMS {run.light_planes.rms_before:.4f} mm -> {run.light_planes.rms_after:.4f} mm (global fit)"
+        )
+    rec.log(rlog.LOG_PATH, rr.TextLog("; ".join(summary), level="INFO"), static=True)

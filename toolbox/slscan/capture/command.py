@@ -601,7 +601,7 @@ def _preview(args, rig: _Rig, settle: float, rec, *, then_scan: bool) -> None:
         console.print(f"[cyan]preview {index + 1}[/] {measures.line()}", highlight=False)
 
     if rec is not None and then_scan:  # the preview's layout while it runs, then the scan's
-        from slscan.viewer.log_preview import preview_blueprint
+        from slscan.viewer.layouts import preview_blueprint
 
         rec.send_blueprint(preview_blueprint(), make_active=True, make_default=False)
     try:
@@ -610,7 +610,7 @@ def _preview(args, rig: _Rig, settle: float, rec, *, then_scan: bool) -> None:
     except DeviceError as exc:
         raise SlscanError(f"preview: {exc}") from None
     if rec is not None and then_scan:
-        from slscan.viewer.log_scan import scan_blueprint
+        from slscan.viewer.layouts import scan_blueprint
 
         rec.send_blueprint(scan_blueprint(), make_active=True, make_default=False)
 
@@ -638,7 +638,8 @@ def run(args: argparse.Namespace) -> int:
     from slscan.capture.driver import ScanPlan, scan
     from slscan.devices.specs import CAMERA_KINDS, PROJECTOR_KINDS, parse_spec
     from slscan.viewer.log import log_rig
-    from slscan.viewer.log_scan import frame_logger, scan_blueprint
+    from slscan.viewer.layouts import scan_blueprint
+    from slscan.viewer.log_scan import frame_logger
     from slscan.viewer.recording import recording_from_args
 
     if args.out is None and not (args.check_exposure or args.preview):
@@ -666,7 +667,7 @@ def run(args: argparse.Namespace) -> int:
     devices = rig.devices
     try:
         if preview_only:
-            from slscan.viewer.log_preview import preview_blueprint
+            from slscan.viewer.layouts import preview_blueprint
 
             layout, name = preview_blueprint(), "preview"
         else:

@@ -139,9 +139,14 @@ def _calibrate_size(config) -> int:
 
 
 def _run_lights(ctx: StageContext, config) -> dict[str, Any]:
+    from slscan.viewer.paths import LIGHTS_PANEL
+    from slscan.viewer.recording import session_stream
     from slscan.virtual.panels import calibrate_virtual_lights
 
-    lights = calibrate_virtual_lights(config, ctx.out, overwrite=True, rec=ctx.rec, progress=ctx.progress)
+    # the panel is a session of its own: its subtree (world/lights_panel/...), its timelines
+    # and its camera's intrinsics, never the scanned object's
+    with session_stream(ctx.rec, LIGHTS_PANEL) as rec:
+        lights = calibrate_virtual_lights(config, ctx.out, overwrite=True, rec=rec, progress=ctx.progress)
     return {"lights": len(lights.lights), "rms": round(float(lights.fit["rms"]), 5)}
 
 

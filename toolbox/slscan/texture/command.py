@@ -18,7 +18,7 @@ folder, its registration.json or aligned.mlp); without it the session's recorded
 are used. Outputs in --out: model.glb (glTF, metres, Y up), model.obj/.mtl +
 model_albedo.png (mm), model.ply (texture coordinates per face corner, as MeshLab writes
 them), model_vertex_colors.ply, model.mlp (MeshLab: model.ply and the views as registered
-rasters), views/VIEW.png, view_count.png, texture.json, and
+rasters), views/VIEW.png, view_count.png (coloured; raw counts: view_count_raw.png), texture.json, and
 preview.png when Blender is found (bash .ci/setup installs it in .venv-blender).
 """
 
@@ -29,7 +29,7 @@ def _cmd_texture(args: argparse.Namespace) -> int:
     from slscan.errors import SlscanError
     from slscan.texture.atlas import MAX_SIZE, MIN_SIZE
     from slscan.texture.pipeline import TextureConfig, texture_model
-    from slscan.viewer.log_texture import texture_blueprint
+    from slscan.viewer.layouts import texture_blueprint
     from slscan.viewer.recording import recording_from_args
 
     if args.size is not None and not MIN_SIZE <= args.size <= MAX_SIZE:

@@ -11,7 +11,10 @@ and writes the output folder atomically:
 ``model_vertex_colors.ply``     the model with per-vertex colour (the fallback)
 ``model.mlp``                   MeshLab project: ``model.ply`` and every view as a registered raster
 ``views/VIEW.png``              each view's un-shaded image (sRGB, undistorted)
-``view_count.png``              views blended per texel (8-bit; 0: filled from the vertices)
+``view_count.png``              views blended per texel as colours (legend in ``texture.json``:
+                                black outside the charts, grey 0 = filled from the vertices,
+                                blue 1 view ... red every view)
+``view_count_raw.png``          the counts themselves (16-bit grey; 0: filled or outside)
 ``preview.png``                 Cycles render of the model (when Blender is found)
 ``texture.json``                manifest: files, views (intrinsics, poses), atlas, metrics
 ==============================  ===============================================================
@@ -118,6 +121,7 @@ def texture_model(
     from slscan.texture.bake import bake, check_texture_memory
     from slscan.texture.metrics import seam_error
     from slscan.texture.views import load_views
+    from slscan.colour import view_count_image, view_count_legend
     from slscan.viewer.log_texture import log_texture_views, log_textured_model
 
     config = config or TextureConfig()
@@ -169,7 +173,9 @@ def texture_model(
                                   normals)
         export.write_vertex_color_ply(tmp / "model_vertex_colors.ply", mesh.vertices, mesh.faces,
                                       srgb8(baked.vertex_colors), normals)
-        write_png(tmp / "view_count.png", baked.view_count)
+        # the counts (0-3 in a typical texel) as colours one can see, and as numbers
+        write_png(tmp / "view_count.png", view_count_image(baked.view_count, baked.covered, len(views)))
+        write_png(tmp / "view_count_raw.png", baked.view_count.astype(np.uint16))
         images = []
         (tmp / "views").mkdir()
         for view in views:
@@ -191,7 +197,8 @@ def texture_model(
                        "light": light},
             "model": {"glb": "model.glb", "obj": "model.obj", "ply": "model_vertex_colors.ply",
                       "textured_ply": "model.ply",
-                      "texture": "model_albedo.png", "mlp": "model.mlp", "view_count": "view_count.png",
+                      "texture": "model_albedo.png", "mlp": "model.mlp", "view_count": "view_count_raw.png",
+                      "view_count_image": "view_count.png", "view_count_legend": view_count_legend(len(views)),
                       "faces": len(mesh.faces), "vertices": len(mesh.vertices)},
             "gltf_from_world": export.GLTF_FROM_WORLD.tolist(),
             "atlas": {"size": atlas.size, "charts": atlas.n_charts, "utilisation": atlas.utilisation,
@@ -208,7 +215,8 @@ def texture_model(
         manifest["seconds"] = seconds
         write_json(tmp / "texture.json", manifest)
     log_texture_views(rec, entries, images)
-    log_textured_model(rec, atlas, texture, atlas_normals, baked.view_count, metrics)
+    log_textured_model(rec, atlas, texture, atlas_normals, baked.view_count, metrics,
+                       covered=baked.covered, max_views=len(views))
     return TextureResult(out, len(mesh.faces), atlas.n_charts, atlas.size, metrics, seconds, light)
 
 

@@ -3,6 +3,10 @@
 Open a recording with a layout: ``rerun scan.rrd viewer_layouts/capture.rbl``. Blueprints
 are saved for application id ``"slscan"``, the id :func:`slscan.viewer.recording.open_recording`
 uses by default.
+
+Every stage's blueprint is here; it addresses the entity paths of :mod:`slscan.viewer.paths`
+and the timelines of :mod:`slscan.viewer.recording`, and imports no logger (the loggers
+import no layout either).
 """
 
 from __future__ import annotations
@@ -13,7 +17,20 @@ from pathlib import Path
 
 import rerun.blueprint as rrb
 
-from slscan.viewer.recording import VIEW_TIMELINE
+from slscan.viewer.paths import (
+    ATLAS_PATH,
+    CALIBRATE_PLOT_PATH,
+    LIGHTS_PANEL,
+    PHASE_PATH,
+    PREVIEW_CLIPPED_PLOT,
+    PREVIEW_FOCUS_PLOT,
+    PREVIEW_IMAGE_PATH,
+    PREVIEW_OVERLAP_PLOT,
+    PREVIEW_PLOT_PATH,
+    PREVIEW_TEXT_PATH,
+    VIEW_COUNT_PATH,
+)
+from slscan.viewer.recording import STAGE_TIMELINE, VIEW_TIMELINE
 
 APPLICATION_ID = "slscan"
 
@@ -46,6 +63,7 @@ def capture_blueprint() -> rrb.Blueprint:
             "+ $origin/**",
             "- $origin/camera/image/truth/**",
             "- $origin/projector/image/pattern",
+            f"- $origin/{LIGHTS_PANEL}/**",  # the light-calibration panel's own session
         ],
         name="Rig and scene",
     )
@@ -80,10 +98,6 @@ def stage_blueprint(root: rrb.Container, timeline: str = VIEW_TIMELINE) -> rrb.B
         rrb.SelectionPanel(expanded=False),
         collapse_panels=False,
     )
-
-
-PHASE_PATH = "decode/phase"
-"""Where a phase decode's maps are, under ``world/camera/image`` (``decode.phase.display_maps``)."""
 
 
 def phase_map_views(*, compact: bool = False) -> list[rrb.View | rrb.Container]:
@@ -211,10 +225,8 @@ def pipeline_blueprint(stages: Sequence[str] = ()) -> rrb.Blueprint:
         that has a tab (e.g. Register for a recipe that starts from range maps), on the
         ``view`` timeline when per-view stages run, else on the ``stage`` timeline
     """
-    from slscan.viewer.recording import STAGE_TIMELINE
-
     # recipes decode to range maps only: no projector-code views
-    tabs = [capture_blueprint(), decode_blueprint(codes=False), _albedo(), register_blueprint(), _texture()]
+    tabs = [capture_blueprint(), decode_blueprint(codes=False), albedo_blueprint(), register_blueprint(), texture_blueprint()]
     active = next((_PIPELINE_TAB[s] for s in stages if s in _PIPELINE_TAB), 0)
     timeline = VIEW_TIMELINE if active <= _PIPELINE_TAB["albedo"] else STAGE_TIMELINE
     return stage_blueprint(
@@ -223,24 +235,10 @@ def pipeline_blueprint(stages: Sequence[str] = ()) -> rrb.Blueprint:
     )
 
 
-def _calibrate() -> rrb.Blueprint:
-    from slscan.viewer.log_calibrate import calibrate_blueprint
-
-    return calibrate_blueprint()
-
-
-def _albedo() -> rrb.Blueprint:
-    from slscan.viewer.log_albedo import albedo_blueprint
-
-    return albedo_blueprint()
-
-
 def register_blueprint() -> rrb.Blueprint:
     """Register, fuse, simplify: the range maps at their poses (scrub the ``stage``
     timeline from initial to registered), the fused and simplified models, and the pair
     residuals."""
-    from slscan.viewer.recording import STAGE_TIMELINE
-
     scans = rrb.Spatial3DView(origin="object", contents=["+ $origin/scans/**"], name="Range maps at their poses")
     models = rrb.Tabs(
         rrb.Spatial3DView(origin="object", contents=["+ $origin/model/fused"], name="Fused"),
@@ -266,28 +264,200 @@ def register_blueprint() -> rrb.Blueprint:
     )
 
 
-def _scan() -> rrb.Blueprint:
-    from slscan.viewer.log_scan import scan_blueprint
+def calibrate_blueprint() -> rrb.Blueprint:
+    """Calibrate stage: the boards, rig and light planes in 3D beside the corners in 2D.
 
-    return scan_blueprint()
+    Left: 3D view of ``world`` — board poses, camera and projector frusta, a sample of
+    light planes (images left out). Right: the board image with detected (green) and
+    reprojected (red) corners; the projector's image with the corners mapped into it;
+    per-view reprojection errors and per-plane residuals; the calibration log. Time panel
+    on the view timeline.
+    """
+    scene = rrb.Spatial3DView(
+        origin="world",
+        contents=[
+            "+ $origin/**",
+            "- $origin/camera/image/**",
+            "- $origin/projector/image/calibrate/**",
+            f"- $origin/{LIGHTS_PANEL}/**",
+        ],
+        name="Boards, rig and light planes",
+    )
+    camera = rrb.Spatial2DView(
+        origin="world/camera/image",
+        contents=["+ $origin/calibrate/**"],
+        name="Board corners (camera)",
+    )
+    projector = rrb.Spatial2DView(
+        origin="world/projector/image",
+        contents=["+ $origin/calibrate/**"],
+        name="Board corners (projector)",
+    )
+    errors = rrb.TimeSeriesView(
+        origin=CALIBRATE_PLOT_PATH,
+        contents=["+ $origin/camera_rms_px", "+ $origin/projector_rms_px"],
+        name="Reprojection RMS per view (px)",
+    )
+    planes = rrb.Tabs(
+        rrb.BarChartView(
+            origin=f"{CALIBRATE_PLOT_PATH}/plane_rms_after_mm", name="Plane RMS after global fit (mm)"
+        ),
+        rrb.BarChartView(
+            origin=f"{CALIBRATE_PLOT_PATH}/plane_rms_before_mm", name="Plane RMS, raw planes (mm)"
+        ),
+        name="Light-plane residuals",
+    )
+    log = rrb.TextLogView(origin="log/calibrate", name="Calibration log")
+    return stage_blueprint(
+        rrb.Horizontal(
+            scene,
+            rrb.Vertical(
+                rrb.Horizontal(camera, projector),
+                rrb.Horizontal(errors, planes),
+                log,
+                row_shares=[3, 2, 1],
+            ),
+            column_shares=[1, 1],
+            name="Calibrate",
+        ),
+    )
 
 
-def _texture() -> rrb.Blueprint:
-    from slscan.viewer.log_texture import texture_blueprint
+def albedo_blueprint() -> rrb.Blueprint:
+    """Albedo stage: each lit image with its masks beside the un-shaded result.
 
-    return texture_blueprint()
+    Left: the lit image of the current frame with its light's shadow (blue) and rejected
+    highlight (yellow) masks over it; below it tabs with the un-shaded image, the error
+    against ground truth (virtual rig) and the normals used. Right: 3D view of the range
+    maps coloured by albedo with the calibrated lights, and the per-view metrics.
+    Scrub the frame timeline to step through the lights. In a recipe's recording, the
+    "Light panel" tab shows the light calibration's own captures (``world/lights_panel``,
+    on the ``lights_panel_view`` timeline).
+    """
+    image = "world/camera/image"
+    lit = rrb.Spatial2DView(
+        origin=image,
+        contents=["+ $origin/albedo/lit", "+ $origin/albedo/shadow", "+ $origin/albedo/highlight"],
+        name="Lit image, shadow and highlight masks",
+    )
+    results = rrb.Tabs(
+        rrb.Spatial2DView(
+            origin=image, contents="$origin/albedo/unshaded", name="Un-shaded (albedo)"
+        ),
+        rrb.Spatial2DView(origin=image, contents="$origin/albedo/error", name="Albedo error"),
+        rrb.Spatial2DView(origin=image, contents="$origin/albedo/normal", name="Normals"),
+        # a recipe's light calibration: its own session (pick the lights_panel_view timeline)
+        rrb.Spatial2DView(origin=f"world/{LIGHTS_PANEL}/camera/image", contents="$origin/capture",
+                          name="Light panel"),
+        name="Albedo",
+    )
+    scans = rrb.Spatial3DView(
+        origin="world",
+        contents=["+ $origin/albedo/**", "+ $origin/lights/**", "+ $origin/camera"],
+        name="Range maps with albedo",
+    )
+    metrics = rrb.TimeSeriesView(origin="plot/albedo", name="Per-view metrics")
+    return stage_blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(lit, results, row_shares=[1, 1]),
+            rrb.Vertical(scans, metrics, row_shares=[3, 1]),
+            column_shares=[1, 1],
+            name="Albedo",
+        ),
+    )
+
+
+def scan_blueprint() -> rrb.Blueprint:
+    """Live scan: the frame arriving and the pattern on the projector (left); the last
+    view's range map in 3D (or its code map, or with phase shifting its wrapped phase,
+    projector column, modulation and fringe-order corrections) and its holes over the
+    white frame (right); coverage per view and the scan log below."""
+    live = rrb.Vertical(
+        rrb.Spatial2DView(origin="world/camera/image", contents="$origin/capture", name="Camera (live)"),
+        rrb.Spatial2DView(origin="world/projector/image", contents="$origin/pattern", name="Projector"),
+        name="Live",
+    )
+    holes = rrb.Spatial2DView(
+        origin="world/camera/image",
+        contents=["+ $origin/capture", "+ $origin/scan/holes", "+ $origin/decode/saturation",
+                  "+ $origin/corners"],
+        name="Holes (magenta) and clipping (red)",
+    )
+    maps = rrb.Tabs(
+        rrb.Spatial3DView(origin="world", contents=["+ $origin/scans/**", "+ $origin/camera",
+                                                   "+ $origin/projector"], name="Range maps"),
+        rrb.Spatial2DView(origin="world/camera/image", contents="$origin/decode/codes", name="Codes"),
+        rrb.Grid(*phase_map_views(compact=True), grid_columns=2, name="Phase"),
+        name="Quick decode",
+    )
+    bottom = rrb.Horizontal(
+        rrb.TimeSeriesView(origin="plot/scan", name="Coverage per view"),
+        rrb.TextLogView(origin="log", name="Scan log"),
+    )
+    return stage_blueprint(
+        rrb.Vertical(
+            rrb.Horizontal(live, rrb.Vertical(maps, holes), column_shares=[2, 3]),
+            bottom,
+            row_shares=[4, 1],
+            name="Scan",
+        )
+    )
+
+
+def texture_blueprint() -> rrb.Blueprint:
+    """Texture stage: the textured model (and, in a second tab, among the view cameras);
+    the atlas and the per-texel view count beside it; the metrics below."""
+    model = rrb.Tabs(
+        rrb.Spatial3DView(origin="object", contents=["+ $origin/model/textured"], name="Textured model"),
+        rrb.Spatial3DView(origin="object", contents=["+ $origin/model/textured", "+ $origin/views/**"],
+                          name="Model and views"),
+        name="Model",
+    )
+    images = rrb.Tabs(
+        rrb.Spatial2DView(origin=ATLAS_PATH, name="Atlas"),
+        rrb.Spatial2DView(origin=VIEW_COUNT_PATH, name="Views per texel"),
+        name="Texture",
+    )
+    metrics = rrb.TimeSeriesView(origin="plot/texture", name="Texture metrics")
+    return stage_blueprint(
+        rrb.Horizontal(model, rrb.Vertical(images, metrics, row_shares=[3, 1]), column_shares=[3, 2],
+                       name="Texture"),
+        STAGE_TIMELINE,
+    )
+
+
+def preview_blueprint() -> rrb.Blueprint:
+    """The preview's layout: the camera with the focus tiles and clipped pixels over it
+    (left), focus, clipped share and overlap plotted per refresh, and the lines (right)."""
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial2DView(origin=PREVIEW_IMAGE_PATH, contents="$origin/**",
+                              name="Camera: focus (red blurred, green sharp), clipped (magenta)"),
+            rrb.Vertical(
+                rrb.TimeSeriesView(origin=PREVIEW_FOCUS_PLOT, name="Focus (stripe contrast)"),
+                rrb.TimeSeriesView(origin=PREVIEW_PLOT_PATH,
+                                   contents=[f"+ {PREVIEW_CLIPPED_PLOT}", f"+ {PREVIEW_OVERLAP_PLOT}"],
+                                   name="Clipped % and overlap %"),
+                rrb.TextLogView(origin=PREVIEW_TEXT_PATH, name="Preview"),
+            ),
+            column_shares=[3, 2],
+            name="Preview",
+        ),
+        rrb.TimePanel(state="collapsed"),
+        collapse_panels=True,
+    )
 
 
 LAYOUTS: dict[str, Callable[[], rrb.Blueprint]] = {
     "capture": capture_blueprint,
-    "calibrate": _calibrate,
+    "calibrate": calibrate_blueprint,
     "decode": decode_blueprint,
     "phase": phase_blueprint,
-    "albedo": _albedo,
+    "albedo": albedo_blueprint,
     "register": register_blueprint,
-    "texture": _texture,
+    "texture": texture_blueprint,
     "pipeline": pipeline_blueprint,
-    "scan": _scan,
+    "scan": scan_blueprint,
 }
 """Blueprint builders by stage name; :func:`save_layouts` writes ``<name>.rbl`` for each."""
 

@@ -34,7 +34,21 @@ import rerun as rr
 from slscan.colour import srgb8
 from slscan.errors import SlscanError
 from slscan.meshes import vertex_normals
-from slscan.viewer.recording import FRAME_TIMELINE, LOSSLESS_ATTR, VIEW_TIMELINE
+from slscan.viewer.paths import (
+    CAMERA_IMAGE_PATH,
+    CAMERA_PATH,
+    CAPTURE_LOG_PATH,
+    CAPTURE_PATH,
+    LIGHTS_PATH,
+    MESH_PATH,
+    PATTERN_PATH,
+    PROJECTOR_IMAGE_PATH,
+    PROJECTOR_PATH,
+    TRUTH_PATH,
+    WORLD_PATH,
+    scan_path,
+)
+from slscan.viewer.recording import FRAME_TIMELINE, LOSSLESS_ATTR, VIEW_TIMELINE, first_static
 
 if TYPE_CHECKING:  # imported lazily: capture modules import these loggers
     from slscan.capture.session import GroundTruth
@@ -51,16 +65,6 @@ JPEG_QUALITY = 90
 VISIBILITY_COLORS = ((0, 0, 0), (60, 60, 150), (255, 210, 60))
 """Display colours of the visibility labels background, projector shadow, lit."""
 
-CAPTURE_PATH = "world/camera/image/capture"
-PATTERN_PATH = "world/projector/image/pattern"
-TRUTH_PATH = "world/camera/image/truth"
-MESH_PATH = "world/scene/mesh"
-CAPTURE_LOG_PATH = "log/capture"
-
-
-def scan_path(view_index: int) -> str:
-    """Entity path of one view's scan data, ``world/scans/view_NNN``."""
-    return f"world/scans/view_{view_index:03d}"
 
 
 # --- small helpers --------------------------------------------------------------------------
@@ -88,12 +92,24 @@ def _check_image(image: np.ndarray, what: str) -> np.ndarray:
 
 
 def _png(image: np.ndarray, *, draw_order: float | None = None) -> rr.EncodedImage:
-    """Lossless PNG of an (h, w) or (h, w, 3) RGB uint8 image."""
-    bgr = image[..., ::-1] if image.ndim == 3 else image
-    ok, data = cv2.imencode(".png", np.ascontiguousarray(bgr), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    """Lossless PNG of an (h, w), (h, w, 3) RGB or (h, w, 4) RGBA uint8 image."""
+    if image.ndim == 3:
+        image = image[..., [2, 1, 0, 3]] if image.shape[2] == 4 else image[..., ::-1]
+    ok, data = cv2.imencode(".png", np.ascontiguousarray(image), [cv2.IMWRITE_PNG_COMPRESSION, 1])
     if not ok:
         raise SlscanError("could not PNG-encode an image for Rerun")
     return rr.EncodedImage(contents=data.tobytes(), media_type="image/png", draw_order=draw_order)
+
+
+def _overlay(mask: np.ndarray, color: tuple[int, int, int, int], *, draw_order: float = 10.0) -> rr.EncodedImage:
+    """A mask drawn in ``color`` (RGBA) over a camera frame, transparent elsewhere.
+
+    PNG-encoded: Rerun 0.41 draws no JPEG frame (:func:`log_capture`) under a raw RGBA
+    ``rr.Image`` in the same 2D view, but blends encoded images as expected.
+    """
+    rgba = np.zeros(mask.shape + (4,), np.uint8)
+    rgba[mask] = color
+    return _png(rgba, draw_order=draw_order)
 
 
 def _colors_u8(colors: np.ndarray) -> np.ndarray:
@@ -121,24 +137,34 @@ def _pinhole(
 def log_rig(rec: rr.RecordingStream | None, rig: Rig) -> None:
     """Log the rig, static: world axes, camera and projector frusta, ring lights.
 
+    Once per recording (and per session subtree): the same rig again is not re-sent; a
+    different rig (a calibrated one) replaces it.
+
     The camera frustum is drawn to :data:`CAMERA_IMAGE_PLANE_MM`; the projector's reaches
     ``rig.working_distance`` so it meets the object. Light positions are mm, rig frame.
     """
     if rec is None:
         return
-    rec.log("world", rr.ViewCoordinates.RDF, static=True)
+    # static, once per recording: a second stage logging the same rig changes nothing
+    lenses = (rig.camera.K, rig.camera.width, rig.camera.height, rig.projector.rig_from_projector,
+              rig.projector.lens.K, rig.projector.lens.width, rig.projector.lens.height, rig.working_distance)
+    key = tuple(np.asarray(v, float).round(9).tobytes() for v in lenses)
+    if not first_static(rec, CAMERA_IMAGE_PATH, key):
+        return
+    if first_static(rec, WORLD_PATH):
+        rec.log(WORLD_PATH, rr.ViewCoordinates.RDF, static=True)
     identity = rr.Transform3D(translation=[0.0, 0.0, 0.0], mat3x3=np.eye(3))
-    rec.log("world/camera", identity, static=True)
+    rec.log(CAMERA_PATH, identity, static=True)
     rec.log(
-        "world/camera/image",
+        CAMERA_IMAGE_PATH,
         _pinhole(rig.camera, CAMERA_IMAGE_PLANE_MM, CAMERA_COLOR),
         static=True,
     )
     pose = rig.projector.rig_from_projector
     rig_from_projector = rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3])
-    rec.log("world/projector", rig_from_projector, static=True)
+    rec.log(PROJECTOR_PATH, rig_from_projector, static=True)
     rec.log(
-        "world/projector/image",
+        PROJECTOR_IMAGE_PATH,
         _pinhole(rig.projector.lens, rig.working_distance, PROJECTOR_COLOR),
         static=True,
     )
@@ -147,7 +173,7 @@ def log_rig(rec: rr.RecordingStream | None, rig: Rig) -> None:
         intensity = np.array([light.intensity for light in rig.lights], float)
         colors = intensity / np.maximum(intensity.max(axis=1, keepdims=True), 1e-9)
         rec.log(
-            "world/lights",
+            LIGHTS_PATH,
             rr.Points3D(
                 positions,
                 radii=LIGHT_RADIUS_MM,
@@ -316,16 +342,17 @@ def log_ground_truth(
         projector_width = float(np.ceil(finite.max())) if finite.size else 1.0
     rec.log(f"{TRUTH_PATH}/projector_column", _png(projector_column_image(column, projector_width)))
 
-    rec.log(
-        f"{TRUTH_PATH}/visibility",
-        rr.AnnotationContext(
-            [
-                rr.AnnotationInfo(id=k, label=VISIBILITY_LABELS[k], color=VISIBILITY_COLORS[k])
-                for k in VISIBILITY_LABELS
-            ]
-        ),
-        static=True,
-    )
+    if first_static(rec, f"{TRUTH_PATH}/visibility"):
+        rec.log(
+            f"{TRUTH_PATH}/visibility",
+            rr.AnnotationContext(
+                [
+                    rr.AnnotationInfo(id=k, label=VISIBILITY_LABELS[k], color=VISIBILITY_COLORS[k])
+                    for k in VISIBILITY_LABELS
+                ]
+            ),
+            static=True,
+        )
     rec.log(f"{TRUTH_PATH}/visibility", rr.SegmentationImage(gt.visibility.astype(np.uint8)))
 
     step = TRUTH_POINT_STRIDE

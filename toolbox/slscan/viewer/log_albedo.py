@@ -8,7 +8,7 @@ Entity tree, continuing :mod:`slscan.viewer.log`::
     world/camera/image/albedo/unshaded     the un-shaded (albedo) image, sRGB  [view]
     world/camera/image/albedo/normal       normals used, RGB of (n + 1) / 2  [view]
     world/camera/image/albedo/error        |albedo - truth| / |truth|, Turbo (virtual rig)  [view]
-    world/scans/view_NNN/albedo            Mesh3D of the range map coloured by albedo  [view]
+    world/albedo/view_NNN                  Mesh3D of the range map coloured by albedo  [view]
     world/lights/calibrated                Points3D of the calibrated lights (static)
     log/albedo                             TextLog naming each lit frame  [view, frame]
     plot/albedo/<metric>                   per-view scalars  [view]
@@ -22,39 +22,37 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import rerun as rr
-import rerun.blueprint as rrb
 
 from slscan.colour import srgb8
 from slscan.errors import SlscanError
-from slscan.viewer.layouts import stage_blueprint
 from slscan.viewer.log import (
     JPEG_QUALITY,
     LIGHT_RADIUS_MM,
     _check_image,
+    _overlay,
     _png,
     _set_view,
     _to_uint8,
-    scan_path,
 )
 from slscan.viewer.log_decode import colormap
+from slscan.viewer.paths import (
+    ALBEDO_LOG_PATH,
+    ALBEDO_PATH,
+    ALBEDO_PLOT_PATH,
+    CALIBRATED_LIGHTS_PATH,
+    albedo_mesh_path,
+)
+from slscan.viewer.recording import first_static
 
 if TYPE_CHECKING:
     from slscan.albedo.lights import LightCalibration
 
-ALBEDO_PATH = "world/camera/image/albedo"
-LIGHTS_PATH = "world/lights/calibrated"
-ALBEDO_LOG_PATH = "log/albedo"
+LIGHTS_PATH = CALIBRATED_LIGHTS_PATH
 SHADOW_COLOR = (40, 90, 255, 150)
 HIGHLIGHT_COLOR = (255, 230, 0, 190)
 CALIBRATED_LIGHT_COLOR = (255, 80, 200)
 ERROR_RANGE = 0.10
 """Relative albedo error shown at the top of the error colour map (10 %)."""
-
-
-def _overlay(mask: np.ndarray, color: tuple[int, int, int, int]) -> rr.Image:
-    rgba = np.zeros(mask.shape + (4,), np.uint8)
-    rgba[mask] = color
-    return rr.Image(rgba, color_model="RGBA", draw_order=10.0)
 
 
 def log_lit_image(
@@ -170,7 +168,7 @@ def log_albedo_mesh(
     colors[~known] = 96
     _set_view(rec, view_index)
     rec.log(
-        f"{scan_path(view_index)}/albedo",
+        albedo_mesh_path(view_index),
         rr.Mesh3D(
             vertex_positions=np.asarray(vertices, np.float32),
             triangle_indices=np.asarray(faces, np.uint32),
@@ -181,13 +179,17 @@ def log_albedo_mesh(
 
 
 def log_lights(rec: rr.RecordingStream | None, lights: LightCalibration) -> None:
-    """The calibrated light positions (mm, rig frame), static, beside the rig's nominal ones."""
+    """The calibrated light positions (mm, rig frame), static, beside the rig's nominal ones;
+    once per recording (the same lights again are not re-sent)."""
     if rec is None:
         return
+    positions = np.asarray(lights.positions, float)
+    if not first_static(rec, LIGHTS_PATH, positions.round(9).tobytes()):
+        return  # logged by an earlier view
     rec.log(
         LIGHTS_PATH,
         rr.Points3D(
-            lights.positions,
+            positions,
             radii=LIGHT_RADIUS_MM * 0.6,
             colors=CALIBRATED_LIGHT_COLOR,
             labels=[f"light {i} (calibrated)" for i in range(len(lights.lights))],
@@ -205,43 +207,4 @@ def log_albedo_metrics(
     _set_view(rec, view_index)
     for name, value in metrics.items():
         if value is not None and np.isfinite(value):
-            rec.log(f"plot/albedo/{name}", rr.Scalars(float(value)))
-
-
-def albedo_blueprint() -> rrb.Blueprint:
-    """Albedo stage: each lit image with its masks beside the un-shaded result.
-
-    Left: the lit image of the current frame with its light's shadow (blue) and rejected
-    highlight (yellow) masks over it; below it tabs with the un-shaded image, the error
-    against ground truth (virtual rig) and the normals used. Right: 3D view of the range
-    maps coloured by albedo with the calibrated lights, and the per-view metrics.
-    Scrub the frame timeline to step through the lights.
-    """
-    image = "world/camera/image"
-    lit = rrb.Spatial2DView(
-        origin=image,
-        contents=["+ $origin/albedo/lit", "+ $origin/albedo/shadow", "+ $origin/albedo/highlight"],
-        name="Lit image, shadow and highlight masks",
-    )
-    results = rrb.Tabs(
-        rrb.Spatial2DView(
-            origin=image, contents="$origin/albedo/unshaded", name="Un-shaded (albedo)"
-        ),
-        rrb.Spatial2DView(origin=image, contents="$origin/albedo/error", name="Albedo error"),
-        rrb.Spatial2DView(origin=image, contents="$origin/albedo/normal", name="Normals"),
-        name="Albedo",
-    )
-    scans = rrb.Spatial3DView(
-        origin="world",
-        contents=["+ $origin/scans/**/albedo", "+ $origin/lights/**", "+ $origin/camera"],
-        name="Range maps with albedo",
-    )
-    metrics = rrb.TimeSeriesView(origin="plot/albedo", name="Per-view metrics")
-    return stage_blueprint(
-        rrb.Horizontal(
-            rrb.Vertical(lit, results, row_shares=[1, 1]),
-            rrb.Vertical(scans, metrics, row_shares=[3, 1]),
-            column_shares=[1, 1],
-            name="Albedo",
-        ),
-    )
+            rec.log(f"{ALBEDO_PLOT_PATH}/{name}", rr.Scalars(float(value)))

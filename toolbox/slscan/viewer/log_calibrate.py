@@ -14,7 +14,8 @@ Entity tree, continuing :mod:`slscan.viewer.log` (rig frame = camera frame, mm):
     plot/calibrate/plane_rms_before_mm, plane_rms_after_mm   per-plane residuals (bar charts)
     log/calibrate                              rejected views and the summary
 
-The camera and projector frusta are :func:`slscan.viewer.log.log_rig` of the calibrated rig.
+The camera and projector frusta are :func:`slscan.viewer.log.log_rig` of the calibrated rig; what a
+calibration run logs is put together by the calibrate stage (``slscan.calibrate.pipeline``).
 """
 
 from __future__ import annotations
@@ -23,23 +24,27 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import rerun as rr
-import rerun.blueprint as rrb
 
-from slscan.viewer.layouts import stage_blueprint
-from slscan.viewer.log import _set_view, _to_uint8, log_rig
+from slscan.viewer.log import _set_view, _to_uint8
+from slscan.viewer.paths import (
+    BOARDS_PATH,
+    CALIBRATE_CAMERA_PATH,
+    CALIBRATE_LOG_PATH,
+    CALIBRATE_PLOT_PATH,
+    CALIBRATE_PROJECTOR_PATH,
+    PLANES_PATH,
+    board_path,
+)
 
 if TYPE_CHECKING:
-    from slscan.calibrate.pipeline import CalibrationRun
     from slscan.calibrate.planes import LightPlaneModel
     from slscan.calibrate.target import Board, CornerDetection
-    from slscan.capture.session import Session
 
-CAMERA_PATH = "world/camera/image/calibrate"
-PROJECTOR_PATH = "world/projector/image/calibrate"
-BOARDS_PATH = "world/boards"
-PLANES_PATH = "world/light_planes"
-PLOT_PATH = "plot/calibrate"
-LOG_PATH = "log/calibrate"
+CAMERA_PATH = CALIBRATE_CAMERA_PATH
+PROJECTOR_PATH = CALIBRATE_PROJECTOR_PATH
+PLOT_PATH = CALIBRATE_PLOT_PATH
+LOG_PATH = CALIBRATE_LOG_PATH
+__all__ = ["BOARDS_PATH", "PLANES_PATH", "board_path"]  # re-exported from slscan.viewer.paths
 
 CORNER_COLOR = (40, 255, 120)
 REPROJECTED_COLOR = (255, 60, 60)
@@ -47,10 +52,6 @@ BOARD_COLOR = (230, 230, 230)
 PLANE_COLOR = (255, 140, 0)
 N_PLANES_SHOWN = 24
 JPEG_QUALITY = 90
-
-
-def board_path(view_index: int) -> str:
-    return f"{BOARDS_PATH}/view_{view_index:03d}"
 
 
 def log_board_image(
@@ -203,131 +204,3 @@ def log_plane_residuals(
         return
     rec.log(f"{PLOT_PATH}/plane_rms_before_mm", rr.BarChart(np.asarray(before, float)), static=True)
     rec.log(f"{PLOT_PATH}/plane_rms_after_mm", rr.BarChart(np.asarray(after, float)), static=True)
-
-
-def log_calibration(rec: rr.RecordingStream | None, run: CalibrationRun, session: Session) -> None:
-    """Log a calibration's results: the rig, board poses, reprojections, planes, residuals."""
-    if rec is None:
-        return
-    from slscan.calibrate.target import board_pose
-
-    cal = run.calibration
-    old = session.calibration
-    rig = cal.rig(
-        lights=old.lights if old is not None else (),
-        working_distance=old.working_distance if old is not None else 1300.0,
-    )
-    log_rig(rec, rig)
-    board = cal.board
-    index = {
-        str(session.image_path(v, v.image_for(_white_id(session)))): i
-        for i, v in enumerate(session.views)
-    }
-    inverse = run.inverse_camera
-    distances = []
-    for det in run.camera.detections:
-        i = index.get(det.source)
-        if i is None:
-            continue
-        pose = board_pose(cal.camera, det, board)
-        distances.append(pose[2, 3])
-        log_board_pose(rec, board, pose, view_index=i)
-        local = board.object_points(det.ids) @ pose[:3, :3].T + pose[:3, 3]
-        log_reprojection(
-            rec, CAMERA_PATH, det.corners, cal.camera.project_local(local), view_index=i
-        )
-        errors = {
-            "camera_rms_px": float(
-                np.sqrt(
-                    np.mean(np.sum((cal.camera.project_local(local) - det.corners) ** 2, axis=1))
-                )
-            )
-        }
-        view_name = session.views[i].name
-        if inverse is not None and view_name in inverse.views:
-            k = inverse.views.index(view_name)
-            pts = inverse.projector_points[k]
-            obj = board.object_points(inverse.object_ids[k])
-            pose_p = inverse.projector_from_board[k]
-            reproj = cal.projector.lens.project_local(obj @ pose_p[:3, :3].T + pose_p[:3, 3])
-            log_reprojection(rec, PROJECTOR_PATH, pts, reproj, view_index=i)
-            errors["projector_rms_px"] = float(inverse.view_errors[k, 1])
-        log_view_errors(rec, errors, view_index=i)
-    if cal.light_planes is not None and distances:
-        near, far = 0.8 * min(distances), 1.1 * max(distances)
-        log_light_planes(rec, cal.light_planes, height=cal.projector_size[1], near=near, far=far)
-    if run.light_planes is not None:
-        lp = run.light_planes
-        log_plane_residuals(rec, lp.lines.rms, lp.line_rms_after)
-    summary = [f"camera RMS {run.camera.rms:.3f} px over {len(run.camera.views)} views"]
-    if inverse is not None:
-        summary.append(f"stereo RMS {inverse.stereo_rms:.3f} px")
-    if run.light_planes is not None:
-        summary.append(
-            f"planes RMS {run.light_planes.rms_before:.4f} mm -> {run.light_planes.rms_after:.4f} mm (global fit)"
-        )
-    rec.log(LOG_PATH, rr.TextLog("; ".join(summary), level="INFO"), static=True)
-
-
-def _white_id(session: Session) -> str:
-    from slscan.calibrate.target import board_image_id
-
-    return board_image_id(session)
-
-
-def calibrate_blueprint() -> rrb.Blueprint:
-    """Calibrate stage: the boards, rig and light planes in 3D beside the corners in 2D.
-
-    Left: 3D view of ``world`` — board poses, camera and projector frusta, a sample of
-    light planes (images left out). Right: the board image with detected (green) and
-    reprojected (red) corners; the projector's image with the corners mapped into it;
-    per-view reprojection errors and per-plane residuals; the calibration log. Time panel
-    on the view timeline.
-    """
-    scene = rrb.Spatial3DView(
-        origin="world",
-        contents=[
-            "+ $origin/**",
-            "- $origin/camera/image/**",
-            "- $origin/projector/image/calibrate/**",
-        ],
-        name="Boards, rig and light planes",
-    )
-    camera = rrb.Spatial2DView(
-        origin="world/camera/image",
-        contents=["+ $origin/calibrate/**"],
-        name="Board corners (camera)",
-    )
-    projector = rrb.Spatial2DView(
-        origin="world/projector/image",
-        contents=["+ $origin/calibrate/**"],
-        name="Board corners (projector)",
-    )
-    errors = rrb.TimeSeriesView(
-        origin=PLOT_PATH,
-        contents=["+ $origin/camera_rms_px", "+ $origin/projector_rms_px"],
-        name="Reprojection RMS per view (px)",
-    )
-    planes = rrb.Tabs(
-        rrb.BarChartView(
-            origin=f"{PLOT_PATH}/plane_rms_after_mm", name="Plane RMS after global fit (mm)"
-        ),
-        rrb.BarChartView(
-            origin=f"{PLOT_PATH}/plane_rms_before_mm", name="Plane RMS, raw planes (mm)"
-        ),
-        name="Light-plane residuals",
-    )
-    log = rrb.TextLogView(origin="log/calibrate", name="Calibration log")
-    return stage_blueprint(
-        rrb.Horizontal(
-            scene,
-            rrb.Vertical(
-                rrb.Horizontal(camera, projector),
-                rrb.Horizontal(errors, planes),
-                log,
-                row_shares=[3, 2, 1],
-            ),
-            column_shares=[1, 1],
-            name="Calibrate",
-        ),
-    )

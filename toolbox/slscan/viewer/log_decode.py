@@ -23,13 +23,14 @@ import cv2
 import numpy as np
 import rerun as rr
 
-from slscan.viewer.log import _colors_u8, _png, _set_view, scan_path
+from slscan.viewer.log import _colors_u8, _overlay, _png, _set_view
+from slscan.viewer.paths import DECODE_PATH, DECODE_PLOT_PATH, scan_path
+from slscan.viewer.recording import first_static
 
 if TYPE_CHECKING:
     from slscan.decode.family import DisplayMap
     from slscan.decode.samples import StripeSamples
 
-DECODE_PATH = "world/camera/image/decode"
 STRIPE_COLOR = (40, 255, 120)
 SATURATION_COLOR = (255, 30, 30, 160)
 LABEL_DRAW_ORDER = 15.0
@@ -41,10 +42,6 @@ shown at a fraction of its size."""
 MARKER_SIZE_UI = 3.0
 """Size of the point drawn for each view of a marked metric (a single view shows)."""
 CV_COLORMAPS = {"turbo": cv2.COLORMAP_TURBO, "viridis": cv2.COLORMAP_VIRIDIS, "twilight": cv2.COLORMAP_TWILIGHT}
-STATIC_LOGGED_ATTR = "slscan_static_logged"
-"""Attribute of a recording stream: the entity paths whose static data it has been sent."""
-
-
 def colormap(values: np.ndarray, vmax: float) -> np.ndarray:
     """Turbo colours (h, w, 3) uint8 of ``values`` (h, w) over [0, vmax]; negative or NaN black."""
     valid = np.isfinite(values) & (values >= 0)
@@ -69,18 +66,6 @@ def colormap_range(values: np.ndarray, value_range: tuple[float, float], name: s
     return np.ascontiguousarray(rgb)
 
 
-def _first_static(rec: rr.RecordingStream, path: str) -> bool:
-    """True the first time ``path``'s static data is asked for on ``rec`` (then log it)."""
-    done = getattr(rec, STATIC_LOGGED_ATTR, None)
-    if done is None:
-        done = set()
-        setattr(rec, STATIC_LOGGED_ATTR, done)
-    if path in done:
-        return False
-    done.add(path)
-    return True
-
-
 def log_display_maps(
     rec: rr.RecordingStream | None, maps: Mapping[str, DisplayMap], *, view_index: int
 ) -> None:
@@ -98,7 +83,7 @@ def log_display_maps(
     for name, shown in maps.items():
         path = f"{DECODE_PATH}/{name}"
         if shown.labels is not None:
-            if _first_static(rec, path):
+            if first_static(rec, path):
                 infos = [rr.AnnotationInfo(id=int(k), label=label, color=color)
                          for k, (label, color) in shown.labels.items()]
                 rec.log(path, rr.AnnotationContext(infos), static=True)
@@ -146,9 +131,7 @@ def log_decode_maps(
     rec.log(f"{DECODE_PATH}/mask", _png(mask.astype(np.uint8) * 255))
     rec.log(f"{DECODE_PATH}/codes", _png(colormap(codes.astype(np.float64), code_max)))
     if saturated is not None:
-        overlay = np.zeros(saturated.shape + (4,), np.uint8)
-        overlay[saturated] = SATURATION_COLOR
-        rec.log(f"{DECODE_PATH}/saturation", rr.Image(overlay, color_model="RGBA", draw_order=10.0))
+        rec.log(f"{DECODE_PATH}/saturation", _overlay(saturated, SATURATION_COLOR))
 
 
 def log_projector_codes(
@@ -215,7 +198,7 @@ def log_metrics(
     _set_view(rec, view_index)
     for name, value in metrics.items():
         if value is not None and np.isfinite(value):
-            path = f"plot/decode/{name}"
-            if name in marked and _first_static(rec, path):
+            path = f"{DECODE_PLOT_PATH}/{name}"
+            if name in marked and first_static(rec, path):
                 rec.log(path, rr.SeriesLines(), rr.SeriesPoints(marker_sizes=MARKER_SIZE_UI), static=True)
             rec.log(path, rr.Scalars(float(value)))

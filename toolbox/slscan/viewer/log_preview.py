@@ -1,21 +1,23 @@
 """Rerun logging of the live preview before a scan (``slscan preview``, ``slscan scan
 --preview``): the camera's white frame with the focus tiles and the clipped pixels laid
-over it, and focus, clipping and overlap as scalar plots, on the ``preview`` timeline."""
+over it, and focus, clipping and overlap as scalar plots, on the ``preview`` timeline
+(the layout: :func:`slscan.viewer.layouts.preview_blueprint`)."""
 
 from __future__ import annotations
 
 import numpy as np
 import rerun as rr
-import rerun.blueprint as rrb
 
+from slscan.viewer import paths
+
+IMAGE_PATH = paths.PREVIEW_IMAGE_PATH
+FOCUS_PATH = paths.PREVIEW_FOCUS_PATH
+CLIPPED_PATH = paths.PREVIEW_CLIPPED_PATH
+FOCUS_PLOT = paths.PREVIEW_FOCUS_PLOT
+CLIPPED_PLOT = paths.PREVIEW_CLIPPED_PLOT
+OVERLAP_PLOT = paths.PREVIEW_OVERLAP_PLOT
+TEXT_PATH = paths.PREVIEW_TEXT_PATH
 PREVIEW_TIMELINE = "preview"
-IMAGE_PATH = "preview/camera"
-FOCUS_PATH = "preview/camera/focus"
-CLIPPED_PATH = "preview/camera/clipped"
-FOCUS_PLOT = "plot/preview/focus"
-CLIPPED_PLOT = "plot/preview/clipped_percent"
-OVERLAP_PLOT = "plot/preview/overlap_percent"
-TEXT_PATH = "log/preview"
 CLIPPED_COLOR = (255, 40, 200, 220)  # magenta: a channel at full scale
 FOCUS_ALPHA = 110
 
@@ -60,24 +62,3 @@ def log_preview(rec: rr.RecordingStream | None, index: int, measures) -> None:
     rec.log(CLIPPED_PLOT, rr.Scalars(100.0 * float(measures.clipped_share)))
     rec.log(OVERLAP_PLOT, rr.Scalars(100.0 * float(measures.overlap)))
     rec.log(TEXT_PATH, rr.TextLog(measures.line(), level="INFO"))
-
-
-def preview_blueprint() -> rrb.Blueprint:
-    """The preview's layout: the camera with the focus tiles and clipped pixels over it
-    (left), focus, clipped share and overlap plotted per refresh, and the lines (right)."""
-    return rrb.Blueprint(
-        rrb.Horizontal(
-            rrb.Spatial2DView(origin=IMAGE_PATH, contents="$origin/**",
-                              name="Camera: focus (red blurred, green sharp), clipped (magenta)"),
-            rrb.Vertical(
-                rrb.TimeSeriesView(origin=FOCUS_PLOT, name="Focus (stripe contrast)"),
-                rrb.TimeSeriesView(origin="plot/preview", contents=[f"+ {CLIPPED_PLOT}", f"+ {OVERLAP_PLOT}"],
-                                   name="Clipped % and overlap %"),
-                rrb.TextLogView(origin=TEXT_PATH, name="Preview"),
-            ),
-            column_shares=[3, 2],
-            name="Preview",
-        ),
-        rrb.TimePanel(state="collapsed"),
-        collapse_panels=True,
-    )

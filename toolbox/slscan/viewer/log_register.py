@@ -17,7 +17,9 @@ Entity tree (the upright object frame of the aligned set, mm, y up; see
     log/register                    TextLog: each rejected pair and why  [stage]
 
 The ``stage`` timeline counts :data:`STAGES`: scrub it to see the scans jump from their
-initial to their registered poses.
+initial to their registered poses. These whole-object results are also logged at
+``view = 0`` and ``frame = 0``, so that on the per-view timelines every view shows the
+registered scans and the models (the later-logged registered pose wins at equal time).
 """
 
 from __future__ import annotations
@@ -29,7 +31,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import rerun as rr
 
-from slscan.viewer.recording import STAGE_TIMELINE
+from slscan.viewer.paths import MODEL_PATH, OBJECT_PATH, REGISTER_LOG_PATH, REGISTER_PLOT_PATH, SCANS_PATH
+from slscan.viewer.recording import FRAME_TIMELINE, STAGE_TIMELINE, VIEW_TIMELINE, first_static
 
 if TYPE_CHECKING:
     from slscan.fuse import Mesh
@@ -38,14 +41,11 @@ if TYPE_CHECKING:
 
 STAGES = {"initial": 0, "registered": 1, "fused": 2, "simplified": 3}
 """Sequence numbers of the pipeline steps on the ``stage`` timeline."""
-OBJECT_PATH = "object"
-SCANS_PATH = f"{OBJECT_PATH}/scans"
-MODEL_PATH = f"{OBJECT_PATH}/model"
 MAX_LOGGED_FACES = 2_000_000
 """Meshes with more faces are logged as a uniform subset of their faces (display only)."""
 MODEL_COLOR = (200, 200, 190)
-PLOT_PATH = "plot/register"
-LOG_PATH = "log/register"
+PLOT_PATH = REGISTER_PLOT_PATH
+LOG_PATH = REGISTER_LOG_PATH
 
 
 def scan_color(index: int) -> tuple[int, int, int]:
@@ -60,11 +60,16 @@ def log_object_frame(rec: rr.RecordingStream | None) -> None:
     files (PLY, OBJ, .mlp, glTF) have them, so Rerun shows the model upright."""
     if rec is None:
         return
-    rec.log(OBJECT_PATH, rr.ViewCoordinates.RIGHT_HAND_Y_UP, static=True)
+    if first_static(rec, OBJECT_PATH):
+        rec.log(OBJECT_PATH, rr.ViewCoordinates.RIGHT_HAND_Y_UP, static=True)
 
 
 def _set_stage(rec: rr.RecordingStream, stage: str) -> None:
+    """``stage`` on the stage timeline, and the first view and frame: a whole-object result
+    holds for every view, so it shows whichever timeline the viewer is on."""
     rec.set_time(STAGE_TIMELINE, sequence=STAGES.get(stage, len(STAGES)))
+    rec.set_time(VIEW_TIMELINE, sequence=0)
+    rec.set_time(FRAME_TIMELINE, sequence=0)
 
 
 def _mesh3d(

@@ -1,18 +1,14 @@
 """Rerun logging for live scans (``slscan scan``): every frame as it arrives, the quick
 decode after each view (range map, holes, coverage), exposure and latency, and the
-board corners of calibration captures; and the ``scan`` layout that arranges them."""
+board corners of calibration captures (the ``scan`` layout: :func:`slscan.viewer.layouts.scan_blueprint`)."""
 
 from __future__ import annotations
 
 import numpy as np
 import rerun as rr
-import rerun.blueprint as rrb
 
-from slscan.viewer.log import _png, _set_view, log_capture, log_pattern
-
-HOLES_PATH = "world/camera/image/scan/holes"
-COVERAGE_PATH = "plot/scan/coverage"
-SCAN_LOG_PATH = "log/scan"
+from slscan.viewer.log import _overlay, _png, _set_view, log_capture, log_pattern
+from slscan.viewer.paths import COVERAGE_PATH, DECODE_PATH, HOLES_PATH, SCAN_LOG_PATH
 HOLE_COLOR = (255, 40, 200, 160)  # magenta: lit but no range-map triangle
 
 
@@ -47,9 +43,7 @@ def log_holes(
     if rec is None:
         return
     _set_view(rec, view_index)
-    overlay = np.zeros(holes.shape + (4,), np.uint8)
-    overlay[holes] = HOLE_COLOR
-    rec.log(HOLES_PATH, rr.Image(overlay, color_model="RGBA", draw_order=10.0))
+    rec.log(HOLES_PATH, _overlay(holes, HOLE_COLOR))
     rec.log(COVERAGE_PATH, rr.Scalars(float(coverage)))
 
 
@@ -58,45 +52,4 @@ def log_code_map(rec: rr.RecordingStream | None, image: np.ndarray, *, view_inde
     if rec is None:
         return
     _set_view(rec, view_index)
-    rec.log("world/camera/image/decode/codes", _png(image))
-
-
-def scan_blueprint() -> rrb.Blueprint:
-    """Live scan: the frame arriving and the pattern on the projector (left); the last
-    view's range map in 3D (or its code map, or with phase shifting its wrapped phase,
-    projector column, modulation and fringe-order corrections) and its holes over the
-    white frame (right); coverage per view and the scan log below."""
-    from slscan.viewer.layouts import stage_blueprint
-
-    live = rrb.Vertical(
-        rrb.Spatial2DView(origin="world/camera/image", contents="$origin/capture", name="Camera (live)"),
-        rrb.Spatial2DView(origin="world/projector/image", contents="$origin/pattern", name="Projector"),
-        name="Live",
-    )
-    holes = rrb.Spatial2DView(
-        origin="world/camera/image",
-        contents=["+ $origin/capture", "+ $origin/scan/holes", "+ $origin/decode/saturation",
-                  "+ $origin/corners"],
-        name="Holes (magenta) and clipping (red)",
-    )
-    from slscan.viewer.layouts import phase_map_views
-
-    maps = rrb.Tabs(
-        rrb.Spatial3DView(origin="world", contents=["+ $origin/scans/**", "+ $origin/camera",
-                                                   "+ $origin/projector"], name="Range maps"),
-        rrb.Spatial2DView(origin="world/camera/image", contents="$origin/decode/codes", name="Codes"),
-        rrb.Grid(*phase_map_views(compact=True), grid_columns=2, name="Phase"),
-        name="Quick decode",
-    )
-    bottom = rrb.Horizontal(
-        rrb.TimeSeriesView(origin="plot/scan", name="Coverage per view"),
-        rrb.TextLogView(origin="log", name="Scan log"),
-    )
-    return stage_blueprint(
-        rrb.Vertical(
-            rrb.Horizontal(live, rrb.Vertical(maps, holes), column_shares=[2, 3]),
-            bottom,
-            row_shares=[4, 1],
-            name="Scan",
-        )
-    )
+    rec.log(f"{DECODE_PATH}/codes", _png(image))

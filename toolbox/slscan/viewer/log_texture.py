@@ -6,7 +6,7 @@ Entity tree (the upright object frame of the aligned set, mm, y up)::
     object/views/<name>            Transform3D object_from_camera + Pinhole of each view (static)
     object/views/<name>/albedo     the view's un-shaded image (sRGB)                      (static)
     texture/atlas                 the baked atlas (sRGB image)                           (static)
-    texture/view_count            views blended per texel (0 = filled from vertices)      (static)
+    texture/view_count            views blended per texel, coloured, named on hover        (static)
     plot/texture/<metric>         coverage, observed share, seam error, seconds           [stage = textured]
 """
 
@@ -16,8 +16,8 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 import rerun as rr
-import rerun.blueprint as rrb
 
+from slscan.colour import view_count_legend
 from slscan.viewer.log_register import (
     MAX_LOGGED_FACES,
     MODEL_PATH,
@@ -26,11 +26,10 @@ from slscan.viewer.log_register import (
     log_object_frame,
 )
 
+from slscan.viewer.paths import ATLAS_PATH, TEXTURE_PLOT_PATH, VIEW_COUNT_PATH, VIEWS_PATH
+
 TEXTURED_STAGE = "textured"
 STAGES.setdefault(TEXTURED_STAGE, len(STAGES))
-VIEWS_PATH = "object/views"
-ATLAS_PATH = "texture/atlas"
-VIEW_COUNT_PATH = "texture/view_count"
 MAX_LOGGED_TEXTURE = 4096
 
 
@@ -65,15 +64,24 @@ def log_texture_result(rec: rr.RecordingStream | None, folder) -> None:
     folder = Path(folder)
     manifest = read_json(folder / "texture.json", "texture manifest")
     atlas, texture = read_obj_atlas(folder / manifest["model"]["obj"])
-    count = read_png(folder / manifest["model"]["view_count"])
+    count = read_png(folder / manifest["model"]["view_count"])  # the raw counts
     entries = manifest.get("views", [])
     log_texture_views(rec, entries, [read_png(folder / e["image"]) for e in entries])
-    log_textured_model(rec, SimpleNamespace(**atlas), texture, None, count, manifest.get("metrics", {}))
+    log_textured_model(rec, SimpleNamespace(**atlas), texture, None, count, manifest.get("metrics", {}),
+                       max_views=max(len(entries), int(count.max(initial=0))))
 
 
 def log_textured_model(rec: rr.RecordingStream | None, atlas, texture: np.ndarray, normals: np.ndarray | None,
-                       view_count: np.ndarray, metrics: Mapping[str, float]) -> None:
-    """The textured mesh, the atlas image, the per-texel view count and the metrics."""
+                       view_count: np.ndarray, metrics: Mapping[str, float], *,
+                       covered: np.ndarray | None = None, max_views: int | None = None) -> None:
+    """The textured mesh, the atlas image, the per-texel view count and the metrics.
+
+    view_count : (size, size) int, views blended per texel; shown in the colours of
+        :func:`slscan.colour.view_count_image` (as ``view_count.png``), each named on hover
+        (``3 views``) by an annotation context
+    covered : (size, size) bool, texels inside the charts (None: those with a count)
+    max_views : the top of the colour ramp; None: the largest count
+    """
     if rec is None:
         return
     log_object_frame(rec)
@@ -94,32 +102,16 @@ def log_textured_model(rec: rr.RecordingStream | None, atlas, texture: np.ndarra
         albedo_texture=shown,
     ), static=True)  # the stage's one result: shown whatever timeline the viewer is on
     rec.log(ATLAS_PATH, rr.Image(shown), static=True)
-    rec.log(VIEW_COUNT_PATH, rr.SegmentationImage(view_count), static=True)
+    # classes: 0 outside the charts, k + 1 for a texel blended from k views
+    count = np.asarray(view_count).astype(np.int64)
+    top = int(max_views) if max_views else max(int(count.max(initial=0)), 1)
+    inside = count > 0 if covered is None else np.asarray(covered, bool)
+    classes = np.where(inside, np.clip(count, 0, top) + 1, 0).astype(np.uint16)
+    legend = list(view_count_legend(top).items())
+    rec.log(VIEW_COUNT_PATH, rr.AnnotationContext(
+        [rr.AnnotationInfo(id=k, label=label, color=colour) for k, (label, colour) in enumerate(legend)]
+    ), static=True)
+    rec.log(VIEW_COUNT_PATH, rr.SegmentationImage(classes, opacity=1.0), static=True)
     for name, value in metrics.items():
         if value is not None and np.isfinite(value):
-            rec.log(f"plot/texture/{name}", rr.Scalars(float(value)))
-
-
-def texture_blueprint() -> rrb.Blueprint:
-    """Texture stage: the textured model (and, in a second tab, among the view cameras);
-    the atlas and the per-texel view count beside it; the metrics below."""
-    from slscan.viewer.layouts import stage_blueprint
-    from slscan.viewer.recording import STAGE_TIMELINE
-
-    model = rrb.Tabs(
-        rrb.Spatial3DView(origin="object", contents=["+ $origin/model/textured"], name="Textured model"),
-        rrb.Spatial3DView(origin="object", contents=["+ $origin/model/textured", "+ $origin/views/**"],
-                          name="Model and views"),
-        name="Model",
-    )
-    images = rrb.Tabs(
-        rrb.Spatial2DView(origin=ATLAS_PATH, name="Atlas"),
-        rrb.Spatial2DView(origin=VIEW_COUNT_PATH, name="Views per texel"),
-        name="Texture",
-    )
-    metrics = rrb.TimeSeriesView(origin="plot/texture", name="Texture metrics")
-    return stage_blueprint(
-        rrb.Horizontal(model, rrb.Vertical(images, metrics, row_shares=[3, 1]), column_shares=[3, 2],
-                       name="Texture"),
-        STAGE_TIMELINE,
-    )
+            rec.log(f"{TEXTURE_PLOT_PATH}/{name}", rr.Scalars(float(value)))

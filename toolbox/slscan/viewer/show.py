@@ -74,7 +74,8 @@ def log_result(rec: rr.RecordingStream, path: str | os.PathLike) -> rrb.Blueprin
         log_range_maps(rec, path)
         return decode_blueprint()
     if kind == "texture":
-        from slscan.viewer.log_texture import log_texture_result, texture_blueprint
+        from slscan.viewer.layouts import texture_blueprint
+        from slscan.viewer.log_texture import log_texture_result
 
         log_texture_result(rec, path)
         return texture_blueprint()
