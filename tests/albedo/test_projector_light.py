@@ -128,7 +128,7 @@ def test_session_without_lights_gets_colour(tmp_path, tile, projector_light):
 
     paths = {c.entity_path for c in RrdReader(rrd).stream().to_chunks()}
     assert {"/world/camera/image/albedo/lit", "/world/camera/image/albedo/unshaded",
-            "/world/camera/image/albedo/error", "/world/scans/view_000/albedo"} <= paths
+            "/world/camera/image/albedo/error", "/world/albedo/view_000"} <= paths
     meta = json.loads((out / "albedo.json").read_text())
     assert meta["light"] == "projector" and meta["views"][0]["light"] == "projector"
     assert meta["projector_light"]["intensity"] == pytest.approx(list(projector_light.intensity))
