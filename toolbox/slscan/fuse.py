@@ -54,7 +54,7 @@ import numpy as np
 
 from slscan.errors import SlscanError
 from slscan.fsio import atomic_output_file, native_stderr_silenced
-from slscan.meshes import MESH_SUFFIXES, check_finite_vertices
+from slscan.meshes import MESH_SUFFIXES, check_face_indices, check_finite_vertices
 from slscan.register.rangescan import RangeScan
 
 log = logging.getLogger(__name__)
@@ -1027,6 +1027,7 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
     if len(m.triangles) == 0:
         raise SlscanError(f"{path}: no triangles read; expected a triangle mesh")
     check_finite_vertices(np.asarray(m.vertices), path)
+    check_face_indices(np.asarray(m.triangles), len(m.vertices), path)
     normals = np.asarray(m.vertex_normals, np.float32) if m.has_vertex_normals() else None
     colors = (
         np.round(np.asarray(m.vertex_colors) * 255).astype(np.uint8)

@@ -28,6 +28,35 @@ def check_finite_vertices(vertices: np.ndarray, path: str | os.PathLike) -> None
         )
 
 
+def check_face_indices(faces: np.ndarray, n_vertices: int, path: str | os.PathLike) -> None:
+    """Refuse faces that refer to a vertex the mesh does not have (negative, or ``n_vertices``
+    or more), naming the file, the first bad face, its index and the vertex count.
+
+    Every mesh read from a file goes through this before its faces reach native code
+    (Open3D, pymeshlab, fast-simplification, xatlas, OpenCV), where an index past the end
+    reads or writes outside the vertex array (a crash, or silently a different mesh).
+
+    faces : (m, k) int (any integer type; unsigned indices of 2**31 or more count as bad)
+    n_vertices : the number of vertices the file holds
+    """
+    f = np.asarray(faces)
+    if f.size == 0:
+        return
+    if not np.issubdtype(f.dtype, np.integer):
+        raise SlscanError(f"{path}: face vertex indices are not integers ({f.dtype}); expected integer indices")
+    f = f.reshape(len(f), -1) if f.ndim > 1 else f.reshape(-1, 1)
+    bad = ((f < 0) | (f >= n_vertices)).any(axis=1)
+    if bad.any():
+        i = int(np.argmax(bad))
+        row = f[i]
+        index = int(row[(row < 0) | (row >= n_vertices)][0])
+        n = int(bad.sum())
+        raise SlscanError(
+            f"{path}: face {i} refers to vertex {index} but the file has {n_vertices} vertices "
+            f"({n} bad face{'s' if n != 1 else ''}); expected vertex indices 0 to {n_vertices - 1}"
+        )
+
+
 def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals (n, 3) float64; zero for unreferenced vertices.
 
@@ -57,6 +86,7 @@ def read_obj_atlas(path: str | os.PathLike) -> tuple[dict, np.ndarray]:
     tex = getattr(getattr(mesh.visual, "material", None), "image", None)
     if uv is None or tex is None:
         raise SlscanError(f"{path}: expected texture coordinates and a texture image")
+    check_face_indices(np.asarray(mesh.faces), len(mesh.vertices), path)
     uvs = np.asarray(uv, np.float32).copy()
     uvs[:, 1] = 1.0 - uvs[:, 1]
     return (

@@ -26,6 +26,7 @@ import numpy as np
 
 from slscan.decode.samples import StripeSamples
 from slscan.errors import SlscanError
+from slscan.meshes import check_face_indices
 from slscan.ply import read_ply_elements, write_triangle_ply
 from slscan.rig import PinholeModel
 
@@ -461,6 +462,7 @@ def read_ply(path: str | os.PathLike) -> RangeMap:
         counts, indices = next(iter(ply["face"].values()))
         if len(counts) and np.any(counts != 3):
             raise SlscanError(f"{path}: element 'face' has non-triangle faces; expected triangles only")
+        check_face_indices(np.asarray(indices).reshape(-1, 3), n, path)
         faces = np.asarray(indices).astype(np.int32).reshape(-1, 3)
 
     def column(field: str, default: float, dtype) -> np.ndarray:

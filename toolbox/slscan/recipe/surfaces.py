@@ -41,6 +41,7 @@ class Surface:
 def read_surface(path: str | os.PathLike) -> Surface:
     """A triangle mesh from any PLY (range map, mesh, reference), with per-vertex texture
     coordinates (``texture_u``/``texture_v``, OpenGL convention) when it has them."""
+    from slscan.meshes import check_face_indices
     from slscan.ply import fan_triangles, read_ply_elements
 
     ply = read_ply_elements(path)
@@ -51,6 +52,7 @@ def read_surface(path: str | os.PathLike) -> Surface:
     face = ply.get("face", {})
     index = face.get("vertex_indices", face.get("vertex_index"))
     faces = fan_triangles(*index) if index is not None else np.zeros((0, 3), np.int64)
+    check_face_indices(faces, len(vertices), path)
     uvs = None
     if "texture_u" in vertex and "texture_v" in vertex:
         uvs = np.stack([vertex["texture_u"], 1.0 - vertex["texture_v"]], axis=1).astype(np.float64)

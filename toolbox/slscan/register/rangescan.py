@@ -27,7 +27,7 @@ import numpy as np
 from scipy import ndimage
 
 from slscan.errors import SlscanError
-from slscan.meshes import check_finite_vertices, vertex_normals
+from slscan.meshes import check_face_indices, check_finite_vertices, vertex_normals
 from slscan.ply import fan_triangles, read_ply_elements, write_triangle_ply
 
 log = logging.getLogger(__name__)
@@ -605,8 +605,7 @@ def load_range_scan(
         faces = fan_triangles(*prop)
     if len(faces) == 0:
         raise SlscanError(f"{path}: the PLY has no faces; expected a triangle mesh (range scan)")
-    if faces.min() < 0 or faces.max() >= len(points):
-        raise SlscanError(f"{path}: face indices out of range for {len(points)} vertices")
+    check_face_indices(faces, len(points), path)
     a, b, c = (points[faces[:, i]] for i in range(3))
     area = np.linalg.norm(np.cross(b - a, c - a), axis=1)
     faces = faces[area > 0]

@@ -22,7 +22,7 @@ from typing import Protocol
 import numpy as np
 
 from slscan.errors import SlscanError
-from slscan.meshes import MESH_SUFFIXES, vertex_normals
+from slscan.meshes import MESH_SUFFIXES, check_face_indices, vertex_normals
 from slscan.rig import rotation_about_axis
 from slscan.virtual.placement import AUTO_METRES_BELOW, default_placement, parse_units
 
@@ -380,6 +380,7 @@ def load_mesh_scene(path: str | os.PathLike, *, units: str | float | None = "aut
     triangles = np.asarray(mesh.triangles, dtype=np.int32)
     if len(triangles) == 0 or len(vertices) < 3:
         raise SlscanError(f"{path}: the mesh has no faces (a point cloud cannot be scanned)")
+    check_face_indices(np.asarray(mesh.triangles), len(vertices), path)
     if mm_per_unit is None:
         diag = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
         mm_per_unit = 1000.0 if diag < AUTO_METRES_BELOW else 1.0
