@@ -72,6 +72,41 @@ def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return normals / np.where(length > 0, length, 1.0)
 
 
+def _check_obj_indices(path: Path) -> None:
+    """Refuse an OBJ whose faces refer to a vertex or texture coordinate it does not have
+    (trimesh raises IndexError on some, and on others allocates one entry per index up to
+    the largest: 32 GiB for an index of 2**32); OBJ indices count from 1, negative ones
+    back from the last element read so far."""
+    counts = {b"v": 0, b"vt": 0}
+    names = {0: ("vertex", b"v"), 1: ("texture coordinate", b"vt")}
+    face = 0
+    try:
+        with open(path, "rb") as fh:
+            for line in fh:
+                words = line.split()
+                if not words:
+                    continue
+                if words[0] in counts:
+                    counts[words[0]] += 1
+                elif words[0] == b"f":
+                    for word in words[1:]:
+                        for k, part in enumerate(word.split(b"/")[:2]):
+                            if not part:
+                                continue
+                            name, key = names[k]
+                            i, n = int(part), counts[key]
+                            if not (1 <= i <= n or -n <= i <= -1):
+                                raise SlscanError(
+                                    f"{path}: face {face} refers to {name} {i} but the file has {n} before it "
+                                    f"(OBJ counts from 1); expected indices 1 to {n}"
+                                )
+                    face += 1
+    except ValueError:
+        raise SlscanError(f"{path}: face {face} holds an index that is not an integer") from None
+    except OSError as exc:
+        raise SlscanError(f"{path}: cannot read it ({exc.strerror})") from None
+
+
 def read_obj_atlas(path: str | os.PathLike) -> tuple[dict, np.ndarray]:
     """An OBJ written by :func:`slscan.texture.export.write_obj` read back:
     ``{"vertices", "faces", "uvs"}`` (uvs with the origin at the image's top-left, as in
@@ -81,7 +116,11 @@ def read_obj_atlas(path: str | os.PathLike) -> tuple[dict, np.ndarray]:
     path = Path(path)
     if not path.is_file():
         raise SlscanError(f"{path}: textured OBJ not found")
-    mesh = trimesh.load(path, force="mesh", process=False, maintain_order=True)
+    _check_obj_indices(path)
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False, maintain_order=True)
+    except (IndexError, ValueError, KeyError, TypeError) as exc:  # trimesh's parse errors: bad indices, numbers
+        raise SlscanError(f"{path}: not a readable textured OBJ ({exc})") from None
     uv = getattr(mesh.visual, "uv", None)
     tex = getattr(getattr(mesh.visual, "material", None), "image", None)
     if uv is None or tex is None:
