@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -55,6 +56,60 @@ def check_face_indices(faces: np.ndarray, n_vertices: int, path: str | os.PathLi
             f"{path}: face {i} refers to vertex {index} but the file has {n_vertices} vertices "
             f"({n} bad face{'s' if n != 1 else ''}); expected vertex indices 0 to {n_vertices - 1}"
         )
+
+
+@dataclass(frozen=True)
+class PlyMesh:
+    """A triangle mesh read from a PLY file.
+
+    vertices : (n, 3) float64, the file's units
+    faces : (m, 3) int64, checked to index the vertices (polygons fanned into triangles)
+    normals : (n, 3) float32 (``nx ny nz``), or None
+    colors : (n, 3) uint8 RGB (``red green blue``; float colours in 0..1 scaled), or None
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    normals: np.ndarray | None = None
+    colors: np.ndarray | None = None
+
+
+def read_ply_mesh(path: str | os.PathLike) -> PlyMesh:
+    """Read a triangle-mesh PLY (ASCII or binary) with :func:`slscan.ply.read_ply_elements`,
+    checked: finite vertices (:func:`check_finite_vertices`) and faces that index them
+    (:func:`check_face_indices`). A file without faces gives none.
+
+    Raises
+    ------
+    SlscanError
+        Missing, not a PLY, truncated, no ``x y z`` vertices, non-finite vertices, or faces
+        referring to vertices the file does not have (naming the file).
+    """
+    from slscan.ply import fan_triangles, read_ply_elements
+
+    ply = read_ply_elements(path)
+    vertex = ply.get("vertex") or {}
+    if not all(k in vertex for k in "xyz"):
+        raise SlscanError(f"{path}: no vertex element with x, y, z properties; expected a mesh PLY")
+    vertices = np.stack([vertex[k] for k in "xyz"], axis=1).astype(np.float64)
+    check_finite_vertices(vertices, path)
+    face = ply.get("face") or {}
+    index = face.get("vertex_indices", face.get("vertex_index"))
+    faces = np.zeros((0, 3), np.int64)
+    if index is not None:
+        if not isinstance(index, tuple):
+            raise SlscanError(f"{path}: the faces' vertex_indices is not a list property")
+        faces = fan_triangles(*index)
+    check_face_indices(faces, len(vertices), path)
+    normals = colors = None
+    if all(k in vertex for k in ("nx", "ny", "nz")):
+        normals = np.stack([vertex[k] for k in ("nx", "ny", "nz")], axis=1).astype(np.float32)
+    if all(k in vertex for k in ("red", "green", "blue")):
+        rgb = np.stack([vertex[k] for k in ("red", "green", "blue")], axis=1)
+        if rgb.dtype.kind == "f":
+            rgb = np.round(np.nan_to_num(np.clip(rgb, 0.0, 1.0)) * 255)
+        colors = np.clip(rgb, 0, 255).astype(np.uint8)
+    return PlyMesh(vertices, faces.astype(np.int64), normals, colors)
 
 
 def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:

@@ -123,6 +123,11 @@ class PinholeModel:
             raise SlscanError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
         if len(self.dist) != 5:
             raise SlscanError(f"expected 5 distortion coefficients, got {len(self.dist)}")
+        if not np.isfinite([self.fx, self.fy, self.cx, self.cy, *self.dist]).all():
+            raise SlscanError(
+                f"intrinsics must be finite numbers, got fx={self.fx}, fy={self.fy}, cx={self.cx}, "
+                f"cy={self.cy}, distortion {tuple(self.dist)}"
+            )
 
     @property
     def K(self) -> np.ndarray:

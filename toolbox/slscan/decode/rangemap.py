@@ -26,7 +26,7 @@ import numpy as np
 
 from slscan.decode.samples import StripeSamples
 from slscan.errors import SlscanError
-from slscan.meshes import check_face_indices
+from slscan.meshes import check_face_indices, check_finite_vertices
 from slscan.ply import read_ply_elements, write_triangle_ply
 from slscan.rig import PinholeModel
 
@@ -457,6 +457,7 @@ def read_ply(path: str | os.PathLike) -> RangeMap:
         if field not in vertex:
             raise SlscanError(f"{path}: vertices lack property {field!r}")
     n = len(vertex["x"])
+    check_finite_vertices(np.stack([np.asarray(vertex[a], np.float64) for a in "xyz"], axis=1), path)
     faces = np.zeros((0, 3), np.int32)
     if ply.get("face"):
         counts, indices = next(iter(ply["face"].values()))

@@ -312,8 +312,11 @@ def load_stanford_scan(
     if grid_el is None:
         raise SlscanError(f"{path}: no range_grid element; expected a Stanford range-grid PLY")
     rows, cols = ply.info.get("num_rows"), ply.info.get("num_cols")
-    counts, values = next(iter(grid_el.values()))
-    if rows is None or cols is None or int(rows) * int(cols) != len(counts):
+    lists = [v for v in grid_el.values() if isinstance(v, tuple)]
+    if not lists:
+        raise SlscanError(f"{path}: range_grid has no list property; expected the vertex index of each cell")
+    counts, values = lists[0]
+    if not isinstance(rows, int) or not isinstance(cols, int) or rows < 0 or cols < 0 or rows * cols != len(counts):
         raise SlscanError(
             f"{path}: range_grid has {len(counts)} cells but obj_info says "
             f"{rows} rows x {cols} columns"
@@ -372,6 +375,10 @@ def _conf_entries(path: Path, units: str) -> list[tuple[int, str, np.ndarray]]:
         text = path.read_text()
     except FileNotFoundError:
         raise SlscanError(f"{path}: pose file not found") from None
+    except IsADirectoryError:
+        raise SlscanError(f"{path}: is a folder; expected a pose file") from None
+    except UnicodeDecodeError as exc:
+        raise SlscanError(f"{path}: not a text file (byte {exc.start} is not UTF-8)") from None
     entries: list[tuple[int, str, np.ndarray]] = []
     for number, line in enumerate(text.splitlines(), 1):
         parts = line.split()

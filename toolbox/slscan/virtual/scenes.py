@@ -22,7 +22,7 @@ from typing import Protocol
 import numpy as np
 
 from slscan.errors import SlscanError
-from slscan.meshes import MESH_SUFFIXES, check_face_indices, vertex_normals
+from slscan.meshes import MESH_SUFFIXES, check_face_indices, read_ply_mesh, vertex_normals
 from slscan.rig import rotation_about_axis
 from slscan.virtual.placement import AUTO_METRES_BELOW, default_placement, parse_units
 
@@ -375,6 +375,8 @@ def load_mesh_scene(path: str | os.PathLike, *, units: str | float | None = "aut
     if not path.is_file():
         raise SlscanError(f"{path}: mesh file not found")
     mm_per_unit = parse_units(units, "units")
+    if path.suffix.lower() == ".ply":
+        read_ply_mesh(path)  # Open3D's PLY reader crashes on some malformed files: check it first
     mesh = o3d.io.read_triangle_mesh(str(path), enable_post_processing=True)
     vertices = np.asarray(mesh.vertices, dtype=float)
     triangles = np.asarray(mesh.triangles, dtype=np.int32)
