@@ -537,8 +537,13 @@ def rotation(value: object, file: Path, key: str) -> np.ndarray:
     """
     v = numbers(value, file, key, (3, 9))
     if v.size == 3:
-        return cv2.Rodrigues(v.reshape(3, 1))[0]
-    r = v.reshape(3, 3)
+        angle = float(np.linalg.norm(v))
+        if not angle < 1e6:  # cv2.Rodrigues gives NaN or garbage (1e308 rad: norm overflows)
+            raise SlscanError(f"{file}: key {key!r} is a rotation vector of {angle:.4g} rad; expected an angle "
+                              "of a few radians")
+        r = cv2.Rodrigues(v.reshape(3, 1))[0]
+    else:
+        r = v.reshape(3, 3)
     off = float(np.abs(r @ r.T - np.eye(3)).max())
     det = float(np.linalg.det(r))
     if off > ROTATION_TOLERANCE or det <= 0:
