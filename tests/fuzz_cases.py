@@ -58,7 +58,8 @@ def _calibration():
     rig = default_rig(scale=0.2, projector_scale=0.2)
     lens = rig.projector.lens
     proj = Projector(
-        PinholeModel(lens.width, lens.height, lens.fx, lens.fy, lens.cx, lens.cy, (0.01, -0.02, 0.001, 0.0005, 0.003)),
+        PinholeModel(lens.width, lens.height, lens.fx, lens.fy, lens.cx, lens.cy,
+                     (0.01, -0.02, 0.001, 0.0005, 0.003)),
         rig.projector.rig_from_projector,
     )
     model = LightPlaneModel(lens.width, lens.fx, lens.cx, rig.projector.rig_from_projector)
@@ -122,6 +123,8 @@ def build_corpus(folder: Path) -> dict[str, Path]:
     from slscan.virtual.device import VirtualCaptureConfig, capture_session
     from slscan.virtual.sensor import Sensor
 
+    import cv2
+
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     files: dict[str, Path] = {}
@@ -133,6 +136,7 @@ def build_corpus(folder: Path) -> dict[str, Path]:
     assert code == 0, "decoding the corpus session failed"
     files["codes.json"] = folder / "decoded" / "view_000" / "codes.json"
     files["projector_codes.json"] = folder / "decoded" / "projector_codes.json"
+    files["range_maps.json"] = folder / "decoded" / "range_maps.json"
 
     rm = read_ply(folder / "decoded" / "view_000.ply")
     keep = rm.faces[:40]
@@ -161,9 +165,7 @@ def build_corpus(folder: Path) -> dict[str, Path]:
     world = np.eye(4)
     world[:3, 3] = (1.0, 2.0, 3.0)
     raster = Raster("view_000", "view_000.png", 288, 192, 300.0, 301.0, 143.5, 95.5, world)
-    (meshes / "view_000.png").write_bytes((folder / "session" / "view_000" / "00_white.png").read_bytes()
-                                          if (folder / "session" / "view_000" / "00_white.png").is_file()
-                                          else b"")
+    shutil.copy(folder / "session" / "view_000" / "00_white.png", meshes / "view_000.png")
     files[".mlp"] = write_mlp(meshes / "aligned.mlp", [(meshes / "view_000.ply", np.eye(4))], rasters=[raster])
     (meshes / "bun.conf").write_text(
         "camera 0.0 0.0 0.0 0.0 0.0 0.0 1.0\n"
@@ -181,7 +183,7 @@ def build_corpus(folder: Path) -> dict[str, Path]:
     files["calibration XML (OpenCV)"] = export_opencv_xml(cal, calib / "result.xml")
     cam, proj = cal.camera, cal.projector.lens
     proj_from_cam = np.linalg.inv(cal.projector.rig_from_projector)
-    om = __import__("cv2").Rodrigues(proj_from_cam[:3, :3])[0].ravel()
+    om = cv2.Rodrigues(proj_from_cam[:3, :3])[0].ravel()
 
     def block(side: str, lens) -> str:
         return (f"fc_{side} = [ {lens.fx!r} {lens.fy!r} ];\ncc_{side} = [ {lens.cx!r} {lens.cy!r} ];\n"
@@ -287,7 +289,8 @@ def _mutate_tree(tree: Any, rnd: random.Random) -> Any:
     if op == 0:
         del parent[key]
     elif op == 1 and isinstance(value, list):
-        parent[key] = value[: rnd.randrange(len(value) + 1)] if rnd.random() < 0.5 else value + value[:1] * rnd.randint(1, 3)
+        cut = value[: rnd.randrange(len(value) + 1)]
+        parent[key] = cut if rnd.random() < 0.5 else value + value[:1] * rnd.randint(1, 3)
     elif op == 2 and isinstance(value, (int, float)) and not isinstance(value, bool):
         parent[key] = rnd.choice([-value, value * 1e6, value + 1, value - 1, math.nan, math.inf, 0, -1, 2**32 - 7])
     elif op == 3 and isinstance(value, str):
@@ -360,7 +363,8 @@ def _ply_mutation(data: bytes, rnd: random.Random) -> bytes:
         if words[0] == b"element" and len(words) == 3:
             words[2] = rnd.choice(WEIRD_NUMBERS).encode()
         elif words[0] == b"property":
-            types = [b"char", b"uchar", b"short", b"ushort", b"int", b"uint", b"float", b"double", b"int64", b"list"]
+            types = [b"char", b"uchar", b"short", b"ushort", b"int", b"uint", b"float", b"double", b"int64",
+                     b"list"]
             words[rnd.randrange(1, len(words))] = rnd.choice(types)
         elif words[0] == b"format":
             words[1] = rnd.choice([b"ascii", b"binary_little_endian", b"binary_big_endian", b"binary"])
@@ -504,6 +508,7 @@ def _readers() -> list[Reader]:
     from slscan.ply import read_ply_elements
     from slscan.recipe.runner import load_recipe
     from slscan.recipe.surfaces import read_surface
+    from slscan.register.command import load_scans
     from slscan.register.meshlab import read_mlp, read_mlp_rasters
     from slscan.register.rangescan import load_bun_conf, load_range_scan
 
@@ -528,6 +533,8 @@ def _readers() -> list[Reader]:
                _check_codes),
         Reader("decode.read_codes (projector_codes.json)", "projector_codes.json", "json",
                lambda p: read_codes(p.parent), _check_codes),
+        Reader("register.load_scans (range_maps.json)", "range_maps.json", "json",
+               lambda p: load_scans(p.parent), lambda r: None if r[0] else "no scans"),
         Reader("register.read_mlp (.mlp)", ".mlp", "xml", read_mlp, _check_mlp),
         Reader("register.read_mlp_rasters (.mlp)", ".mlp", "xml", read_mlp_rasters),
         Reader("register.load_bun_conf (.conf)", ".conf", "text", load_bun_conf, _check_pose_dict),

@@ -137,3 +137,15 @@ def test_obj_atlas_reader_refuses_bad_face_indices(tmp_path, bad):
     path.write_text(f"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nvt 0 0\nf 1/1 2/1 3/1\nf 2/1 {bad}/1 3/1\n")
     with pytest.raises(SlscanError, match=r"model\.obj"):
         read_obj_atlas(path)
+
+
+@pytest.mark.parametrize("bad", ["9", "-9", "4294967290"])
+def test_open3d_obj_path_refuses_bad_face_indices(tmp_path, bad):
+    """Meshes that are not PLY go through Open3D: its OBJ reader drops the whole mesh on a bad
+    index, which is refused naming the file (and the face check runs on what it keeps)."""
+    from slscan.fuse import read_mesh
+
+    path = tmp_path / "model.obj"
+    path.write_text(f"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nf 1 2 3\nf 2 {bad} 3\n")
+    with pytest.raises(SlscanError, match=r"model\.obj"):
+        read_mesh(path)

@@ -73,6 +73,12 @@ def _edit(path: Path, old: bytes, new: bytes, count: int = 1) -> Path:
     return path
 
 
+def _nan_pose(path: Path) -> None:
+    d = json.loads(path.read_text())
+    d["views"][0]["rig_from_object"][0][3] = float("nan")
+    path.write_text(json.dumps(d))
+
+
 FOUND = {
     # reader name, corpus kind, edit of the valid file, words the message must hold
     "PLY property declared twice (ValueError from numpy)": (
@@ -99,6 +105,11 @@ FOUND = {
         "decode.read_codes (projector_codes.json)",
         lambda p: p.write_text(p.read_text().replace('"folder": "view_000"', '"folder": "../../x"')),
         "expected a folder name inside"),
+    "range-maps summary whose views are a number (TypeError)": (
+        "register.load_scans (range_maps.json)",
+        lambda p: p.write_text(json.dumps({**json.loads(p.read_text()), "views": 3.0})), "lists no views"),
+    "range-maps summary with a NaN pose (a NaN world accepted)": (
+        "register.load_scans (range_maps.json)", lambda p: _nan_pose(p), "non-finite"),
     "calibration JSON with fx of Infinity (an impossible lens accepted)": (
         "calibrate.load_calibration (JSON)",
         lambda p: p.write_text(p.read_text().replace('"fx": ', '"fx": Infinity, "_fx": ', 1)), "must be finite"),

@@ -271,8 +271,9 @@ def _parse_binary(path: Path, data: bytes, offset: int, elements, out: PlyData, 
             if offset + ct.itemsize > len(data):
                 raise SlscanError(f"{path}: file is truncated in element {name!r}")
             first = int(np.frombuffer(data, ct, 1, offset)[0])
-            dt = np.dtype([("n", ct), ("v", vt, (max(first, 0),))])
-            if first >= 0 and offset + dt.itemsize * count <= len(data):
+            record = ct.itemsize + vt.itemsize * first
+            if 0 <= first < 2**31 - 1 and offset + record * count <= len(data):
+                dt = np.dtype([("n", ct), ("v", vt, (first,))])
                 arr = np.frombuffer(data, dt, count, offset)
                 if np.all(arr["n"] == first):
                     out[name] = {

@@ -59,6 +59,8 @@ def _as_pose(value: Any, what: str) -> np.ndarray:
     pose = np.asarray(value, dtype=float)
     if pose.shape != (4, 4) or not np.allclose(pose[3], [0, 0, 0, 1]):
         raise SlscanError(f"{what}: expected a 4x4 rigid transform, got shape {pose.shape}")
+    if not np.isfinite(pose).all():
+        raise SlscanError(f"{what}: the transform holds non-finite numbers (NaN or inf)")
     r = pose[:3, :3]
     if not np.allclose(r @ r.T, np.eye(3), atol=1e-6) or np.linalg.det(r) < 0:
         raise SlscanError(f"{what}: the 3x3 part is not a rotation")

@@ -345,6 +345,8 @@ def load_stanford_scan(
     referenced = np.ones(scan.n_vertices, bool)
     quality = scan.quality.astype(np.float64) * boundary_ramp(scan.grid, referenced, ramp_cells)
     if "confidence" in vertex:
+        if not np.isfinite(np.asarray(vertex["confidence"], np.float64)).all():
+            raise SlscanError(f"{path}: vertex confidence holds NaN or inf; expected finite weights")
         used = np.zeros(len(points), bool)
         used[faces.reshape(-1)] = True
         quality *= np.clip(vertex["confidence"][used], 0.0, 1.0)
@@ -633,6 +635,10 @@ def load_range_scan(
     for key in ("quality", "confidence"):
         if key in vertex:
             quality = vertex[key]
+            bad = ~np.isfinite(np.asarray(quality, np.float64))
+            if bad.any():
+                raise SlscanError(f"{path}: {int(bad.sum())} vertices with a non-finite {key} (NaN or inf), "
+                                  f"the first at index {int(np.argmax(bad))}; expected finite weights")
             break
     grid = None
     if ply.grid_shape is not None and "row" in vertex and "col" in vertex:
