@@ -9,6 +9,7 @@ result or raises :class:`~slscan.errors.SlscanError` whose message names the fil
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import random
@@ -201,6 +202,22 @@ def build_corpus(folder: Path) -> dict[str, Path]:
         f"R: {_vec(proj_from_cam[:3, :3])}\nT: {_vec(proj_from_cam[:3, 3])}\nsize_cam: {CAM_SIZE[0]} {CAM_SIZE[1]}\n")
     files["calibration text"] = calib / "rig.txt"
 
+    from slscan.albedo.lights import LightCalibration, write_lights
+    from slscan.fsio import write_json
+    from slscan.rig import default_rig
+
+    rig = default_rig(scale=0.2, projector_scale=0.2)
+    rigs = folder / "rig"
+    rigs.mkdir()
+    write_json(rigs / "rig.json", rig.to_dict())
+    files["rig JSON"] = rigs / "rig.json"
+    files["lights JSON"] = write_lights(rigs / "lights.json", LightCalibration.from_rig(rig))
+    world = np.eye(4)
+    world[:3, 3] = (10.0, -5.0, 2.5)
+    write_json(meshes / "registration.json", {"format": "slscan.registration", "version": 1,
+                                              "poses": {"view_000": world.tolist(), "scan_grid": np.eye(4).tolist()}})
+    files["registration.json"] = meshes / "registration.json"
+
     recipes = folder / "recipes"
     recipes.mkdir()
     files["recipe TOML"] = Path(shutil.copy(shipped_recipe("demo"), recipes / "demo.toml"))
@@ -279,7 +296,7 @@ def _mutate_tree(tree: Any, rnd: random.Random) -> Any:
     """Delete a key or element, give it a weird value or type, empty, shorten or lengthen a list."""
     paths = [p for p in _tree_paths(tree) if p]
     if not paths:
-        return rnd.choice(WEIRD_VALUES)
+        return copy.deepcopy(rnd.choice(WEIRD_VALUES))
     path = rnd.choice(paths)
     parent = tree
     for key in path[:-1]:
@@ -296,7 +313,7 @@ def _mutate_tree(tree: Any, rnd: random.Random) -> Any:
     elif op == 3 and isinstance(value, str):
         parent[key] = rnd.choice(["", value * 2, value[:-1], "../" + value, value.upper(), "\x00", "é" + value])
     else:
-        parent[key] = rnd.choice(WEIRD_VALUES)
+        parent[key] = copy.deepcopy(rnd.choice(WEIRD_VALUES))  # a copy: never a tree holding itself
     return tree
 
 
@@ -469,6 +486,7 @@ def _check_mlp(entries) -> str | None:
 
 
 def _check_calibration(cal) -> str | None:
+    """A calibration's (or a rig's) lenses and projector pose are possible."""
     lenses = [cal.camera] + ([cal.projector.lens] if cal.projector is not None else [])
     for lens in lenses:
         values = (lens.fx, lens.fy, lens.cx, lens.cy, *lens.dist)
@@ -508,7 +526,10 @@ def _readers() -> list[Reader]:
     from slscan.ply import read_ply_elements
     from slscan.recipe.runner import load_recipe
     from slscan.recipe.surfaces import read_surface
-    from slscan.register.command import load_scans
+    from slscan.albedo.lights import read_lights
+    from slscan.register.command import load_poses, load_scans
+    from slscan.texture.views import read_poses
+    from slscan.virtual.rigs import load_rig_file
     from slscan.register.meshlab import read_mlp, read_mlp_rasters
     from slscan.register.rangescan import load_bun_conf, load_range_scan
 
@@ -550,6 +571,16 @@ def _readers() -> list[Reader]:
         Reader("calibrate.read_text (.txt)", "calibration text", "text",
                lambda p: read_text(p).to_calibration(projector_size=PROJ_SIZE), _check_calibration),
         Reader("recipe.load_recipe (TOML)", "recipe TOML", "toml", load_recipe),
+        Reader("virtual.load_rig_file (rig JSON)", "rig JSON", "json", load_rig_file,
+               _check_calibration),
+        Reader("albedo.read_lights (lights JSON)", "lights JSON", "json", read_lights,
+               lambda cal: None if _finite([x.position for x in cal.lights]) and _finite(cal.ambient)
+               else "non-finite lights"),
+        Reader("texture.read_poses (registration.json)", "registration.json", "json", read_poses,
+               lambda poses: None if all(_finite(m) for m in poses.values()) else "a non-finite pose"),
+        Reader("register.load_poses (registration.json)", "registration.json", "json",
+               lambda p: load_poses(p, ["view_000", "scan_grid"]),
+               lambda poses: None if all(_finite(m) for m in poses.values()) else "a non-finite pose"),
     ]
 
 

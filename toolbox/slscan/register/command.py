@@ -122,6 +122,10 @@ def load_poses(path: Path, names: list[str]) -> dict[str, np.ndarray]:
             poses = {str(k): np.asarray(v, float).reshape(4, 4) for k, v in data["poses"].items()}
         except (KeyError, TypeError, AttributeError, ValueError):
             raise SlscanError(f"{path}: expected a 'poses' object of scan name -> 4x4 matrix") from None
+        bad = [name for name, m in poses.items() if not np.isfinite(m).all()]
+        if bad:
+            raise SlscanError(f"{path}: the poses of {', '.join(bad)} hold NaN or inf; expected finite 4x4 "
+                              "matrices")
     else:
         raise SlscanError(f"{path}: expected a .conf, a registration.json or a .mlp pose file")
     unknown = [n for n in poses if n not in names]
