@@ -73,6 +73,15 @@ def _edit(path: Path, old: bytes, new: bytes, count: int = 1) -> Path:
     return path
 
 
+def _huge_list_count(path: Path) -> None:
+    """The faces' list count made a uint and the first one 2**31 - 16 (the 40 faces, last in
+    the file, take 40 x 13 bytes)."""
+    _edit(path, b"list uchar int", b"list uint int")
+    data = path.read_bytes()
+    start = len(data) - 40 * 13
+    path.write_bytes(data[:start] + (2**31 - 16).to_bytes(4, "little") + data[start + 4:])
+
+
 def _nan_pose(path: Path) -> None:
     d = json.loads(path.read_text())
     d["views"][0]["rig_from_object"][0][3] = float("nan")
@@ -84,6 +93,8 @@ FOUND = {
     "PLY property declared twice (ValueError from numpy)": (
         "ply.read_ply_elements (binary)", lambda p: _edit(p, b"property float y\n", b"property float x\n"),
         "property 'x' is declared twice"),
+    "binary PLY list count read as 2**32-ish (ValueError from numpy)": (
+        "register.load_range_scan (binary)", lambda p: _huge_list_count(p), "truncated"),
     "ASCII PLY list of length inf (OverflowError)": (
         "ply.read_ply_elements (ASCII)", lambda p: _edit(p, b"\n3 ", b"\ninf ", 1), "list 'vertex_indices' has length"),
     "ASCII PLY list longer than the file (a wrong result)": (
