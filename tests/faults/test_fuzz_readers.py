@@ -197,3 +197,16 @@ def test_opencv_matrix_without_cols_does_not_corrupt_the_heap(corpus, tmp_path):
         "print(message)\n", path)
     assert done.returncode == 0, f"exit {done.returncode}: {done.stderr[-2000:]}"
     assert "result.xml: key 'cam_int' is not a list of numbers" in done.stdout
+
+
+def test_range_map_faces_without_a_list_are_a_clear_error(tmp_path):
+    """Found reading the code beside the fuzzed paths: a ``face`` element whose property is
+    not a list raised ValueError (unpacking) in the range-map reader."""
+    from slscan.decode.rangemap import read_ply
+
+    path = tmp_path / "nolist.ply"
+    path.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+                    "property float z\nelement face 1\nproperty int vertex_indices\nend_header\n"
+                    "0 0 0\n1 0 0\n0 1 0\n5\n")
+    with pytest.raises(SlscanError, match=r"nolist\.ply: element 'face' has no list of vertex indices"):
+        read_ply(path)

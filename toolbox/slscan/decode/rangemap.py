@@ -460,7 +460,10 @@ def read_ply(path: str | os.PathLike) -> RangeMap:
     check_finite_vertices(np.stack([np.asarray(vertex[a], np.float64) for a in "xyz"], axis=1), path)
     faces = np.zeros((0, 3), np.int32)
     if ply.get("face"):
-        counts, indices = next(iter(ply["face"].values()))
+        lists = [v for v in ply["face"].values() if isinstance(v, tuple)]
+        if not lists:
+            raise SlscanError(f"{path}: element 'face' has no list of vertex indices")
+        counts, indices = lists[0]
         if len(counts) and np.any(counts != 3):
             raise SlscanError(f"{path}: element 'face' has non-triangle faces; expected triangles only")
         check_face_indices(np.asarray(indices).reshape(-1, 3), n, path)
