@@ -82,6 +82,16 @@ def _huge_list_count(path: Path) -> None:
     path.write_bytes(data[:start] + (2**31 - 16).to_bytes(4, "little") + data[start + 4:])
 
 
+def _infinite_normal(path: Path) -> None:
+    """No quality property (so it comes from the normals), and the first vertex's nx infinite."""
+    head, body = path.read_bytes().split(b"end_header\n")
+    first, rest = body.split(b"\n", 1)
+    words = first.split()
+    words[3] = b"inf"
+    path.write_bytes(head.replace(b"property float quality", b"property float weight") + b"end_header\n"
+                     + b" ".join(words) + b"\n" + rest)
+
+
 def _nan_pose(path: Path) -> None:
     d = json.loads(path.read_text())
     d["views"][0]["rig_from_object"][0][3] = float("nan")
@@ -89,12 +99,14 @@ def _nan_pose(path: Path) -> None:
 
 
 FOUND = {
-    # reader name, corpus kind, edit of the valid file, words the message must hold
+    # reader name, edit of the valid file, words the message must hold (None: it reads, validly)
     "PLY property declared twice (ValueError from numpy)": (
         "ply.read_ply_elements (binary)", lambda p: _edit(p, b"property float y\n", b"property float x\n"),
         "property 'x' is declared twice"),
     "binary PLY list count read as 2**32-ish (ValueError from numpy)": (
         "register.load_range_scan (binary)", lambda p: _huge_list_count(p), "truncated"),
+    "range scan with an infinite normal (NaN quality: a wrong result)": (
+        "register.load_range_scan (ASCII)", lambda p: _infinite_normal(p), None),
     "ASCII PLY list of length inf (OverflowError)": (
         "ply.read_ply_elements (ASCII)", lambda p: _edit(p, b"\n3 ", b"\ninf ", 1), "list 'vertex_indices' has length"),
     "ASCII PLY list longer than the file (a wrong result)": (
@@ -152,6 +164,10 @@ def test_what_fuzzing_found_is_a_clear_error(corpus, tmp_path, case):
     reader = readers()[name]
     path = case_folder(corpus, reader, tmp_path)
     edit(path)
+    if words is None:  # a valid result was to come, and now does
+        verdict = judge(reader, path)
+        assert verdict.outcome == "ok", verdict.detail
+        return
     with pytest.raises(SlscanError) as info:
         reader.read(path)
     assert path.name in str(info.value) and words in str(info.value), str(info.value)

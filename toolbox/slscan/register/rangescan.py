@@ -163,7 +163,8 @@ def scan_from_mesh(
     else:
         n = np.asarray(normals, np.float64)
         length = np.linalg.norm(n, axis=1, keepdims=True)
-        n = np.where(length > 0, n / np.where(length > 0, length, 1), d)
+        ok = np.isfinite(length) & (length > 0)  # a zero, NaN or infinite normal: the view direction
+        n = np.where(ok, n / np.where(ok, length, 1), d)
     n[n @ d < 0] *= -1
     if quality is None:
         q = np.clip(n @ d, 0.0, 1.0)
