@@ -16,7 +16,8 @@ the worker restarted. Outcomes, per reader:
 - ``unnamed error``: SlscanError not naming it; ``invalid result``: a result breaking the
   reader's promise; ``crash``: any other exception, or the worker killed by a signal;
   ``hang``: no answer in time. The first mutant of each kind of failure is kept in
-  ``--keep`` (default: a temporary folder, printed) with what happened.
+  ``--keep`` (default: a temporary folder, printed) as ``NN-KKK-OUTCOME-input.SUFFIX``
+  beside ``NN-KKK-OUTCOME.txt`` (the reader, the case, what happened).
 
 The cases are seeded (``--seed``): a run is repeatable.
 """
@@ -162,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             seen.add(key)
             stem = keep / f"{n:02d}-{len(seen):03d}-{outcome.replace(' ', '_')}"
-            stem.with_suffix(path.suffix or ".bin").write_bytes(data)
+            stem.with_name(f"{stem.name}-input{path.suffix}").write_bytes(data)
             stem.with_suffix(".txt").write_text(f"{name}\ncase {case} of seed {args.seed}\n{outcome}\n{detail}\n")
             found.append(f"{name}: {outcome}: {key[1]} ({stem.name})")
         worker.stop()

@@ -145,6 +145,20 @@ FOUND = {
         "range_grid has no list property"),
     "recipe with a non-UTF-8 byte (UnicodeDecodeError)": (
         "recipe.load_recipe (TOML)", lambda p: _edit(p, b"[", b"\xff[", 1), "not UTF-8"),
+    "OpenCV file that is only the XML declaration (cv2.error from FileNode.keys)": (
+        "calibrate.import_opencv_xml (XML)", lambda p: p.write_bytes(b'<?xml version="1.0"?>'),
+        "not a readable OpenCV FileStorage file"),
+    "OpenCV matrix type with non-UTF-8 bytes (UnicodeDecodeError)": (
+        "calibrate.read_calibration (OpenCV XML)", lambda p: _edit(p, b"<dt>d</dt>", b"<dt>\xe84\x9f\xf1d</dt>"),
+        "not a readable OpenCV FileStorage file"),
+    "codes file whose column map is null (a result without columns)": (
+        "decode.read_codes (codes.json)",
+        lambda p: p.write_text(json.dumps({**json.loads(p.read_text()),
+                                           "files": {**json.loads(p.read_text())["files"], "columns": None}})),
+        "files.columns is None"),
+    "codes manifest naming its view NaN (StopIteration)": (
+        "decode.read_codes (projector_codes.json)",
+        lambda p: p.write_text(p.read_text().replace('"view": "view_000"', '"view": NaN')), "views named [nan]"),
     "OpenCV matrix with cols inf (OpenCV asked for 51 GB)": (
         "calibrate.import_opencv_xml (XML)", lambda p: _edit(p, b"<cols>3</cols>", b"<cols>inf</cols>", 2),
         "cam_int"),

@@ -292,15 +292,18 @@ class ImportedLens:
         """The :class:`PinholeModel` on a ``size`` (width, height) px sensor, its focal
         lengths and principal point multiplied by ``scale``."""
         k = self.K
-        return PinholeModel(
-            int(size[0]),
-            int(size[1]),
-            float(k[0, 0] * scale),
-            float(k[1, 1] * scale),
-            float(k[0, 2] * scale),
-            float(k[1, 2] * scale),
-            self.dist,
-        )
+        try:
+            return PinholeModel(
+                int(size[0]),
+                int(size[1]),
+                float(k[0, 0] * scale),
+                float(k[1, 1] * scale),
+                float(k[0, 2] * scale),
+                float(k[1, 2] * scale),
+                self.dist,
+            )
+        except SlscanError as exc:  # e.g. scaled to a sensor size the file's values overflow on
+            raise SlscanError(f"{self.file}: key {self.key!r}: {exc}") from None
 
 
 @dataclass(frozen=True, eq=False)
@@ -822,6 +825,9 @@ def _opencv_values(path: Path) -> dict[str, object]:
     out: dict[str, object] = {}
     try:
         _collect(fs.root(), "", out)
+    except (cv2.error, SystemError, UnicodeDecodeError) as exc:  # a node OpenCV cannot walk or decode
+        reason = str(exc.__cause__ or exc).strip().splitlines()[-1][:200]
+        raise SlscanError(f"{path}: not a readable OpenCV FileStorage file ({reason})") from None
     finally:
         fs.release()
     return out

@@ -392,6 +392,8 @@ def _view_folder(folder: Path, view: str | None) -> Path:
     """The folder of ``view`` that the manifest in ``folder`` names."""
     manifest = read_json(folder / MANIFEST, "projector-codes manifest")
     names = [e.get("view") for e in manifest.get("views", [])]
+    if not all(isinstance(name, str) for name in names):
+        raise SlscanError(f"{folder / MANIFEST}: views named {names!r}; expected a name (text) for each")
     if view is None:
         if len(names) != 1:
             raise SlscanError(
@@ -430,6 +432,9 @@ def _read_view_codes(folder: Path, meta_path: Path) -> ProjectorCodes:
         limits = ValidShare(**meta["limits"])
     except (KeyError, TypeError, ValueError) as exc:
         raise SlscanError(f"{meta_path}: malformed projector-codes file ({exc})") from None
+    for key in ("columns", "mask"):
+        if not isinstance(files.get(key), str):
+            raise SlscanError(f"{meta_path}: files.{key} is {files.get(key)!r}; expected the name of its map")
 
     def codes(name: str | None) -> np.ndarray | None:
         if encoding == FLOAT_ENCODING:
