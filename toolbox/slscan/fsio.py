@@ -532,11 +532,19 @@ def write_json(path: str | os.PathLike, data: Any) -> None:
 def read_json(path: str | os.PathLike, what: str = "JSON file") -> Any:
     path = Path(path)
     try:
-        return json.loads(path.read_text())
+        return json.loads(path.read_bytes())
     except FileNotFoundError:
         raise SlscanError(f"{path}: {what} not found") from None
+    except IsADirectoryError:
+        raise SlscanError(f"{path}: is a folder; expected the {what}") from None
     except json.JSONDecodeError as exc:
         raise SlscanError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
+    except UnicodeDecodeError as exc:
+        raise SlscanError(f"{path}: not valid JSON (not UTF-8 text: byte {exc.start})") from None
+    except RecursionError:
+        raise SlscanError(f"{path}: not valid JSON (nested too deeply)") from None
+    except ValueError as exc:  # an integer of more than 4,300 digits
+        raise SlscanError(f"{path}: not valid JSON ({exc})") from None
 
 
 def write_png(path: str | os.PathLike, image: np.ndarray) -> None:

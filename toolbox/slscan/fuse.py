@@ -54,7 +54,7 @@ import numpy as np
 
 from slscan.errors import SlscanError
 from slscan.fsio import atomic_output_file, native_stderr_silenced
-from slscan.meshes import MESH_SUFFIXES, check_finite_vertices
+from slscan.meshes import MESH_SUFFIXES, check_face_indices, check_finite_vertices, read_ply_mesh
 from slscan.register.rangescan import RangeScan
 
 log = logging.getLogger(__name__)
@@ -974,35 +974,6 @@ def _check_written_mesh(tmp: Path, path: Path, mesh: Mesh, ok: bool) -> None:
         raise write_error(path, written=tmp.stat().st_size)
 
 
-def _ply_header_counts(path: Path) -> dict[str, int]:
-    """Element counts of a PLY's header ({"vertex": n, "face": m}), read without the body."""
-    with open(path, "rb") as f:
-        head = f.read(1 << 16)
-    counts = {}
-    for line in head.split(b"end_header")[0].splitlines():
-        words = line.split()
-        if len(words) == 3 and words[0] == b"element" and words[2].isdigit():
-            counts[words[1].decode("latin-1")] = int(words[2])
-    return counts
-
-
-def _check_ply_read(path: Path, n_vertices: int, n_triangles: int) -> None:
-    """Refuse a PLY open3d read only part of (open3d keeps what it read of a truncated or
-    unreadable file): slscan's own reader then names what is wrong."""
-    counts = _ply_header_counts(path)
-    if n_vertices == counts.get("vertex", n_vertices) and n_triangles >= counts.get("face", 0):
-        return
-    from slscan.ply import read_ply_elements
-
-    vertex = read_ply_elements(path).get("vertex") or {}  # raises naming a truncated file
-    if all(k in vertex for k in "xyz"):
-        check_finite_vertices(np.stack([vertex[k] for k in "xyz"], axis=1), path)
-    raise SlscanError(
-        f"{path}: read {n_vertices} of {counts.get('vertex')} vertices and {n_triangles} triangles of "
-        f"{counts.get('face')} faces; expected a whole, readable PLY"
-    )
-
-
 @contextlib.contextmanager
 def _open3d_quiet():
     """No Open3D warnings and no RPly lines (printed by C to fd 2) while a mesh file is read
@@ -1014,19 +985,27 @@ def _open3d_quiet():
 
 
 def read_mesh(path: str | os.PathLike) -> Mesh:
-    """Read a triangle mesh (PLY, OBJ, …) with open3d; SlscanError when missing or empty."""
+    """Read a triangle mesh: PLY with slscan's reader (:func:`slscan.meshes.read_ply_mesh`),
+    other formats (OBJ, …) with Open3D; SlscanError when missing, malformed or empty.
+
+    PLY files are not given to Open3D: its reader crashes (SIGSEGV) on some malformed
+    bodies, and keeps faces that refer to vertices the file does not have."""
     import open3d as o3d
 
     path = Path(path)
     if not path.is_file():
         raise SlscanError(f"{path}: mesh file not found")
+    if path.suffix.lower() == ".ply":
+        ply = read_ply_mesh(path)
+        if len(ply.faces) == 0:
+            raise SlscanError(f"{path}: no triangles read; expected a triangle mesh")
+        return Mesh(ply.vertices, ply.faces, ply.normals, ply.colors)
     with _open3d_quiet():  # a bad file is named below, in one line
         m = o3d.io.read_triangle_mesh(str(path))
-    if path.suffix.lower() == ".ply":
-        _check_ply_read(path, len(m.vertices), len(m.triangles))
     if len(m.triangles) == 0:
         raise SlscanError(f"{path}: no triangles read; expected a triangle mesh")
     check_finite_vertices(np.asarray(m.vertices), path)
+    check_face_indices(np.asarray(m.triangles), len(m.vertices), path)
     normals = np.asarray(m.vertex_normals, np.float32) if m.has_vertex_normals() else None
     colors = (
         np.round(np.asarray(m.vertex_colors) * 255).astype(np.uint8)

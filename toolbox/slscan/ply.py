@@ -93,7 +93,7 @@ def read_ply_elements(path: str | os.PathLike) -> PlyData:
         elif key == "property":
             if not elements:
                 raise SlscanError(f"{path}: PLY property before any element")
-            elements[-1][2].append(parts[1:])
+            elements[-1][2].append(_property(path, parts[1:], elements[-1]))
     for k in ("num_rows", "num_cols"):
         if k in out.info:
             try:
@@ -134,6 +134,56 @@ def _ply_type(path: Path, name: str) -> str:
         raise SlscanError(f"{path}: unknown PLY property type {name!r}") from None
 
 
+def _property(path: Path, words: list[str], element: tuple[str, int, list[list[str]]]) -> list[str]:
+    """A header ``property`` line's words after the keyword, checked: ``TYPE NAME`` or
+    ``list COUNT_TYPE VALUE_TYPE NAME``, known types, an integer count type, a name not
+    already used in the element."""
+    where = f"{path}: PLY header, element {element[0]!r}"
+    if words[:1] == ["list"]:
+        if len(words) != 4:
+            raise SlscanError(f"{where}: malformed list property {' '.join(words)!r}; "
+                              "expected 'property list COUNT_TYPE VALUE_TYPE NAME'")
+        if np.dtype(_ply_type(path, words[1])).kind not in "iu":
+            raise SlscanError(f"{where}: list property {words[3]!r} has a count of type {words[1]!r}; "
+                              "expected an integer type")
+        _ply_type(path, words[2])
+    elif len(words) == 2:
+        _ply_type(path, words[0])
+    else:
+        raise SlscanError(f"{where}: malformed property {' '.join(words)!r}; expected 'property TYPE NAME'")
+    if any(p[-1] == words[-1] for p in element[2]):
+        raise SlscanError(f"{where}: property {words[-1]!r} is declared twice")
+    return words
+
+
+def _typed(path: Path, element: str, prop: str, values: np.ndarray, type_name: str) -> np.ndarray:
+    """ASCII values (float64) as the declared type; an integer type refuses values that are
+    not whole numbers in its range (NaN, 1e999, 2**32 in an ``int``), naming them."""
+    dtype = np.dtype(_ply_type(path, type_name))
+    if dtype.kind == "f":
+        with np.errstate(over="ignore"):  # 1e308 in a float: inf, refused where it matters
+            return values.astype(dtype)
+    if len(values):
+        info = np.iinfo(dtype)
+        bad = ~np.isfinite(values) | (values < info.min) | (values > info.max) | (values != np.round(values))
+        if bad.any():
+            raise SlscanError(
+                f"{path}: element {element!r}, property {prop!r}: value {values[np.argmax(bad)]!r} is not "
+                f"a {type_name} ({info.min} to {info.max})"
+            )
+    return values.astype(dtype)
+
+
+def _list_count(path: Path, element: str, prop: str, k: float, left: int) -> int:
+    """A list's length as read, checked: a whole number, not negative, not past the file's end."""
+    if not (np.isfinite(k) and k == int(k) and k >= 0):
+        raise SlscanError(f"{path}: element {element!r}, list {prop!r} has length {k!r}; "
+                          "expected a whole number, 0 or more")
+    if k > left:
+        raise SlscanError(f"{path}: file is truncated in element {element!r}")
+    return int(k)
+
+
 def _parse_ascii(path: Path, body: bytes, elements, out: PlyData) -> None:
     try:
         tokens = np.array(body.split(), dtype=np.float64)
@@ -143,6 +193,9 @@ def _parse_ascii(path: Path, body: bytes, elements, out: PlyData) -> None:
         ) from None
     pos = 0
     for name, count, props in elements:
+        if not props:  # an element without properties holds nothing
+            out[name] = {}
+            continue
         is_list = [p[0] == "list" for p in props]
         if not any(is_list):
             size = count * len(props)
@@ -150,23 +203,21 @@ def _parse_ascii(path: Path, body: bytes, elements, out: PlyData) -> None:
                 raise SlscanError(f"{path}: file is truncated in element {name!r}")
             block = tokens[pos : pos + size].reshape(count, len(props))
             out[name] = {
-                p[1]: block[:, i].astype(_ply_type(path, p[0])) for i, p in enumerate(props)
+                p[1]: _typed(path, name, p[1], block[:, i], p[0]) for i, p in enumerate(props)
             }
             pos += size
             continue
-        if len(props) == 1:
-            first = int(tokens[pos]) if count and pos < len(tokens) else 0
+        if len(props) == 1 and count and pos < len(tokens):
+            first = _list_count(path, name, props[0][3], tokens[pos], len(tokens) - pos - 1)
             stride = first + 1
-            if (
-                count
-                and pos + count * stride <= len(tokens)
-                and np.all(tokens[pos : pos + count * stride : stride] == first)
+            if pos + count * stride <= len(tokens) and np.all(
+                tokens[pos : pos + count * stride : stride] == first
             ):
                 block = tokens[pos : pos + count * stride].reshape(count, stride)
                 out[name] = {
                     props[0][3]: (
                         np.full(count, first, np.int64),
-                        block[:, 1:].reshape(-1).astype(_ply_type(path, props[0][2])),
+                        _typed(path, name, props[0][3], block[:, 1:].reshape(-1), props[0][2]),
                     )
                 }
                 pos += count * stride
@@ -178,7 +229,7 @@ def _parse_ascii(path: Path, body: bytes, elements, out: PlyData) -> None:
                 if pos >= len(tokens):
                     raise SlscanError(f"{path}: file is truncated in element {name!r}")
                 if p[0] == "list":
-                    k = int(tokens[pos])
+                    k = _list_count(path, name, p[-1], tokens[pos], len(tokens) - pos - 1)
                     counts[p[-1]].append(k)
                     columns[p[-1]].append(tokens[pos + 1 : pos + 1 + k])
                     pos += 1 + k
@@ -191,15 +242,18 @@ def _parse_ascii(path: Path, body: bytes, elements, out: PlyData) -> None:
                 values = np.concatenate(columns[p[-1]]) if columns[p[-1]] else np.zeros(0)
                 element[p[-1]] = (
                     np.array(counts[p[-1]], np.int64),
-                    values.astype(_ply_type(path, p[2])),
+                    _typed(path, name, p[-1], values, p[2]),
                 )
             else:
-                element[p[-1]] = np.array(columns[p[-1]]).astype(_ply_type(path, p[0]))
+                element[p[-1]] = _typed(path, name, p[-1], np.array(columns[p[-1]], np.float64), p[0])
         out[name] = element
 
 
 def _parse_binary(path: Path, data: bytes, offset: int, elements, out: PlyData, order: str) -> None:
     for name, count, props in elements:
+        if not props:  # an element without properties holds nothing
+            out[name] = {}
+            continue
         if not any(p[0] == "list" for p in props):
             dt = np.dtype([(p[1], order + _ply_type(path, p[0])) for p in props])
             if offset + dt.itemsize * count > len(data):
@@ -217,8 +271,9 @@ def _parse_binary(path: Path, data: bytes, offset: int, elements, out: PlyData, 
             if offset + ct.itemsize > len(data):
                 raise SlscanError(f"{path}: file is truncated in element {name!r}")
             first = int(np.frombuffer(data, ct, 1, offset)[0])
-            dt = np.dtype([("n", ct), ("v", vt, (first,))])
-            if offset + dt.itemsize * count <= len(data):
+            record = ct.itemsize + vt.itemsize * first
+            if 0 <= first < 2**31 - 1 and offset + record * count <= len(data):
+                dt = np.dtype([("n", ct), ("v", vt, (first,))])
                 arr = np.frombuffer(data, dt, count, offset)
                 if np.all(arr["n"] == first):
                     out[name] = {
@@ -237,6 +292,9 @@ def _parse_binary(path: Path, data: bytes, offset: int, elements, out: PlyData, 
                         raise SlscanError(f"{path}: file is truncated in element {name!r}")
                     k = int(np.frombuffer(data, ct, 1, offset)[0])
                     offset += ct.itemsize
+                    if k < 0:
+                        raise SlscanError(f"{path}: element {name!r}, list {p[-1]!r} has length {k}; "
+                                          "expected 0 or more")
                     if offset + vt.itemsize * k > len(data):
                         raise SlscanError(f"{path}: file is truncated in element {name!r}")
                     element[p[-1]].append(np.frombuffer(data, vt, k, offset))
@@ -262,7 +320,10 @@ def _parse_binary(path: Path, data: bytes, offset: int, elements, out: PlyData, 
 
 
 def fan_triangles(counts: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """(m, 3) int64 triangles of polygons given as counts and flat indices (fans)."""
+    """(m, 3) int64 triangles of polygons given as counts and flat indices (fans).
+
+    A polygon of k vertices gives k - 2 triangles (v0, v[j+1], v[j+2]); polygons of fewer
+    than 3 vertices give none. Triangles are ordered by j, then by polygon."""
     counts = np.asarray(counts, np.int64)
     values = np.asarray(values).astype(np.int64)
     if len(counts) == 0:
@@ -270,11 +331,13 @@ def fan_triangles(counts: np.ndarray, values: np.ndarray) -> np.ndarray:
     if np.all(counts == 3):
         return values.reshape(-1, 3)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    tris = []
-    for k in range(3, int(counts.max()) + 1):
-        sel = starts[counts >= k]
-        tris.append(np.stack([values[sel], values[sel + k - 2], values[sel + k - 1]], 1))
-    return np.concatenate(tris) if tris else np.zeros((0, 3), np.int64)
+    n_tri = np.maximum(counts - 2, 0)
+    poly = np.repeat(np.arange(len(counts)), n_tri)
+    j = np.arange(len(poly)) - np.repeat(np.cumsum(n_tri) - n_tri, n_tri)
+    order = np.lexsort((poly, j))
+    poly, j = poly[order], j[order]
+    first = starts[poly]
+    return np.stack([values[first], values[first + j + 1], values[first + j + 2]], 1)
 
 
 _PLY_NAMES = {"f4": "float", "u1": "uchar", "i4": "int", "f8": "double"}

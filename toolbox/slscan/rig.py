@@ -59,6 +59,8 @@ def _as_pose(value: Any, what: str) -> np.ndarray:
     pose = np.asarray(value, dtype=float)
     if pose.shape != (4, 4) or not np.allclose(pose[3], [0, 0, 0, 1]):
         raise SlscanError(f"{what}: expected a 4x4 rigid transform, got shape {pose.shape}")
+    if not np.isfinite(pose).all():
+        raise SlscanError(f"{what}: the transform holds non-finite numbers (NaN or inf)")
     r = pose[:3, :3]
     if not np.allclose(r @ r.T, np.eye(3), atol=1e-6) or np.linalg.det(r) < 0:
         raise SlscanError(f"{what}: the 3x3 part is not a rotation")
@@ -123,6 +125,11 @@ class PinholeModel:
             raise SlscanError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
         if len(self.dist) != 5:
             raise SlscanError(f"expected 5 distortion coefficients, got {len(self.dist)}")
+        if not np.isfinite([self.fx, self.fy, self.cx, self.cy, *self.dist]).all():
+            raise SlscanError(
+                f"intrinsics must be finite numbers, got fx={self.fx}, fy={self.fy}, cx={self.cx}, "
+                f"cy={self.cy}, distortion {tuple(self.dist)}"
+            )
 
     @property
     def K(self) -> np.ndarray:

@@ -315,6 +315,11 @@ class LightCalibration:
             raise SlscanError(f"{where}: positions, intensities and ambient need 3 values each")
         if not lights and cal.projector is None:
             raise SlscanError(f"{where}: no lights (and no projector light)")
+        numbers = [cal.reference_distance, *cal.ambient, *cal.position_sigma]
+        numbers += [v for x in lights for v in (*x.position, *x.intensity)]
+        if not np.isfinite(np.asarray(numbers, np.float64)).all():
+            raise SlscanError(f"{where}: positions, intensities, ambient and reference distance must be finite "
+                              "numbers (got NaN or inf)")
         return cal
 
 

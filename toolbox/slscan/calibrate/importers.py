@@ -31,6 +31,7 @@ References
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import re
 from collections.abc import Sequence
@@ -291,15 +292,18 @@ class ImportedLens:
         """The :class:`PinholeModel` on a ``size`` (width, height) px sensor, its focal
         lengths and principal point multiplied by ``scale``."""
         k = self.K
-        return PinholeModel(
-            int(size[0]),
-            int(size[1]),
-            float(k[0, 0] * scale),
-            float(k[1, 1] * scale),
-            float(k[0, 2] * scale),
-            float(k[1, 2] * scale),
-            self.dist,
-        )
+        try:
+            return PinholeModel(
+                int(size[0]),
+                int(size[1]),
+                float(k[0, 0] * scale),
+                float(k[1, 1] * scale),
+                float(k[0, 2] * scale),
+                float(k[1, 2] * scale),
+                self.dist,
+            )
+        except SlscanError as exc:  # e.g. scaled to a sensor size the file's values overflow on
+            raise SlscanError(f"{self.file}: key {self.key!r}: {exc}") from None
 
 
 @dataclass(frozen=True, eq=False)
@@ -536,8 +540,13 @@ def rotation(value: object, file: Path, key: str) -> np.ndarray:
     """
     v = numbers(value, file, key, (3, 9))
     if v.size == 3:
-        return cv2.Rodrigues(v.reshape(3, 1))[0]
-    r = v.reshape(3, 3)
+        angle = float(np.linalg.norm(v))
+        if not angle < 1e6:  # cv2.Rodrigues gives NaN or garbage (1e308 rad: norm overflows)
+            raise SlscanError(f"{file}: key {key!r} is a rotation vector of {angle:.4g} rad; expected an angle "
+                              "of a few radians")
+        r = cv2.Rodrigues(v.reshape(3, 1))[0]
+    else:
+        r = v.reshape(3, 3)
     off = float(np.abs(r @ r.T - np.eye(3)).max())
     det = float(np.linalg.det(r))
     if off > ROTATION_TOLERANCE or det <= 0:
@@ -816,9 +825,54 @@ def _opencv_values(path: Path) -> dict[str, object]:
     out: dict[str, object] = {}
     try:
         _collect(fs.root(), "", out)
+    except (cv2.error, SystemError, UnicodeDecodeError) as exc:  # a node OpenCV cannot walk or decode
+        reason = str(exc.__cause__ or exc).strip().splitlines()[-1][:200]
+        raise SlscanError(f"{path}: not a readable OpenCV FileStorage file ({reason})") from None
     finally:
         fs.release()
     return out
+
+
+_MAX_MATRIX_VALUES = 1 << 24
+"""More values than this in one FileStorage matrix: not a calibration (refused unread)."""
+
+
+def _fs_int(node: cv2.FileNode) -> int | None:
+    if not node.isInt():
+        return None
+    value = node.real()
+    return int(value) if math.isfinite(value) and 0 <= value <= _MAX_MATRIX_VALUES else None
+
+
+def _fs_matrix(node: cv2.FileNode) -> np.ndarray | None:
+    """A FileStorage matrix (``rows``/``cols`` or ``sizes``, ``dt``, ``data``) as a float array,
+    or None when its fields disagree. Built here from the data, not with ``FileNode.mat()``:
+    OpenCV allocates what ``rows`` and ``cols`` say before it checks the data (a ``cols`` of
+    ``inf`` asks for 51 GB) and corrupts its heap on some mismatches (a native crash)."""
+    if "sizes" in set(node.keys()):
+        sizes = node.getNode("sizes")
+        dims = [_fs_int(sizes.at(i)) for i in range(sizes.size())] if sizes.isSeq() else [_fs_int(sizes)]
+    else:
+        dims = [_fs_int(node.getNode("rows")), _fs_int(node.getNode("cols"))]
+    dt = node.getNode("dt").string() if node.getNode("dt").isString() else ""
+    match = re.fullmatch(r"(\d*)[ucwsifdhr]", dt.strip())
+    channels = int(match.group(1) or 1) if match else None
+    if None in dims or not dims or channels is None or not 1 <= channels <= 4:
+        return None
+    data = node.getNode("data")
+    if data.isSeq():
+        if data.size() > _MAX_MATRIX_VALUES:
+            return None
+        items = [data.at(i) for i in range(data.size())]
+    else:
+        items = [data]
+    if not all(it.isReal() or it.isInt() for it in items):
+        return None
+    values = np.array([it.real() for it in items], float)
+    shape = tuple(dims) + ((channels,) if channels > 1 else ())
+    if int(np.prod(shape)) != len(values):
+        return None
+    return values.reshape(shape)
 
 
 def _collect(node: cv2.FileNode, prefix: str, out: dict[str, object]) -> None:
@@ -827,11 +881,7 @@ def _collect(node: cv2.FileNode, prefix: str, out: dict[str, object]) -> None:
         fields = set(child.keys()) if child.isMap() else set()
         if child.isMap():
             if "data" in fields and fields & {"rows", "sizes"}:
-                try:
-                    mat = child.mat()
-                except cv2.error:
-                    mat = None
-                out[name] = None if mat is None else np.asarray(mat, float)
+                out[name] = _fs_matrix(child)
             else:
                 _collect(child, name + "/", out)
         elif child.isSeq():

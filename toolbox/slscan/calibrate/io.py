@@ -27,7 +27,7 @@ from slscan.calibrate.target import Board
 from slscan.capture.session import Session
 from slscan.decode.samples import LightPlanes
 from slscan.decode.triangulate import RigPlanes
-from slscan.errors import SlscanError
+from slscan.errors import SlscanError, about_file
 from slscan.fsio import atomic_output_file, read_json, write_json
 from slscan.rig import Light, PinholeModel, Projector, Rig, _as_pose
 
@@ -225,7 +225,9 @@ def load_calibration(path: str | os.PathLike) -> Calibration:
         malformed field (named).
     """
     path = Path(path)
-    return Calibration.from_dict(read_json(path, "calibration file"), str(path))
+    data = read_json(path, "calibration file")
+    with about_file(path, "calibration file"):
+        return Calibration.from_dict(data, str(path))
 
 
 # --- use in decoding --------------------------------------------------------------------------

@@ -28,7 +28,7 @@ from typing import Any, Self
 import numpy as np
 
 from slscan import __version__
-from slscan.errors import SlscanError
+from slscan.errors import SlscanError, about_file
 from slscan.fsio import (
     Prefetched,
     atomic_output_dir,
@@ -568,6 +568,14 @@ def locate_metadata(path: str | os.PathLike, file_name: str, kind: str) -> tuple
 def load_session(path: str | os.PathLike, *, validate: bool = True) -> Session:
     """Read ``session.json`` in folder ``path`` (and check its images unless ``validate=False``)."""
     root, meta_path = locate_metadata(path, SESSION_FILE, "capture-session")
+    with about_file(meta_path, "capture-session metadata (session.json)"):
+        session = _read_session(root, meta_path)
+    if validate:
+        validate_session(session)
+    return session
+
+
+def _read_session(root: Path, meta_path: Path) -> Session:
     d = read_json(meta_path, "capture-session metadata (session.json)")
     if not isinstance(d, dict):
         raise SlscanError(f"{meta_path}: expected a JSON object (an slscan capture session)")
@@ -637,8 +645,6 @@ def load_session(path: str | os.PathLike, *, validate: bool = True) -> Session:
     _check_consistent(session, meta_path)
     _check_unique_names(session, meta_path)
     _check_inside(session, meta_path)
-    if validate:
-        validate_session(session)
     return session
 
 

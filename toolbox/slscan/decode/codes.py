@@ -38,7 +38,7 @@ from slscan.capture.session import SESSION_FILE, Session, ViewRecord, load_sessi
 from slscan.decode.budget import fit_workers, warn_if_lossy
 from slscan.decode.graycode import GrayResult, decode_gray, gray_pairs
 from slscan.decode.masks import full_scale
-from slscan.errors import SlscanError
+from slscan.errors import SlscanError, about_file
 from slscan.executor import LOCAL, Executor
 from slscan.fsio import (
     atomic_output_dir,
@@ -377,24 +377,43 @@ def read_codes(folder: str | os.PathLike, view: str | None = None) -> ProjectorC
     """
     folder = Path(folder)
     if (folder / MANIFEST).is_file():
-        manifest = read_json(folder / MANIFEST, "projector-codes manifest")
-        names = [e.get("view") for e in manifest.get("views", [])]
-        if view is None:
-            if len(names) != 1:
-                raise SlscanError(
-                    f"{folder / MANIFEST}: {len(names)} views ({', '.join(map(str, names))}); name one"
-                )
-            view = names[0]
-        elif view not in names:
-            raise SlscanError(f"{folder / MANIFEST}: no view {view!r}; expected one of {', '.join(map(str, names))}")
-        entry = next(e for e in manifest["views"] if e.get("view") == view)
-        folder = folder / entry.get("folder", view)
+        with about_file(folder / MANIFEST, "projector-codes manifest"):
+            folder = _view_folder(folder, view)
     elif view is not None:
         folder = folder / view
     meta_path = folder / VIEW_FILE
     if not meta_path.is_file():
         raise SlscanError(f"{folder}: no {VIEW_FILE} or {MANIFEST} (expected the output of slscan decode --codes)")
+    with about_file(meta_path, "projector-codes file"):
+        return _read_view_codes(folder, meta_path)
+
+
+def _view_folder(folder: Path, view: str | None) -> Path:
+    """The folder of ``view`` that the manifest in ``folder`` names."""
+    manifest = read_json(folder / MANIFEST, "projector-codes manifest")
+    names = [e.get("view") for e in manifest.get("views", [])]
+    if not all(isinstance(name, str) for name in names):
+        raise SlscanError(f"{folder / MANIFEST}: views named {names!r}; expected a name (text) for each")
+    if view is None:
+        if len(names) != 1:
+            raise SlscanError(
+                f"{folder / MANIFEST}: {len(names)} views ({', '.join(map(str, names))}); name one"
+            )
+        view = names[0]
+    elif view not in names:
+        raise SlscanError(f"{folder / MANIFEST}: no view {view!r}; expected one of {', '.join(map(str, names))}")
+    entry = next(e for e in manifest["views"] if e.get("view") == view)
+    sub = entry.get("folder", view)
+    if not isinstance(sub, str) or not sub or Path(sub).is_absolute() or ".." in Path(sub).parts:
+        raise SlscanError(f"{folder / MANIFEST}: view {view!r} has folder {sub!r}; expected a folder name "
+                          "inside the decode output")
+    return folder / sub
+
+
+def _read_view_codes(folder: Path, meta_path: Path) -> ProjectorCodes:
     meta = read_json(meta_path, "projector-codes file")
+    if not isinstance(meta, dict):
+        raise SlscanError(f"{meta_path}: expected a JSON object (an slscan projector-codes file)")
     if meta.get("format") != f"{CODES_FORMAT}.view" or meta.get("version") != CODES_VERSION:
         raise SlscanError(
             f"{meta_path}: expected format {CODES_FORMAT}.view version {CODES_VERSION}, "
@@ -413,6 +432,9 @@ def read_codes(folder: str | os.PathLike, view: str | None = None) -> ProjectorC
         limits = ValidShare(**meta["limits"])
     except (KeyError, TypeError, ValueError) as exc:
         raise SlscanError(f"{meta_path}: malformed projector-codes file ({exc})") from None
+    for key in ("columns", "mask"):
+        if not isinstance(files.get(key), str):
+            raise SlscanError(f"{meta_path}: files.{key} is {files.get(key)!r}; expected the name of its map")
 
     def codes(name: str | None) -> np.ndarray | None:
         if encoding == FLOAT_ENCODING:

@@ -26,6 +26,7 @@ import numpy as np
 
 from slscan.decode.samples import StripeSamples
 from slscan.errors import SlscanError
+from slscan.meshes import check_face_indices, check_finite_vertices
 from slscan.ply import read_ply_elements, write_triangle_ply
 from slscan.rig import PinholeModel
 
@@ -456,11 +457,16 @@ def read_ply(path: str | os.PathLike) -> RangeMap:
         if field not in vertex:
             raise SlscanError(f"{path}: vertices lack property {field!r}")
     n = len(vertex["x"])
+    check_finite_vertices(np.stack([np.asarray(vertex[a], np.float64) for a in "xyz"], axis=1), path)
     faces = np.zeros((0, 3), np.int32)
     if ply.get("face"):
-        counts, indices = next(iter(ply["face"].values()))
+        lists = [v for v in ply["face"].values() if isinstance(v, tuple)]
+        if not lists:
+            raise SlscanError(f"{path}: element 'face' has no list of vertex indices")
+        counts, indices = lists[0]
         if len(counts) and np.any(counts != 3):
             raise SlscanError(f"{path}: element 'face' has non-triangle faces; expected triangles only")
+        check_face_indices(np.asarray(indices).reshape(-1, 3), n, path)
         faces = np.asarray(indices).astype(np.int32).reshape(-1, 3)
 
     def column(field: str, default: float, dtype) -> np.ndarray:

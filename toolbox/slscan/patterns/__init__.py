@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from slscan.errors import SlscanError
+from slscan.errors import SlscanError, about_file
 from slscan.fsio import atomic_output_dir, read_json, write_json, write_png
 
 AXES = ("columns", "rows", "none")
@@ -162,11 +162,16 @@ def read_pattern_set(path: str | os.PathLike) -> list[PatternImage]:
     path = Path(path)
     meta_path = path / "patterns.json" if path.is_dir() else path
     data = read_json(meta_path, "pattern-set description")
-    if data.get("format") != PATTERN_SET_FORMAT:
-        raise SlscanError(f"{meta_path}: not an slscan pattern set (format {data.get('format')!r})")
-    if data.get("version") != PATTERN_SET_VERSION:
-        raise SlscanError(f"{meta_path}: pattern-set version {data.get('version')} is not supported")
-    return [PatternImage.from_dict(e) for e in data["images"]]
+    with about_file(meta_path, "pattern-set description (patterns.json)"):
+        if not isinstance(data, dict) or data.get("format") != PATTERN_SET_FORMAT:
+            found = data.get("format") if isinstance(data, dict) else type(data).__name__
+            raise SlscanError(f"{meta_path}: not an slscan pattern set (format {found!r})")
+        if data.get("version") != PATTERN_SET_VERSION:
+            raise SlscanError(f"{meta_path}: pattern-set version {data.get('version')} is not supported")
+        images = [PatternImage.from_dict(e) for e in data["images"]]
+        if not images:
+            raise SlscanError(f"{meta_path}: the pattern set lists no images")
+        return images
 
 
 # --- the family registry -------------------------------------------------------------------

@@ -141,6 +141,8 @@ def load_recipe(path: str | os.PathLike, *, overrides: list[str] = (), reduced: 
         raise SlscanError(f"{path}: recipe not found") from None
     except tomllib.TOMLDecodeError as exc:
         raise SlscanError(f"{path}: not valid TOML ({exc})") from None
+    except UnicodeDecodeError as exc:
+        raise SlscanError(f"{path}: not valid TOML (not UTF-8 text: byte {exc.start})") from None
     return parse_recipe(data, where=str(path), path=path, overrides=list(overrides), reduced=reduced)
 
 

@@ -41,6 +41,7 @@ class Surface:
 def read_surface(path: str | os.PathLike) -> Surface:
     """A triangle mesh from any PLY (range map, mesh, reference), with per-vertex texture
     coordinates (``texture_u``/``texture_v``, OpenGL convention) when it has them."""
+    from slscan.meshes import check_face_indices, check_finite_vertices
     from slscan.ply import fan_triangles, read_ply_elements
 
     ply = read_ply_elements(path)
@@ -48,9 +49,11 @@ def read_surface(path: str | os.PathLike) -> Surface:
     if not all(k in vertex for k in "xyz"):
         raise SlscanError(f"{path}: expected vertices with x, y, z")
     vertices = np.stack([vertex[k] for k in "xyz"], axis=1).astype(np.float64)
+    check_finite_vertices(vertices, path)
     face = ply.get("face", {})
     index = face.get("vertex_indices", face.get("vertex_index"))
     faces = fan_triangles(*index) if index is not None else np.zeros((0, 3), np.int64)
+    check_face_indices(faces, len(vertices), path)
     uvs = None
     if "texture_u" in vertex and "texture_v" in vertex:
         uvs = np.stack([vertex["texture_u"], 1.0 - vertex["texture_v"]], axis=1).astype(np.float64)

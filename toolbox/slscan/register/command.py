@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from slscan.errors import SlscanError
+from slscan.errors import SlscanError, about_file
 from slscan.progress import ProgressBar, console
 
 SHOWN_REJECTED = 5
@@ -51,23 +51,9 @@ def load_scans(
     if (path / "aligned.mlp").is_file():
         return load_scan_project(path / "aligned.mlp", allow_outside=allow_outside)
     if (path / "range_maps.json").is_file():
-        summary = read_json(path / "range_maps.json", "range-maps summary")
-        scans, poses = [], {}
-        for i, entry in enumerate(summary["views"]):
-            scan = load_range_scan(path / entry["file"])
-            scans.append(scan)
-            if entry.get("rig_from_object") is not None:
-                try:
-                    pose = np.asarray(entry["rig_from_object"], float).reshape(4, 4)
-                except (TypeError, ValueError):
-                    pose = np.full((4, 4), np.nan)
-                if not np.isfinite(pose).all() or abs(np.linalg.det(pose[:3, :3])) < 1e-9:
-                    raise SlscanError(
-                        f"{path / 'range_maps.json'}: views[{i}].rig_from_object: expected a finite, "
-                        f"invertible 4x4 pose, got {entry['rig_from_object']!r}"
-                    )
-                poses[scan.name] = np.linalg.inv(pose)
-        return scans, (poses if len(poses) == len(scans) else None)
+        summary = path / "range_maps.json"
+        with about_file(summary, "range-maps summary"):
+            return _range_map_scans(summary, allow_outside=allow_outside)
     confs = glob_results(path, "*.conf")
     if len(confs) > 1:
         raise SlscanError(
@@ -80,6 +66,34 @@ def load_scans(
     if not plys:
         raise SlscanError(f"{path}: no range maps found (expected .ply files, range_maps.json, a .conf or a .mlp)")
     return [load_range_scan(p) for p in plys], None
+
+
+def _range_map_scans(summary: Path, *, allow_outside: bool) -> tuple[list, dict[str, np.ndarray] | None]:
+    """The scans a decode output's ``range_maps.json`` lists, and their poses when it has
+    one for each (``world_from_scan = inverse(rig_from_object)``)."""
+    from slscan.fsio import read_json
+    from slscan.register.rangescan import load_range_scan
+    from slscan.rig import _as_pose
+
+    views = read_json(summary, "range-maps summary")["views"]
+    if not isinstance(views, list) or not views:
+        raise SlscanError(f"{summary}: lists no views; expected the range maps slscan decode wrote")
+    scans, poses = [], {}
+    for i, entry in enumerate(views):
+        file = summary.parent / entry["file"]
+        if not allow_outside and not file.resolve().is_relative_to(summary.parent.resolve()):
+            raise SlscanError(f"{summary}: range map {entry['file']!r} lies outside its folder "
+                              "(pass --allow-outside to read it)")
+        scan = load_range_scan(file)
+        scans.append(scan)
+        if entry.get("rig_from_object") is not None:
+            try:
+                pose = _as_pose(entry["rig_from_object"], "")
+            except (SlscanError, TypeError, ValueError):
+                raise SlscanError(f"{summary}: views[{i}].rig_from_object: expected a finite, invertible 4x4 "
+                                  f"pose, got {entry['rig_from_object']!r}") from None
+            poses[scan.name] = np.linalg.inv(pose)
+    return scans, (poses if len(poses) == len(scans) else None)
 
 
 def load_poses(path: Path, names: list[str]) -> dict[str, np.ndarray]:

@@ -27,7 +27,7 @@ import numpy as np
 from scipy import ndimage
 
 from slscan.errors import SlscanError
-from slscan.meshes import check_finite_vertices, vertex_normals
+from slscan.meshes import check_face_indices, check_finite_vertices, vertex_normals
 from slscan.ply import fan_triangles, read_ply_elements, write_triangle_ply
 
 log = logging.getLogger(__name__)
@@ -163,7 +163,8 @@ def scan_from_mesh(
     else:
         n = np.asarray(normals, np.float64)
         length = np.linalg.norm(n, axis=1, keepdims=True)
-        n = np.where(length > 0, n / np.where(length > 0, length, 1), d)
+        ok = np.isfinite(length) & (length > 0)  # a zero, NaN or infinite normal: the view direction
+        n = np.where(ok, n / np.where(ok, length, 1), d)
     n[n @ d < 0] *= -1
     if quality is None:
         q = np.clip(n @ d, 0.0, 1.0)
@@ -312,8 +313,11 @@ def load_stanford_scan(
     if grid_el is None:
         raise SlscanError(f"{path}: no range_grid element; expected a Stanford range-grid PLY")
     rows, cols = ply.info.get("num_rows"), ply.info.get("num_cols")
-    counts, values = next(iter(grid_el.values()))
-    if rows is None or cols is None or int(rows) * int(cols) != len(counts):
+    lists = [v for v in grid_el.values() if isinstance(v, tuple)]
+    if not lists:
+        raise SlscanError(f"{path}: range_grid has no list property; expected the vertex index of each cell")
+    counts, values = lists[0]
+    if not isinstance(rows, int) or not isinstance(cols, int) or rows < 0 or cols < 0 or rows * cols != len(counts):
         raise SlscanError(
             f"{path}: range_grid has {len(counts)} cells but obj_info says "
             f"{rows} rows x {cols} columns"
@@ -342,6 +346,8 @@ def load_stanford_scan(
     referenced = np.ones(scan.n_vertices, bool)
     quality = scan.quality.astype(np.float64) * boundary_ramp(scan.grid, referenced, ramp_cells)
     if "confidence" in vertex:
+        if not np.isfinite(np.asarray(vertex["confidence"], np.float64)).all():
+            raise SlscanError(f"{path}: vertex confidence holds NaN or inf; expected finite weights")
         used = np.zeros(len(points), bool)
         used[faces.reshape(-1)] = True
         quality *= np.clip(vertex["confidence"][used], 0.0, 1.0)
@@ -372,6 +378,10 @@ def _conf_entries(path: Path, units: str) -> list[tuple[int, str, np.ndarray]]:
         text = path.read_text()
     except FileNotFoundError:
         raise SlscanError(f"{path}: pose file not found") from None
+    except IsADirectoryError:
+        raise SlscanError(f"{path}: is a folder; expected a pose file") from None
+    except UnicodeDecodeError as exc:
+        raise SlscanError(f"{path}: not a text file (byte {exc.start} is not UTF-8)") from None
     entries: list[tuple[int, str, np.ndarray]] = []
     for number, line in enumerate(text.splitlines(), 1):
         parts = line.split()
@@ -619,8 +629,7 @@ def load_range_scan(
         faces = fan_triangles(*prop)
     if len(faces) == 0:
         raise SlscanError(f"{path}: the PLY has no faces; expected a triangle mesh (range scan)")
-    if faces.min() < 0 or faces.max() >= len(points):
-        raise SlscanError(f"{path}: face indices out of range for {len(points)} vertices")
+    check_face_indices(faces, len(points), path)
     a, b, c = (points[faces[:, i]] for i in range(3))
     area = np.linalg.norm(np.cross(b - a, c - a), axis=1)
     faces = faces[area > 0]
@@ -641,6 +650,10 @@ def load_range_scan(
     for key in ("quality", "confidence"):
         if key in vertex:
             quality = vertex[key]
+            bad = ~np.isfinite(np.asarray(quality, np.float64))
+            if bad.any():
+                raise SlscanError(f"{path}: {int(bad.sum())} vertices with a non-finite {key} (NaN or inf), "
+                                  f"the first at index {int(np.argmax(bad))}; expected finite weights")
             break
     grid = None
     if ply.grid_shape is not None and "row" in vertex and "col" in vertex:

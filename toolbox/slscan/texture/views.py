@@ -85,9 +85,13 @@ def read_poses(path: str | os.PathLike) -> dict[str, np.ndarray]:
         return {file.stem: np.asarray(matrix, float) for file, matrix in read_mlp(path, check_files=False)}
     data = read_json(path, "registration result")
     try:
-        return {str(k): np.asarray(v, float).reshape(4, 4) for k, v in data["poses"].items()}
+        poses = {str(k): np.asarray(v, float).reshape(4, 4) for k, v in data["poses"].items()}
     except (KeyError, TypeError, AttributeError, ValueError):
         raise SlscanError(f"{path}: expected a 'poses' object of name -> 4x4 matrix") from None
+    bad = [name for name, m in poses.items() if not np.isfinite(m).all()]
+    if bad:
+        raise SlscanError(f"{path}: the poses of {', '.join(bad)} hold NaN or inf; expected finite 4x4 matrices")
+    return poses
 
 
 def load_views(

@@ -110,8 +110,9 @@ def load_rig_file(path: str | os.PathLike, *, scale: float = 1.0, projector_scal
         rig.validate()
     except SlscanError as exc:
         raise SlscanError(f"{path}: {exc}") from None
-    except (TypeError, ValueError, AttributeError) as exc:
-        raise SlscanError(f"{path}: not a rig as Rig.to_dict writes it ({exc})") from None
+    except (TypeError, ValueError, AttributeError, OverflowError, KeyError, IndexError) as exc:
+        reason = f"missing {exc.args[0]!r}" if isinstance(exc, KeyError) and exc.args else str(exc)
+        raise SlscanError(f"{path}: not a rig as Rig.to_dict writes it ({reason})") from None
     if not (math.isfinite(rig.working_distance) and rig.working_distance > 0):
         raise SlscanError(f"{path}: working_distance_mm must be positive, got {rig.working_distance}")
     if scale != 1.0 or projector_scale != 1.0:

@@ -22,7 +22,7 @@ from typing import Protocol
 import numpy as np
 
 from slscan.errors import SlscanError
-from slscan.meshes import MESH_SUFFIXES, vertex_normals
+from slscan.meshes import MESH_SUFFIXES, check_face_indices, read_ply_mesh, vertex_normals
 from slscan.rig import rotation_about_axis
 from slscan.virtual.placement import AUTO_METRES_BELOW, default_placement, parse_units
 
@@ -375,11 +375,14 @@ def load_mesh_scene(path: str | os.PathLike, *, units: str | float | None = "aut
     if not path.is_file():
         raise SlscanError(f"{path}: mesh file not found")
     mm_per_unit = parse_units(units, "units")
+    if path.suffix.lower() == ".ply":
+        read_ply_mesh(path)  # Open3D's PLY reader crashes on some malformed files: check it first
     mesh = o3d.io.read_triangle_mesh(str(path), enable_post_processing=True)
     vertices = np.asarray(mesh.vertices, dtype=float)
     triangles = np.asarray(mesh.triangles, dtype=np.int32)
     if len(triangles) == 0 or len(vertices) < 3:
         raise SlscanError(f"{path}: the mesh has no faces (a point cloud cannot be scanned)")
+    check_face_indices(np.asarray(mesh.triangles), len(vertices), path)
     if mm_per_unit is None:
         diag = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
         mm_per_unit = 1000.0 if diag < AUTO_METRES_BELOW else 1.0
