@@ -151,7 +151,7 @@ def _minimal_args(command: str) -> list[str]:
         if not action.option_strings and action.nargs != 0 and action.dest != "help":
             argv.append("x")
         elif action.required:
-            argv += [action.option_strings[0], "x"]
+            argv += [action.option_strings[0], "1" if action.type in (int, float) else "x"]
     return argv
 
 

@@ -132,7 +132,7 @@ FOUND = {
         "register.load_scans (range_maps.json)",
         lambda p: p.write_text(json.dumps({**json.loads(p.read_text()), "views": 3.0})), "lists no views"),
     "range-maps summary with a NaN pose (a NaN world accepted)": (
-        "register.load_scans (range_maps.json)", lambda p: _nan_pose(p), "non-finite"),
+        "register.load_scans (range_maps.json)", lambda p: _nan_pose(p), "expected a finite, invertible 4x4 pose"),
     "calibration JSON with fx of Infinity (an impossible lens accepted)": (
         "calibrate.load_calibration (JSON)",
         lambda p: p.write_text(p.read_text().replace('"fx": ', '"fx": Infinity, "_fx": ', 1)), "must be finite"),
