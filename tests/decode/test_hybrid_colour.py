@@ -244,6 +244,8 @@ def test_paint_edges_settings():
     assert DecodeConfig().paint_edges == "shift"
     with pytest.raises(SlscanError, match="paint_edges 'sometimes': expected one of shift, drop, keep"):
         DecodeConfig(paint_edges="sometimes")
+    with pytest.raises(SlscanError, match="paint_edge_shift must be >= 0"):
+        DecodeConfig(paint_edge_shift=-0.1)
 
 
 def test_unknown_mixing_is_an_error(physical_figurine):

@@ -163,8 +163,10 @@ DEFAULT_PAINT_EDGES = "shift"
 PAINT_EDGE_SHIFT = 0.3
 """camera px: with ``paint_edges="shift"``, a line sample at a paint edge is dropped when
 reading its profile in its centre's paint instead of pixel by pixel moves its centre by more
-than this (figurine at half size: 1/4 of the samples ``"drop"`` loses, near-edge gross
-outliers 0.39 -> 0.19 %; ``benchmarks/paint_edges.py``)."""
+than this. Demo at half size: 2,671 samples dropped instead of 11,475 ("drop"), fused-mesh
+holes 107 (drop 201, keep 101); figurine at scale 0.5, vertices near paint edges: gross
+outliers 0.63 % (drop 0.24, keep 0.98); ``benchmarks/paint_edges.py``, where
+``--variant s=paint_edges:shift,paint_edge_shift:T`` sweeps it."""
 PAINT_EDGE_METRIC = "paint_edge_samples_dropped"
 """The per-view metric (``range_maps.json``) counting line samples dropped at paint edges."""
 MIN_DIRECT = 0.25  # line samples where less of the white frame is direct light are dropped
@@ -1674,7 +1676,8 @@ def decode(session: Session, view: ViewRecord | str, config) -> FamilyDecode:
     paint-edge settings."""
     res = decode_hybrid(
         session, view, estimator=config.estimator, mixing=config.mixing, global_light=config.global_light,
-        paint_edges=config.paint_edges, max_line_sigma=config.max_line_sigma,
+        paint_edges=config.paint_edges, paint_edge_shift=config.paint_edge_shift,
+        max_line_sigma=config.max_line_sigma,
     )
     levels = len(hybrid_pattern_ids(session)[2])
     return FamilyDecode(samples=res.samples, mask=res.mask, codes=res.codes, code_max=2**levels,

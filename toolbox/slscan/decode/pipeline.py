@@ -41,6 +41,7 @@ from slscan.decode.hybrid import (
     ESTIMATORS,
     MIXING_MODES,
     PAINT_EDGE_METRIC,
+    PAINT_EDGE_SHIFT,
     paint_edge_mode,
 )
 from slscan.decode.rangemap import (
@@ -109,7 +110,11 @@ class DecodeConfig:
     which punches a hole at every paint boundary; "keep" (or false) keeps all. The count
     dropped is each view's ``paint_edge_samples_dropped`` in ``range_maps.json`` and one log
     line. Demo at half size (``benchmarks/paint_edges.py --demo 0.5``): fused-mesh holes
-    201 ("drop"), SHIFT_HOLES ("shift"), 101 ("keep")."""
+    201 ("drop"), 107 ("shift"), 101 ("keep")."""
+    paint_edge_shift: float = PAINT_EDGE_SHIFT
+    """Hybrid, ``paint_edges="shift"``: camera px the paint may move a line's centre before
+    the sample is dropped (``benchmarks/paint_edges.py --variant
+    s=paint_edges:shift,paint_edge_shift:0.1``)."""
     max_line_sigma: float = DEFAULT_MAX_LINE_SIGMA
     """Hybrid: line samples whose expected axis standard deviation (camera px), from the
     line's contrast against the image noise, exceeds this are dropped ("weak line": e.g.
@@ -179,6 +184,8 @@ class DecodeConfig:
                 f"unknown mixing {self.mixing!r}: expected one of {', '.join(MIXING_MODES)}"
             )
         paint_edge_mode(self.paint_edges)  # raises naming the modes
+        if not self.paint_edge_shift >= 0:
+            raise SlscanError(f"paint_edge_shift must be >= 0 camera px, got {self.paint_edge_shift!r}")
         if self.gray_threshold not in THRESHOLD_MODES:
             raise SlscanError(
                 f"unknown gray_threshold {self.gray_threshold!r}: expected one of "
