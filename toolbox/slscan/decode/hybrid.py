@@ -1486,7 +1486,9 @@ def decode_hybrid_images(
             return unmixer.signals(im)
 
         g_own, e = signals(raw)
-        g = cv2.filter2D(g_own, -1, _ROW_KERNEL[:, None], borderType=cv2.BORDER_CONSTANT) if smooth_rows else g_own
+        g = g_own  # g_own: before the filter across rows (paint_read_peaks filters its own windows)
+        if smooth_rows:
+            g = cv2.filter2D(g_own, -1, _ROW_KERNEL[:, None], borderType=cv2.BORDER_CONSTANT)
         rows, cols = find_line_peaks(g, min_peak=min_peak, min_prominence=min_prominence)
         n_peaks += len(rows)
         x, ok = subpixel_peaks(g, rows, cols, estimator=estimator)
