@@ -22,11 +22,15 @@ once; decode and everything after run again with ``decode.<key>`` set). Per vari
   surface    share of the true figurine's surface (200,000 points spread evenly over it)
              within 2 mm of the fused mesh: what the holes cost in area (the underside and
              deep folds no view sees count against every variant alike)
+  atlas      the texture's atlas size, px: 512 (reduced) or 2048 for the first variant, the
+             others sized by their simplified mesh's area to the same texel density (a
+             model with more surface in a fixed atlas gets larger, blurrier texels)
   PSNR       the texture baked on the simplified mesh against the true albedo in the same
              atlas, 8-bit sRGB, over the texels a view saw and over all texels (as
              ``benchmarks/texture.py`` measures it, blended bake); only over the surface
              the model has, so a model with holes leaves out the texels beside paint edges
-             that are hardest to get right
+             that are hardest to get right; hence also, below the table, the PSNR over the
+             seen texels on the surface that every variant's fused mesh has
 
 **scenes**: one view of each scene of ``--scenes`` at ``--scale`` with ``--effects``
 (light_transport.py's captures: hybrid patterns, default sensor noise), decoded by
@@ -100,19 +104,90 @@ def run_demo(work: Path, size: str, settings: dict) -> None:
     run_recipe(recipe, work)
 
 
-def demo_row(work: Path, size: str) -> dict:
-    from texture import accuracy_rows
-
+def demo_row(work: Path, size: str, texel_mm: float | None = None) -> dict:
     maps = json.loads((work / "decode" / "range_maps.json").read_text())
     samples = int(sum(v["metrics"].get("samples", 0) for v in maps["views"]))
     dropped = int(sum(v["metrics"].get("paint_edge_samples_dropped", 0) for v in maps["views"]))
     faces, holes, pieces = mesh_topology(work / "fuse" / "mesh.ply")
     _, s_holes, s_pieces = mesh_topology(work / "simplify" / "mesh.ply")
-    atlas = 512 if size == "reduced" else 2048
-    rows, _, _ = accuracy_rows(work, atlas)
+    texture = texture_errors(work, 512 if size == "reduced" else 2048, texel_mm)
     return {"samples": samples, "dropped": dropped, "faces": faces, "holes": holes, "pieces": pieces,
-            "s_holes": s_holes, "s_pieces": s_pieces, "psnr_seen": rows[0][3], "psnr_all": rows[0][4],
-            "surface": surface_share(work / "fuse" / "mesh.ply", work)}
+            "s_holes": s_holes, "s_pieces": s_pieces, "psnr_seen": texture["psnr_seen"],
+            "psnr_all": texture["psnr_all"], "surface": surface_share(work / "fuse" / "mesh.ply", work),
+            "texels": texture["points"], "error2": texture["error2"], "fused": fused_in_scene(work),
+            "texel_mm": texture["texel_mm"], "atlas": texture["atlas"]}
+
+
+def scene_from_model(work: Path) -> np.ndarray:
+    """(4, 4) the figurine's own frame from the model's (upright object) frame."""
+    from slscan.register.frame import read_frame
+
+    frame = read_frame(work / "register" / "registration.json")
+    return np.linalg.inv(frame.object_from_reference) if frame is not None else np.eye(4)
+
+
+def fused_in_scene(work: Path) -> tuple[np.ndarray, np.ndarray]:
+    """The fused mesh's vertices (n, 3) in the figurine's frame and its faces (m, 3)."""
+    from slscan.fuse import read_mesh
+
+    mesh = read_mesh(work / "fuse" / "mesh.ply")
+    pose = scene_from_model(work)
+    return mesh.vertices @ pose[:3, :3].T + pose[:3, 3], np.asarray(mesh.faces)
+
+
+def texture_errors(work: Path, size: int, texel_mm: float | None = None) -> dict:
+    """The texture baked on the simplified mesh (default bake) against the true albedo in the
+    same atlas (``benchmarks/texture.py``'s measure): PSNR over the texels a view saw and
+    over all; and, per texel a view saw, its surface point (k, 3) in the figurine's frame
+    and its squared 8-bit error summed over the channels (k,), for :func:`common_psnr`."""
+    from texture import truth_texture
+
+    from slscan.colour import srgb8
+    from slscan.fuse import read_mesh
+    from slscan.texture.atlas import AtlasOptions, build_atlas
+    from slscan.texture.bake import BakeOptions, bake
+    from slscan.texture.metrics import psnr, texel_points
+    from slscan.texture.views import load_views
+    from slscan.virtual.scenes import builtin_object
+
+    mesh = read_mesh(work / "simplify" / "mesh.ply")
+    views = load_views(work / "albedo", work / "register")
+    v = mesh.vertices[mesh.faces]
+    area = 0.5 * float(np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1).sum())
+    if texel_mm is not None:  # the same texel density as another model: an atlas sized by the area
+        size = int(round(np.sqrt(area) / texel_mm))
+    atlas = build_atlas(mesh.vertices, mesh.faces, AtlasOptions(size=size))
+    pose = scene_from_model(work)
+    vertices = mesh.vertices @ pose[:3, :3].T + pose[:3, 3]
+    truth = srgb8(truth_texture(vertices, mesh.faces, atlas, builtin_object()))
+    baked = bake(mesh.vertices, mesh.faces, atlas, views, BakeOptions())
+    image = srgb8(baked.linear)
+    texel, points = texel_points(vertices, mesh.faces, atlas)
+    seen = baked.observed.reshape(-1)[texel]
+    d = image.reshape(-1, 3)[texel[seen]].astype(np.float64) - truth.reshape(-1, 3)[texel[seen]]
+    return {"psnr_seen": psnr(image, truth, baked.observed), "psnr_all": psnr(image, truth, baked.covered),
+            "points": points[seen], "error2": (d * d).sum(axis=1), "texel_mm": np.sqrt(area) / size, "atlas": size}
+
+
+def common_psnr(rows: dict[str, dict]) -> dict[str, float]:
+    """Per variant, the PSNR (dB, 8-bit) over the seen texels whose surface point lies within
+    ``SURFACE_TOL`` mm of every variant's fused mesh: the same surface for all, so a model
+    with holes is not credited with leaving out the texels beside paint edges."""
+    import open3d as o3d
+
+    scenes = []
+    for r in rows.values():
+        rs = o3d.t.geometry.RaycastingScene()
+        vertices, faces = r["fused"]
+        rs.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
+        scenes.append(rs)
+    out = {}
+    for label, r in rows.items():
+        query = o3d.core.Tensor(r["texels"].astype(np.float32))
+        common = np.logical_and.reduce([rs.compute_distance(query).numpy() <= SURFACE_TOL for rs in scenes])
+        mse = float(r["error2"][common].mean()) / 3.0 if common.any() else float("nan")
+        out[label] = 10.0 * np.log10(255.0**2 / mse)
+    return out
 
 
 def surface_share(path: Path, work: Path) -> float:
@@ -122,13 +197,11 @@ def surface_share(path: Path, work: Path) -> float:
     import trimesh
 
     from slscan.fuse import read_mesh
-    from slscan.register.frame import read_frame
     from slscan.virtual.scenes import builtin_object
 
     mesh = read_mesh(path)
-    frame = read_frame(work / "register" / "registration.json")
-    scene_from_model = np.linalg.inv(frame.object_from_reference) if frame is not None else np.eye(4)
-    vertices = mesh.vertices @ scene_from_model[:3, :3].T + scene_from_model[:3, 3]
+    pose = scene_from_model(work)
+    vertices = mesh.vertices @ pose[:3, :3].T + pose[:3, 3]
     scene = builtin_object()
     points, _ = trimesh.sample.sample_surface_even(trimesh.Trimesh(scene.vertices, scene.triangles, process=False),
                                                   SURFACE_POINTS, seed=0)
@@ -205,14 +278,19 @@ def main() -> None:
         if args.demo != "none":
             print(f"demo ({args.demo}): 8 views; holes = boundary loops, pieces = connected pieces")
             print(f"{'variant':<{lw}}{'samples':>9}{'dropped':>9}{'fused faces':>12}{'holes':>7}{'pieces':>7}"
-                  f"{'simpl. holes':>13}{'pieces':>7}{'surface':>8}{'PSNR seen':>10}{'PSNR all':>9}")
+                  f"{'simpl. holes':>13}{'pieces':>7}{'surface':>8}{'atlas':>6}{'PSNR seen':>10}{'PSNR all':>9}")
+            rows = {}
             for label, settings in variants:
                 folder = work / f"demo-{args.demo}"
                 run_demo(folder, args.demo, settings)
-                r = demo_row(folder, args.demo)
+                first = next(iter(rows.values()), None)
+                r = rows[label] = demo_row(folder, args.demo, first["texel_mm"] if first else None)
                 print(f"{label:<{lw}}{r['samples']:>9d}{r['dropped']:>9d}{r['faces']:>12d}{r['holes']:>7d}"
-                      f"{r['pieces']:>7d}{r['s_holes']:>13d}{r['s_pieces']:>7d}{r['surface']:>8.4f}{r['psnr_seen']:>10.2f}"
-                      f"{r['psnr_all']:>9.2f}", flush=True)
+                      f"{r['pieces']:>7d}{r['s_holes']:>13d}{r['s_pieces']:>7d}{r['surface']:>8.4f}"
+                      f"{r['atlas']:>6d}{r['psnr_seen']:>10.2f}{r['psnr_all']:>9.2f}", flush=True)
+            common = common_psnr(rows)
+            print(f"PSNR over the seen texels of the surface every variant's fused mesh has (within "
+                  f"{SURFACE_TOL:g} mm): " + ", ".join(f"{label} {v:.2f} dB" for label, v in common.items()))
         if args.scenes != "none":
             from slscan.capture.session import load_session
             from slscan.virtual.device import VirtualCaptureConfig, capture_session
