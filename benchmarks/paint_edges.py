@@ -27,10 +27,9 @@ once; decode and everything after run again with ``decode.<key>`` set). Per vari
              model with more surface in a fixed atlas gets larger, blurrier texels)
   PSNR       the texture baked on the simplified mesh against the true albedo in the same
              atlas, 8-bit sRGB, over the texels a view saw and over all texels (as
-             ``benchmarks/texture.py`` measures it, blended bake); only over the surface
-             the model has, so a model with holes leaves out the texels beside paint edges
-             that are hardest to get right; hence also, below the table, the PSNR over the
-             seen texels on the surface that every variant's fused mesh has
+             ``benchmarks/texture.py`` measures it, blended bake); each over the surface
+             its own model has, so below the table also the PSNR over the seen texels on
+             the surface that every variant's fused mesh has (within 2 mm)
 
 **scenes**: one view of each scene of ``--scenes`` at ``--scale`` with ``--effects``
 (light_transport.py's captures: hybrid patterns, default sensor noise), decoded by
