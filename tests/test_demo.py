@@ -94,6 +94,8 @@ def test_the_demo_writes_the_recipe_folders_and_a_textured_model(demo, tmp_path,
     assert "view_000" in capsys.readouterr().out
     # decoding again from the command line gives the same range map
     assert main(["decode", str(out / "capture"), "--out", str(tmp_path / "again"), "--quiet"]) == 0
+    # it says how many line samples it left out at paint edges (the painted figurine has some)
+    assert re.search(r"paint edges: [1-9][\d,]* line samples dropped", capsys.readouterr().err)
     again = read_ply(tmp_path / "again" / "view_000.ply")
     np.testing.assert_array_equal(again.faces, range_map.faces)
     # trimming the line ends: fewer vertices, and the setting is recorded

@@ -12,6 +12,8 @@ from slscan.decode.hybrid import (
     decode_hybrid,
     estimate_mixing,
     nan_median,
+    paint_edge_mode,
+    paint_read_peaks,
     pattern_shares,
     separate_global,
     subpixel_peaks,
@@ -174,6 +176,76 @@ def test_rejections_are_counted(physical_figurine):
                            global_light=True)
     assert {"edge", "paint edge", "global", "order", "ambiguous bit"} <= set(result.rejected)
     assert result.rejected["paint edge"] > 0
+
+
+def _blurred_row(values: np.ndarray, sigma: float, oversample: int) -> np.ndarray:
+    """A fine 1-D profile blurred by a Gaussian of ``sigma`` camera px and box-filtered
+    into camera pixels of ``oversample`` fine samples each."""
+    reach = int(np.ceil(6 * sigma * oversample))  # an odd kernel: "same" keeps it centred
+    t = np.arange(-reach, reach + 1) / oversample
+    kernel = np.exp(-0.5 * (t / sigma) ** 2)
+    fine = np.convolve(values, kernel / kernel.sum(), mode="same")
+    return fine.reshape(-1, oversample).mean(axis=1)
+
+
+@pytest.mark.parametrize(("step_px", "moved_px"), [(1.0, 0.1), (1.5, 0.03)])
+def test_paint_read_peaks_reads_a_line_in_its_centres_paint(step_px, moved_px):
+    # a line narrower than the camera blur (Gaussian sigma 0.3 px) beside a paint step
+    # 1 -> 0.2 (the same in every channel), camera blur sigma 0.6 px: divided pixel by
+    # pixel by the white, its centre moves towards the dark side; read in the centre's
+    # paint it stays (the known answer: where the line was projected)
+    over, n, centre = 16, 32, 15.3
+    s = (np.arange(n * over) + 0.5) / over - 0.5
+    line = np.exp(-0.5 * ((s - centre) / 0.3) ** 2)
+    paint = np.where(s < centre + step_px, 1.0, 0.2)
+    image = _blurred_row(paint * line, 0.6, over)
+    white = _blurred_row(paint, 0.6, over)
+    ratio = (image / white).astype(np.float32)[None]
+    rows, cols = np.array([0]), np.array([int(np.argmax(ratio[0]))])
+    plain, _ = subpixel_peaks(ratio, rows, cols)
+    lit = np.repeat(white[None, :, None], 3, axis=2).astype(np.float32)
+    readout = np.array([[0.2], [0.7], [-0.1]])  # any channel weights: the paint is grey
+    read, ok = paint_read_peaks(ratio, lit, readout, rows, cols, smooth_rows=False)
+    assert ok[0]
+    assert plain[0] - centre > moved_px
+    assert abs(read[0] - centre) < 0.01
+
+
+def test_paint_edges_shift_drops_the_samples_the_paint_moves(physical_figurine):
+    view = physical_figurine.views[0]
+    truth = physical_figurine.load_ground_truth(view)
+    found = {}
+    for mode in ("keep", "shift", "drop"):
+        result = decode_hybrid(physical_figurine, view, paint_edges=mode)
+        s = result.samples
+        error = s.x - truth.column_crossings(s.row, s.x, s.projector_column)
+        found[mode] = ({(r, k): e for r, k, e in zip(s.row, s.stripe, error)}, result.rejected["paint edge"])
+    keep, shift, drop = (found[m][0] for m in ("keep", "shift", "drop"))
+    assert found["keep"][1] == 0 < found["shift"][1] < found["drop"][1] / 2
+    assert len(drop) < len(shift) < len(keep)
+
+    def rms(errors):
+        errors = np.array([e for e in errors if np.isfinite(e)])
+        return float(np.sqrt(np.mean(errors**2)))
+
+    # what "shift" drops is far worse than what it keeps (noise-free: 0.36 vs 0.126 px)
+    dropped = [e for key, e in keep.items() if key not in shift]
+    assert len(dropped) > 50
+    assert rms(dropped) > 2.0 * rms(shift.values())
+    assert rms(shift.values()) < rms(keep.values())
+
+
+def test_paint_edges_settings():
+    from slscan.decode.pipeline import DecodeConfig
+    from slscan.errors import SlscanError
+
+    assert [paint_edge_mode(v) for v in (True, False, "shift", "drop", "keep")] == [
+        "drop", "keep", "shift", "drop", "keep"]
+    assert DecodeConfig().paint_edges == "shift"
+    with pytest.raises(SlscanError, match="paint_edges 'sometimes': expected one of shift, drop, keep"):
+        DecodeConfig(paint_edges="sometimes")
+    with pytest.raises(SlscanError, match="paint_edge_shift must be >= 0"):
+        DecodeConfig(paint_edge_shift=-0.1)
 
 
 def test_unknown_mixing_is_an_error(physical_figurine):

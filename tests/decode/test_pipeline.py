@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 
 import numpy as np
 import pytest
@@ -37,10 +38,20 @@ def figurine(tmp_path_factory):
 
 
 @pytest.mark.parametrize("method", ["hybrid", "gray"])
-def test_range_maps_lie_on_the_true_surface(figurine, tmp_path, method):
+def test_range_maps_lie_on_the_true_surface(figurine, tmp_path, method, caplog):
     out = tmp_path / "maps"
-    results = decode_session(figurine, out, DecodeConfig(method=method))
+    with caplog.at_level(logging.INFO, logger="slscan.decode.pipeline"):
+        results = decode_session(figurine, out, DecodeConfig(method=method))
     summary = json.loads((out / "range_maps.json").read_text())
+    # the line samples dropped at paint edges are told: per view, and in one line
+    dropped = summary["views"][0]["metrics"].get("paint_edge_samples_dropped", 0)
+    if method == "hybrid":
+        assert dropped > 0
+        note = f"paint edges: {int(dropped)} line samples dropped"
+        assert summary["notes"][0].startswith(note)
+        assert any(note in r.getMessage() for r in caplog.records)
+    else:
+        assert dropped == 0 and "notes" not in summary
     assert summary["views"][0]["method"] == method
     rm = read_ply(out / "view_000.ply")
     assert len(rm.faces) > 5000

@@ -266,7 +266,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 def _decode(session, out: Path, config, overwrite: bool, rec, quiet: bool, planes=None, executor=None,
             codes: bool = False, shown: Path | None = None) -> None:
-    from slscan.decode.pipeline import decode_session
+    from slscan.decode.pipeline import decode_session, paint_edge_note
     from slscan.executor import LOCAL
 
     t0 = time.perf_counter()
@@ -279,6 +279,8 @@ def _decode(session, out: Path, config, overwrite: bool, rec, quiet: bool, plane
     for r in results:  # what triangulated each view, and how well its geometry pins depth
         if r.triangulation is not None:
             _console().print(f"  {r.view}: triangulated with {r.triangulation.describe()}", highlight=False)
+    if note := paint_edge_note(results):  # hybrid line samples left out at paint edges
+        _console().print(f"  {note}", highlight=False)
     vertices = sum(len(r.range_map.vertices) for r in results)
     faces = sum(len(r.range_map.faces) for r in results)
     with_codes = " and projector codes (columns/rows/mask PNG per view, projector_codes.json)" if codes else ""

@@ -41,7 +41,9 @@ capture session):
    carried through the unmixing; on saturated paint the line comes back faintly);
    ambiguous bits (``e`` near 0.5); low or flat peaks; a peak without red
    on its left and blue on its right; a line next to a drop of the white frame (a
-   silhouette, shadow or crease truncates its profile); samples whose projector column
+   silhouette, shadow or crease truncates its profile); a line beside a paint edge that
+   moves its centre (``paint_edges="shift"``: the centre read pixel by pixel and in the
+   centre's paint disagree, :func:`paint_read_peaks`); samples whose projector column
    disagrees with every linear prediction from their neighbours along the row (a wrong
    index, :func:`order_consistent`).
 
@@ -156,6 +158,17 @@ GLOBAL_LEVELS = 3  # finest levels whose images give the global light (Nayar et 
 GLOBAL_WINDOW = 5  # px along x over which the smallest share is taken too
 GLOBAL_SMOOTH = 15  # px, box over which the global estimate is averaged
 PAINT_EDGE_FLOOR = 0.3  # channels darker than this share of the brightest are not tested
+PAINT_EDGE_MODES = ("shift", "drop", "keep")
+DEFAULT_PAINT_EDGES = "shift"
+PAINT_EDGE_SHIFT = 0.3
+"""camera px: with ``paint_edges="shift"``, a line sample at a paint edge is dropped when
+reading its profile in its centre's paint instead of pixel by pixel moves its centre by more
+than this. Demo at half size: 2,671 samples dropped instead of 11,475 ("drop"), fused-mesh
+holes 107 (drop 201, keep 101); figurine at scale 0.5, vertices near paint edges: gross
+outliers 0.63 % (drop 0.24, keep 0.98); ``benchmarks/paint_edges.py``, where
+``--variant s=paint_edges:shift,paint_edge_shift:T`` sweeps it."""
+PAINT_EDGE_METRIC = "paint_edge_samples_dropped"
+"""The per-view metric (``range_maps.json``) counting line samples dropped at paint edges."""
 MIN_DIRECT = 0.25  # line samples where less of the white frame is direct light are dropped
 CENTROID_RADIUS = 2.5  # px each side of the centre of mass
 CROP_MARGIN = 8  # px kept around the lit pixels: every window below fits inside
@@ -179,7 +192,8 @@ class HybridResult:
     white : (h, w, 3) the white capture as given (for colour and saturation downstream)
     rejected : line maxima dropped, by reason ("sub-pixel fit", "ambiguous bit", "edge",
         "polarity", "global": too little direct light, "weak line": the line's contrast
-        against the noise cannot place its axis, "order": inconsistent index)
+        against the noise cannot place its axis, "paint edge": a paint edge moves its
+        centre, "order": inconsistent index)
     level_samples : line samples kept per level, coarsest first (before the order test);
         each level has twice the lines of the one before (on the virtual marble bust under
         subsurface scattering every level keeps about a ninth of its direct-light count)
@@ -263,9 +277,20 @@ def subpixel_peaks(
         signal = signal[None]
     rows = np.asarray(rows, dtype=np.intp)
     cols = np.asarray(cols, dtype=np.intp)
-    half = 2 if estimator in ("gaussian", "parabola") else 3
-    ok = (cols >= half) & (cols < signal.shape[1] - half)
-    f = _window(signal, rows, cols, half).astype(np.float64)
+    half = _half_window(estimator)
+    return _refine(_window(signal, rows, cols, half).astype(np.float64), cols, signal.shape[1], estimator)
+
+
+def _half_window(estimator: str) -> int:
+    """Samples each side of the integer maximum that ``estimator`` reads."""
+    return 2 if estimator in ("gaussian", "parabola") else 3
+
+
+def _refine(f: np.ndarray, cols: np.ndarray, width: int, estimator: str) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`subpixel_peaks` on the windows ``f`` (k, 2 half + 1) float64 around the
+    integer maxima ``cols`` (k,) of rows ``width`` px wide."""
+    half = _half_window(estimator)
+    ok = (cols >= half) & (cols < width - half)
     mid = half
     with np.errstate(divide="ignore", invalid="ignore"):
         if estimator == "centroid":
@@ -292,6 +317,60 @@ def subpixel_peaks(
     ok &= np.isfinite(offset) & (np.abs(offset) <= 1.0)
     x = cols + np.where(ok, offset, 0.0)
     return x, ok
+
+
+def paint_read_peaks(
+    signal: np.ndarray,
+    lit: np.ndarray,
+    readout: np.ndarray,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    *,
+    estimator: str = DEFAULT_ESTIMATOR,
+    smooth_rows: bool = True,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`subpixel_peaks` on the line's profile read in the paint of its centre pixel.
+
+    signal : (h, w) float32 line signal ``g`` before the filter across rows (a share of
+        each pixel's own white: the paint divided out pixel by pixel)
+    lit : (h, w, 3) float32 the white frame minus the black, per camera channel
+    readout : (3, k) how ``g`` reads each camera channel at each maximum (``∂g / ∂I``,
+        ``_PixelUnmixer.line_readout``)
+    rows, cols : (k,) int the maxima (of ``signal`` filtered across rows when ``smooth_rows``)
+
+    Returns ``x`` (k,) float64 camera px and ``ok`` (k,) bool, as :func:`subpixel_peaks`.
+
+    The camera blurs paint × light. Divided pixel by pixel by the white ``k * a``, a line
+    ``L`` on paint ``a`` reads ``(k * (a L)) / (k * a)``; where ``a`` is constant over the
+    blur this is ``k * L``, but across a paint edge the two estimates of the centre that
+    bracket the truth part: the ratio (right when the line is wider than the blur) and the
+    profile in the centre's paint, ``g`` times each pixel's white relative to the centre's
+    (right when the line is narrower than the blur; each channel weighted by how much the
+    line signal reads it, ``|readout| · lit``). For a locally linear paint gradient ``β``
+    the ratio's centre is off by ``−β σ_k²`` and the other's by ``+β σ_L²`` (camera and
+    line widths): their difference bounds the paint's bias. 1-D with a step 1 -> 0.2 at
+    0.6 px from a line of σ 0.3 px under a camera blur of σ 0.6 px: ratio +0.28 px, centre's
+    paint −0.005 px; on the virtual rig's figurine neither is better on its own (the rig
+    samples the paint at pixel centres), but samples where they differ are the worst.
+    Where the paint is uniform the factor is the white frame's smooth variation (shading),
+    which the ratio is right to divide out: use this at paint edges only.
+    """
+    rows = np.asarray(rows, dtype=np.intp)
+    cols = np.asarray(cols, dtype=np.intp)
+    h, w = signal.shape
+    half = _half_window(estimator)
+    idx = np.clip(cols[:, None] + np.arange(-half, half + 1)[None, :], 0, w - 1)
+    f = np.zeros(idx.shape, np.float64)
+    weights = np.abs(readout)
+    centre = np.maximum(sum(weights[j] * lit[rows, cols, j] for j in range(3)), _EPS)
+    taps = zip((-1, 0, 1), _ROW_KERNEL) if smooth_rows else ((0, 1.0),)
+    for dr, weight in taps:
+        r = rows + dr
+        inside = ((r >= 0) & (r < h))[:, None]
+        r = np.clip(r, 0, h - 1)[:, None]
+        relative = sum(weights[j][:, None] * lit[r, idx, j] for j in range(3)) / centre[:, None]
+        f += float(weight) * np.where(inside, signal[r, idx] * relative, 0.0)
+    return _refine(f, cols, w, estimator)
 
 
 def find_line_peaks(
@@ -828,7 +907,17 @@ class _PixelUnmixer:
         return out
 
     def with_global(self, global_light: np.ndarray | None) -> _PixelUnmixer:
-        return _PixelUnmixer(self.inverse, self.offset, self.weights, self.inside, global_light)
+        return replace(self, global_light=global_light)
+
+    def line_readout(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """How the line signal ``g`` at the pixels ``(rows, cols)`` (k,) reads each camera
+        channel: ``∂g / ∂I_j``, (3, k) float64 (the unmixing, global-light scaling and
+        projection of :meth:`signals`, which are affine in ``I``)."""
+        inverse = self.inverse[:, :, rows, cols].astype(np.float64)  # (primary, channel, k)
+        if self.global_light is not None:
+            inverse = inverse / np.maximum(1.0 - self.global_light[:, rows, cols], MIN_DIRECT)[:, None, :]
+        weight = self.weights[1, rows, cols].astype(np.float64)
+        return inverse[1] - weight * inverse.sum(axis=0)
 
     def signals(
         self, image: np.ndarray, shares: np.ndarray | None = None
@@ -1122,6 +1211,19 @@ def _check_inputs(
     return order, [names[i] for i in order]
 
 
+def paint_edge_mode(value: bool | str) -> str:
+    """The ``paint_edges`` setting as one of :data:`PAINT_EDGE_MODES` (the booleans of
+    earlier recipes: True "drop", False "keep")."""
+    if isinstance(value, bool):
+        return "drop" if value else "keep"
+    if value not in PAINT_EDGE_MODES:
+        raise SlscanError(
+            f"unknown paint_edges {value!r}: expected one of {', '.join(PAINT_EDGE_MODES)} (or true: drop, "
+            "false: keep)"
+        )
+    return value
+
+
 def _keep(ok: np.ndarray, cond: np.ndarray, rejected: dict[str, int], reason: str) -> np.ndarray:
     """``ok & cond``, counting under ``reason`` the samples ``cond`` rejects."""
     rejected[reason] += int(np.count_nonzero(ok & ~cond))
@@ -1177,7 +1279,8 @@ def decode_hybrid_images(
     smooth_rows: bool = True,
     mixing: str = DEFAULT_MIXING,
     global_light: bool = False,
-    paint_edges: bool = True,
+    paint_edges: bool | str = DEFAULT_PAINT_EDGES,
+    paint_edge_shift: float = PAINT_EDGE_SHIFT,
     max_line_sigma: float = DEFAULT_MAX_LINE_SIGMA,
     axis_sigma: bool = False,
     crosstalk: np.ndarray | None = None,
@@ -1219,10 +1322,15 @@ def decode_hybrid_images(
         and the band redness, and drop line samples where less than ``MIN_DIRECT`` of the
         white frame is direct light (off by default: without global light it costs
         accuracy, see the CHANGELOG and ``benchmarks/colour_blur.py --tables axes``)
-    paint_edges : with ``mixing="pixel"``, drop lines where a camera channel carrying at
-        least ``PAINT_EDGE_FLOOR`` of the white changes by more than ``min_edge_ratio``
-        within ``EDGE_RADIUS`` px (a paint edge across the line's profile); fewer wrong
-        samples near paint edges, less coverage
+    paint_edges : {"shift", "drop", "keep"} (True: "drop", False: "keep"), with
+        ``mixing="pixel"``: what becomes of line samples where a camera channel carrying
+        at least ``PAINT_EDGE_FLOOR`` of the white changes by more than ``min_edge_ratio``
+        within ``EDGE_RADIUS`` px (a paint edge beside the line). "shift": dropped only
+        where the paint moves the centre, i.e. where the centre read in the centre pixel's
+        paint (:func:`paint_read_peaks`) is more than ``paint_edge_shift`` px from the
+        ratio's; "drop": all dropped (the decoder before issue #35: every paint boundary
+        costs surface); "keep": all kept. Dropped samples are counted as "paint edge"
+    paint_edge_shift : camera px, the "shift" test's tolerance
     max_line_sigma : drop line samples whose expected axis standard deviation
         (:func:`line_axis_sigma`, camera px; the noise from :func:`estimate_noise`
         carried through the unmixing) exceeds this: a line the paint returns too little of
@@ -1257,6 +1365,9 @@ def decode_hybrid_images(
         )
     if not max_line_sigma >= 0:
         raise SlscanError(f"max_line_sigma must be >= 0 camera px, got {max_line_sigma!r}")
+    paint_mode = paint_edge_mode(paint_edges)
+    if not paint_edge_shift >= 0:
+        raise SlscanError(f"paint_edge_shift must be >= 0 camera px, got {paint_edge_shift!r}")
     prefix = f"{where}: " if where else ""
     order, names = _check_inputs(white, black, images, descs, names, prefix)
     descs = [descs[i] for i in order]
@@ -1340,13 +1451,14 @@ def decode_hybrid_images(
         np.minimum(white_level[np.r_[0, : h - 1]], white_level[np.r_[1:h, h - 1]]),
     )
     no_paint_edge = np.ones((h, w), bool)
-    if mixing == "pixel" and paint_edges:
+    if mixing == "pixel" and paint_mode != "keep":
         for c in range(3):
             plane = np.where(mask, lit[..., c], 0.0).astype(np.float32)
             top = cv2.dilate(plane, along, borderType=cv2.BORDER_REPLICATE)
             bottom = cv2.erode(plane, along, borderType=cv2.BORDER_REPLICATE)
             no_paint_edge &= (top < PAINT_EDGE_FLOOR * white_level) | (bottom >= min_edge_ratio * top)
-    del lit
+    if not (mixing == "pixel" and paint_mode == "shift"):
+        del lit
     all_columns = np.concatenate([_region_lines(d)[1] for d in descs])
     spacing = (
         float(np.min(np.diff(np.sort(all_columns))))
@@ -1373,12 +1485,21 @@ def decode_hybrid_images(
                 return unmixer.signals(im, shares[k - 1])
             return unmixer.signals(im)
 
-        g, e = signals(raw)
+        g_own, e = signals(raw)
+        g = g_own  # g_own: before the filter across rows (paint_read_peaks filters its own windows)
         if smooth_rows:
-            g = cv2.filter2D(g, -1, _ROW_KERNEL[:, None], borderType=cv2.BORDER_CONSTANT)
+            g = cv2.filter2D(g_own, -1, _ROW_KERNEL[:, None], borderType=cv2.BORDER_CONSTANT)
         rows, cols = find_line_peaks(g, min_peak=min_peak, min_prominence=min_prominence)
         n_peaks += len(rows)
         x, ok = subpixel_peaks(g, rows, cols, estimator=estimator)
+        stays = np.ones(len(rows), bool)  # the paint does not move the centre
+        if mixing == "pixel" and paint_mode == "shift":
+            at = np.flatnonzero(~no_paint_edge[rows, cols])
+            x_paint, ok_paint = paint_read_peaks(
+                g_own, lit, unmixer.line_readout(rows[at], cols[at]), rows[at], cols[at],
+                estimator=estimator, smooth_rows=smooth_rows,
+            )
+            stays[at] = ok_paint & (np.abs(x_paint - x[at]) <= paint_edge_shift)
         rejected["sub-pixel fit"] += int((~ok).sum())
         sigma = np.full(len(rows), np.nan)
         if noise is not None:
@@ -1401,10 +1522,12 @@ def decode_hybrid_images(
         # the white frame must not fall off around the line: a silhouette or shadow edge
         # truncates the line's profile and drags its centre
         ok = _keep(ok, lowest_white[rows, cols] >= min_edge_ratio * white_level[rows, cols], rejected, "edge")
-        if mixing == "pixel" and paint_edges:
-            # a paint edge across the line's profile: normalising by the white frame does
-            # not undo it (the blur acts on paint × light), so the centre moves
+        if mixing == "pixel" and paint_mode == "drop":
+            # a paint edge within EDGE_RADIUS px of the line, whether it moves the centre or not
             ok = _keep(ok, no_paint_edge[rows, cols], rejected, "paint edge")
+        elif mixing == "pixel" and paint_mode == "shift":
+            # a paint edge across the line's profile that moves its centre (paint_read_peaks)
+            ok = _keep(ok, stays, rejected, "paint edge")
         # red on the left, blue on the right
         polarity = _interp_row(e, rows, x - 1.0) - _interp_row(e, rows, x + 1.0)
         ok = _keep(ok, polarity >= min_polarity, rejected, "polarity")
@@ -1555,8 +1678,10 @@ def decode(session: Session, view: ViewRecord | str, config) -> FamilyDecode:
     paint-edge settings."""
     res = decode_hybrid(
         session, view, estimator=config.estimator, mixing=config.mixing, global_light=config.global_light,
-        paint_edges=config.paint_edges, max_line_sigma=config.max_line_sigma,
+        paint_edges=config.paint_edges, paint_edge_shift=config.paint_edge_shift,
+        max_line_sigma=config.max_line_sigma,
     )
     levels = len(hybrid_pattern_ids(session)[2])
     return FamilyDecode(samples=res.samples, mask=res.mask, codes=res.codes, code_max=2**levels,
-                        saturated=saturation(res.white), white=res.white)
+                        saturated=saturation(res.white), white=res.white,
+                        stats={PAINT_EDGE_METRIC: float(res.rejected.get("paint edge", 0))})

@@ -37,8 +37,12 @@ from slscan.decode.hybrid import (
     DEFAULT_ESTIMATOR,
     DEFAULT_MAX_LINE_SIGMA,
     DEFAULT_MIXING,
+    DEFAULT_PAINT_EDGES,
     ESTIMATORS,
     MIXING_MODES,
+    PAINT_EDGE_METRIC,
+    PAINT_EDGE_SHIFT,
+    paint_edge_mode,
 )
 from slscan.decode.rangemap import (
     MAX_EDGE_FACTOR,
@@ -98,8 +102,19 @@ class DecodeConfig:
     """Hybrid: estimate the global (indirect) light from the finest levels (Nayar et al.
     2006), take it out of the line signal and bands, drop samples with little direct light
     (needs ``mixing="pixel"``)."""
-    paint_edges: bool = True
-    """Hybrid: drop line samples whose profile crosses a paint edge (needs ``mixing="pixel"``)."""
+    paint_edges: bool | str = DEFAULT_PAINT_EDGES
+    """Hybrid, with ``mixing="pixel"``: {"shift", "drop", "keep"}, the line samples beside a
+    paint edge. "shift" (default) drops only those whose centre the paint moves by more than
+    ``decode.hybrid.PAINT_EDGE_SHIFT`` px (the centre read pixel by pixel and in the centre
+    pixel's paint disagree); "drop" (or true, the default before issue #35) drops every one,
+    which punches a hole at every paint boundary; "keep" (or false) keeps all. The count
+    dropped is each view's ``paint_edge_samples_dropped`` in ``range_maps.json`` and one log
+    line. Demo at half size (``benchmarks/paint_edges.py --demo 0.5``): fused-mesh holes
+    201 ("drop"), 107 ("shift"), 101 ("keep")."""
+    paint_edge_shift: float = PAINT_EDGE_SHIFT
+    """Hybrid, ``paint_edges="shift"``: camera px the paint may move a line's centre before
+    the sample is dropped (``benchmarks/paint_edges.py --variant
+    s=paint_edges:shift,paint_edge_shift:0.1``)."""
     max_line_sigma: float = DEFAULT_MAX_LINE_SIGMA
     """Hybrid: line samples whose expected axis standard deviation (camera px), from the
     line's contrast against the image noise, exceeds this are dropped ("weak line": e.g.
@@ -168,6 +183,9 @@ class DecodeConfig:
             raise SlscanError(
                 f"unknown mixing {self.mixing!r}: expected one of {', '.join(MIXING_MODES)}"
             )
+        paint_edge_mode(self.paint_edges)  # raises naming the modes
+        if not self.paint_edge_shift >= 0:
+            raise SlscanError(f"paint_edge_shift must be >= 0 camera px, got {self.paint_edge_shift!r}")
         if self.gray_threshold not in THRESHOLD_MODES:
             raise SlscanError(
                 f"unknown gray_threshold {self.gray_threshold!r}: expected one of "
@@ -486,16 +504,34 @@ def decode_session(
         if not entries:
             reasons = "; ".join(f"{name}: {why}" for name, why in unusable.items())
             raise SlscanError(f"{session.root}: no usable view ({reasons})")
+        notes = [note] if (note := paint_edge_note(results)) else []
+        for line in notes:
+            log.info("%s: %s", session.root, line)
         write_json(tmp / "range_maps.json", {
             "format": RANGE_MAPS_FORMAT, "version": RANGE_MAPS_VERSION, "written_by": f"slscan {__version__}",
             "session": str(Path(session.root).resolve()), "frame": "rig (camera) frame, mm",
             "light_planes": repr(planes) if planes is not None else "session calibration",
             "config": asdict(config), "views": entries,
             **({"left_out": unusable} if unusable else {}),
+            **({"notes": notes} if notes else {}),
         })
     _hint_drop_bits(results, config)
     _hint_washed_lines(results, session)
     return results
+
+
+def paint_edge_note(results: Sequence[ViewDecode]) -> str:
+    """"paint edges: N line samples dropped ..." when the hybrid decoder left line samples out
+    at paint edges (``DecodeConfig.paint_edges``; each view's count is its
+    ``paint_edge_samples_dropped`` metric), else ""."""
+    dropped = {r.view: int(r.stats.get(PAINT_EDGE_METRIC, 0)) for r in results}
+    total = sum(dropped.values())
+    if total == 0:
+        return ""
+    kept = sum(len(r.samples) for r in results)
+    return (f"paint edges: {total} line samples dropped ({100.0 * total / max(total + kept, 1):.1f} % of those "
+            f"found) in {sum(n > 0 for n in dropped.values())} of {len(results)} views, where a paint edge "
+            "crosses the green line's profile and moves its centre")
 
 
 def _few(names: Sequence[str], shown: int = 5) -> str:
