@@ -1140,7 +1140,7 @@ def _final_verdict(
     nodes = set(poses)
     world = {k: scans[k].transformed_vertices(poses[k])[:: max(1, scans[k].n_vertices // samples)]
              for k in nodes}
-    margin, radius = 5.0 * spacing, 2.0 * spacing
+    margin, radius = 5.0 * spacing, 1.0 * spacing
     violation: dict[tuple[int, int], float] = {}
     for i, j in itertools.permutations(sorted(nodes), 2):
         inv = np.linalg.inv(poses[j])
