@@ -223,7 +223,8 @@ def check_joined(result, scans, source: Path) -> None:
     if len(result.poses) >= 2:
         return
     reasons = "; ".join(f"{name}: {why}" for name, why in result.left_out.items())
-    raise SlscanError(f"{source}: registration joined {len(result.poses)} of {len(scans)} scans, nothing "
+    joined = f" ({', '.join(result.poses)})" if result.poses else ""
+    raise SlscanError(f"{source}: registration joined {len(result.poses)} of {len(scans)} scans{joined}, nothing "
                       f"written (need at least 2 that overlap): {reasons}")
 
 
