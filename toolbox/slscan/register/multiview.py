@@ -1177,8 +1177,8 @@ def _final_verdict(
     A scan is supported when some pair puts at least half ``min_overlap`` of either scan
     on the other (the joint refinement's fitness) and no scan lies more than
     ``max_violation`` in space its sensor saw empty. Where two scans contradict each
-    other so, the one with fewer supporting pairs is doubted (never a ``trusted`` one),
-    one at a time, and the rest judged again without it.
+    other so, the one with fewer supporting pairs is doubted (both when they have as many;
+    never a ``trusted`` one), one clash at a time, and the rest judged again without it.
     """
     nodes = set(poses)
     world = {k: scans[k].transformed_vertices(poses[k])[:: max(1, scans[k].n_vertices // samples)]
@@ -1210,6 +1210,12 @@ def _final_verdict(
             blame = [k for k in (i, j) if k not in trusted]
             if not blame:
                 break
+            if len(blame) == 2 and support[i] == support[j]:
+                for k in blame:  # as well supported as each other: which is wrong is not known
+                    doubted[k] = (f"under the final poses {v:.0%} of {scans[i].name} lies where "
+                                  f"{scans[j].name}'s sensor saw empty space, and the two have as many "
+                                  f"supporting overlaps ({support[k]}): which is wrong is not known")
+                continue
             k = min(blame, key=lambda k: (support[k], k))
             other = j if k == i else i
             doubted[k] = (f"under the final poses {v:.0%} of {scans[i].name} lies where {scans[j].name}'s "
