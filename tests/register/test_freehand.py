@@ -4,6 +4,7 @@ an error with nothing written, and an aligned set grows with new views (``--into
 
 from __future__ import annotations
 
+import json
 import warnings
 
 import numpy as np
@@ -135,6 +136,8 @@ def test_into_adds_views_to_an_aligned_set_holding_its_poses(six_aligned, figuri
     assert "added 2 of 2 new scans (v6, v7)" in capsys.readouterr().err
     _, poses = load_scans(grown)
     _check_grown(poses, old_poses, figurine)
+    summary = json.loads((grown / "registration.json").read_text())
+    assert summary["held"] == sorted(old_poses) and summary["left_out"] == {}
     with pytest.raises(SlscanError, match="already holds scans v0"):
         from slscan.register.command import load_into
 

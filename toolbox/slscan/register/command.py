@@ -136,6 +136,7 @@ def save_registration(folder: Path, scans, result, *, overwrite: bool = False, f
         "pairs": [{"source": p.source, "target": p.target, "fitness": p.fitness, "rmse_mm": p.rmse}
                   for p in result.pairs],
         "left_out": result.left_out,
+        **({"held": list(result.fixed)} if result.fixed else {}),
         "rejected": [{"source": r.source, "target": r.target, "reason": r.reason,
                       "fitness": _number(r.fitness), "rmse_mm": _number(r.rmse)}
                      for r in result.rejected],
@@ -317,9 +318,10 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "register", help="align overlapping range maps (ICP + pose graph) into a MeshLab project",
         description="Align range maps into one frame: coarse alignment from their recorded poses "
-                    "(or from geometric features when there are none), point-to-plane ICP on every "
-                    "overlapping pair, then a pose graph. Scans that match nothing are reported and "
-                    "left out. Writes each scan as PLY, aligned.mlp (MeshLab) and registration.json "
+                    "(or from geometric features when there are none: several hypotheses per pair, each "
+                    "verified by its fine residual and free space, then loops of three scans), "
+                    "point-to-plane ICP on every overlapping pair, then a pose graph. Scans that match "
+                    "nothing, or whose alignment their overlaps do not support, are reported and left out. Writes each scan as PLY, aligned.mlp (MeshLab) and registration.json "
                     "(poses, a residual per pair, the pairs rejected and why).",
         epilog="examples:\n  slscan register demo-run/decode --out aligned\n"
                "  slscan register ../shared/data/stanford_bunny --out bunny-aligned --no-poses\n"
