@@ -131,9 +131,10 @@ class MultiviewConfig:
     (:func:`slscan.register.pairwise.free_space_violation`)."""
     fine_rmse_factor: float = 1.3
     """Without initial poses: a pair whose residual at full resolution exceeds this many
-    times the typical pair's (the median of the best N-1 pairs', N scans) is rejected: a
-    wrong match fits coarse samples, not the fine ones (on the figurine at quarter size
-    right pairs leave 0.55-0.75 mm, wrong ones 0.86 mm and more)."""
+    times the typical pair's (the median of the best N-1 pairs', N scans; with held scans,
+    of the best one per new scan) is rejected: a wrong match fits coarse samples, not the
+    fine ones (on the figurine at quarter size right pairs leave 0.55-0.75 mm, wrong ones
+    0.86 mm and more)."""
     loop_rotation_deg: float = 3.0
     """Without initial poses: a loop of three pairwise alignments closes when the motion
     round it is within this angle (degrees) ..."""
@@ -978,7 +979,8 @@ def register_scans(
     confirmed: set[tuple[int, int]] = set()
     if freehand:
         ranked = sorted(edges[key].inlier_rmse for key in freehand if key in edges)
-        typical = ranked[min(len(ranked) - 1, max(0, (n - 1) // 2 - 1 + (n - 1) % 2))]
+        # the fewest pairs that can join the scans: N - 1, or one per new scan joining held ones
+        typical = float(np.median(ranked[: max(1, n - len(held) if held else n - 1)])) if ranked else math.inf
         limit = config.fine_rmse_factor * typical
         for key in sorted(freehand):
             if edges[key].inlier_rmse > limit:
