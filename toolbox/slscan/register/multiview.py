@@ -922,13 +922,16 @@ def register_scans(
         verification, and why it is rejected ("" when it holds)."""
         icp = replace(first, initial_distance=None)
         best: tuple[PairwiseResult, Verification | None, str] | None = None
-        tried: list[np.ndarray] = []
+        tried: list[tuple[np.ndarray, bool]] = []
         for hypothesis in feature_hypotheses((features[i], features[j]), seeds=config.hypotheses,
                                              ransac_iterations=pw.ransac_iterations, fgr=config.fgr):
             res = refine_icp(scans[i], scans[j], hypothesis, config=icp, clouds=(clouds[i], clouds[j]))
-            if any(_close(res.transform, t, scans[i], spacing) for t in tried):
+            same = [passed for t, passed in tried if _close(res.transform, t, scans[i], spacing)]
+            if same and same[0]:
+                break  # two hypotheses agree on an alignment that passed: no need for more
+            if same:
                 continue  # the same alignment as an earlier hypothesis's
-            tried.append(res.transform)
+            coarse_transform = res.transform
             verdict = _check_edge(res, config)
             check = None
             if not verdict:
@@ -941,6 +944,7 @@ def register_scans(
                 if check.violation > config.max_violation:
                     verdict = (f"{check.violation:.0%} of one scan lies where the other's sensor saw empty "
                                f"space (> {config.max_violation:.0%}): a wrong match")
+            tried.append((coarse_transform, not verdict))
             rank = (not verdict, -res.inlier_rmse if math.isfinite(res.inlier_rmse) else -math.inf)
             if best is None or rank > (not best[2], -best[0].inlier_rmse
                                        if math.isfinite(best[0].inlier_rmse) else -math.inf):

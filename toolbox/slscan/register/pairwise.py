@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -298,23 +298,23 @@ def feature_hypotheses(
     seeds: Sequence[int] = (0, 1, 2),
     ransac_iterations: int = 200_000,
     fgr: bool = True,
-) -> list[np.ndarray]:
+) -> Iterator[np.ndarray]:
     """Candidate coarse alignments (target_from_source) of two scans from their FPFH
     features [2]_: open3d's RANSAC once per seed (mutual matches for the first, all
     matches for the others, with its edge-length and distance correspondence checkers)
     and open3d's Fast Global Registration [5]_. One hypothesis alone is often the wrong
     one on a nearly symmetric object; the caller verifies each (:func:`verify_alignment`)
-    after ICP and keeps the best.
+    after ICP and keeps the best. A generator: each is computed when asked for, so a
+    caller that has what it needs (two hypotheses that agree) stops early.
 
     features : the two scans' :func:`scan_features` (source, target)
 
-    Returns (4, 4) float64 transforms; scans with fewer than 10 feature samples give none.
+    Yields (4, 4) float64 transforms; scans with fewer than 10 feature samples give none.
     """
     (src, src_f, sv), (tgt, tgt_f, tv) = ((f.cloud, f.features, f.voxel) for f in features)
     if len(src.points) < 10 or len(tgt.points) < 10:
-        return []
+        return
     distance = 1.5 * max(sv, tv)
-    out = []
     for k, seed in enumerate(seeds):
         o3d.utility.random.seed(int(seed))
         result = _reg.registration_ransac_based_on_feature_matching(
@@ -324,14 +324,13 @@ def feature_hypotheses(
              _reg.CorrespondenceCheckerBasedOnDistance(distance)],
             _reg.RANSACConvergenceCriteria(int(ransac_iterations), 0.9999),
         )
-        out.append(np.asarray(result.transformation).copy())
+        yield np.asarray(result.transformation).copy()
     if fgr:
         result = _reg.registration_fgr_based_on_feature_matching(
             src, tgt, src_f, tgt_f,
             _reg.FastGlobalRegistrationOption(maximum_correspondence_distance=distance),
         )
-        out.append(np.asarray(result.transformation).copy())
-    return out
+        yield np.asarray(result.transformation).copy()
 
 
 def _sensor_projection(scan: RangeScan):
