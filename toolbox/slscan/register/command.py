@@ -187,7 +187,7 @@ def _cmd_register(args: argparse.Namespace) -> int:
         else:
             result, frame = to_object_frame(scans, result)
         rlog.log_registration_result(rec, result)
-    project = save_registration(out_folder, scans, result, overwrite=args.overwrite or args.into is not None,
+    project = save_registration(out_folder, scans, result, overwrite=args.overwrite or args.out is None,
                                 frame=frame)
     out = console()
     rmse = [p.rmse for p in result.pairs]
