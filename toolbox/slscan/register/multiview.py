@@ -15,7 +15,9 @@ there too (see ``benchmarks/bunny.py``).
 
 A scan that matches nothing, or that the surviving edges do not connect to the
 reference scan, is left out (reported, with a :class:`RegistrationWarning`), never forced
-into place. Poses are ``world_from_scan`` 4×4 float64 on mm; the gauge is fixed by the
+into place. Without poses (free-hand) each pair's alignment is one of several hypotheses,
+verified (residual at full resolution, free space), and checked round loops of three
+scans; a scan the final poses do not support is left out the same way. Poses are ``world_from_scan`` 4×4 float64 on mm; the gauge is fixed by the
 reference scan, which keeps its given pose (identity when none is given).
 
 References
