@@ -300,9 +300,9 @@ def feature_hypotheses(
     fgr: bool = True,
 ) -> Iterator[np.ndarray]:
     """Candidate coarse alignments (target_from_source) of two scans from their FPFH
-    features [2]_: open3d's RANSAC once per seed (mutual matches for the first, all
-    matches for the others, with its edge-length and distance correspondence checkers)
-    and open3d's Fast Global Registration [5]_. One hypothesis alone is often the wrong
+    features [2]_: open3d's Fast Global Registration [5]_, then its RANSAC [4]_ once per
+    seed (mutual matches for the first, all matches for the others, with its edge-length
+    and distance correspondence checkers). One hypothesis alone is often the wrong
     one on a nearly symmetric object; the caller verifies each (:func:`verify_alignment`)
     after ICP and keeps the best. A generator: each is computed when asked for, so a
     caller that has what it needs (two hypotheses that agree) stops early.
@@ -315,6 +315,12 @@ def feature_hypotheses(
     if len(src.points) < 10 or len(tgt.points) < 10:
         return
     distance = 1.5 * max(sv, tv)
+    if fgr:  # first: a tenth of a RANSAC's cost, and often the answer
+        result = _reg.registration_fgr_based_on_feature_matching(
+            src, tgt, src_f, tgt_f,
+            _reg.FastGlobalRegistrationOption(maximum_correspondence_distance=distance),
+        )
+        yield np.asarray(result.transformation).copy()
     for k, seed in enumerate(seeds):
         o3d.utility.random.seed(int(seed))
         result = _reg.registration_ransac_based_on_feature_matching(
@@ -323,12 +329,6 @@ def feature_hypotheses(
             [_reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
              _reg.CorrespondenceCheckerBasedOnDistance(distance)],
             _reg.RANSACConvergenceCriteria(int(ransac_iterations), 0.9999),
-        )
-        yield np.asarray(result.transformation).copy()
-    if fgr:
-        result = _reg.registration_fgr_based_on_feature_matching(
-            src, tgt, src_f, tgt_f,
-            _reg.FastGlobalRegistrationOption(maximum_correspondence_distance=distance),
         )
         yield np.asarray(result.transformation).copy()
 
