@@ -148,6 +148,6 @@ def test_the_recipe_grows_a_set_with_register_into(six_aligned, figurine, tmp_pa
     root, old_poses = six_aligned
     config = RegisterConfig(source=str(root / "more"), use_poses=False, into=str(root / "aligned"))
     summary = _run_register(StageContext(out=tmp_path / "aligned", inputs={}), config)
-    assert summary["aligned"] == 8 and summary["added"] == 2 and summary["left_out_scans"] == []
+    assert summary["aligned"] == 8 and summary["added"] == 2 and summary["left_out"] == 0
     _, poses = load_scans(tmp_path / "aligned")
     _check_grown(poses, old_poses, figurine)

@@ -242,7 +242,8 @@ def _run_register(ctx: StageContext, config: RegisterConfig) -> dict[str, Any]:
     save_registration(ctx.out, scans, result, overwrite=True, frame=frame)
     rmse = [p.rmse for p in result.pairs]
     return {"aligned": len(result.poses), "left_out": len(result.left_out),
-            "left_out_scans": sorted(result.left_out), "added": len(result.poses) - len(held) if held else None,
+            **({"left_out_scans": ", ".join(sorted(result.left_out))} if result.left_out else {}),
+            **({"added": len(result.poses) - len(held)} if held else {}),
             "up_from": frame.up_from if frame is not None else None,
             "median_pair_rmse_mm": round(float(np.median(rmse)), 4) if rmse else None}
 
