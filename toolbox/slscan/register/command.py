@@ -157,7 +157,7 @@ def _cmd_register(args: argparse.Namespace) -> int:
         raise SlscanError(f"--max-neighbours must be >= 0 (0: every candidate pair), got {args.max_neighbours}")
     if args.out is None and args.into is None:
         raise SlscanError("register: --out FOLDER is required (or --into an aligned set, to grow it)")
-    out_folder = args.out if args.out is not None else args.into
+    out_folder = args.out if args.out is not None else (args.into if args.into.suffix != ".mlp" else args.into.parent)
     scans, poses = load_scans(args.scans, conf=args.conf, allow_outside=args.allow_outside)
     if args.poses is not None:
         poses = load_poses(args.poses, [s.name for s in scans])
