@@ -189,6 +189,10 @@ class RegisterConfig:
     """With poses, align each scan with at most this many partners, its best candidates
     by estimated overlap (the graph kept connected); 0: every candidate pair (quadratic in
     the number of views). The default is ``MultiviewConfig.max_neighbours``."""
+    into: str = ""
+    """Grow this aligned set (a folder ``slscan register`` or a register stage wrote): its
+    poses are held, the new scans found from features against it (their recorded poses
+    unused); the stage writes the set with them. ``${SLSCAN_DATA}`` expands as in ``source``."""
 
     def __post_init__(self) -> None:  # "KEY: why": a recipe's error names [register].KEY
         if self.max_neighbours < 0:
@@ -217,7 +221,7 @@ class SimplifyConfig:
 
 
 def _run_register(ctx: StageContext, config: RegisterConfig) -> dict[str, Any]:
-    from slscan.register.command import load_poses, load_scans, save_registration
+    from slscan.register.command import check_joined, load_into, load_poses, load_scans, save_registration
     from slscan.register.multiview import median_pair_rmse, register_scans
 
     if config.poses and not config.use_poses:
@@ -236,16 +240,27 @@ def _run_register(ctx: StageContext, config: RegisterConfig) -> dict[str, Any]:
     from slscan.viewer import log_register as rlog
 
     poses = poses if config.use_poses else None
+    held: list[str] = []
+    reference = config.reference or None
+    if config.into:
+        scans, poses, held, frame, old_reference = load_into(expand_path(config.into), scans,
+                                                             allow_outside=config.allow_outside)
+        reference = reference or old_reference
     start = preview_frame(scans, poses)
     rlog.log_registration_start(ctx.rec, scans, start.apply(poses) if start else poses)
-    result = register_scans(scans, initial_poses=poses, reference=config.reference or None, progress=ctx.progress,
+    result = register_scans(scans, initial_poses=poses, reference=reference, progress=ctx.progress,
                             config=MultiviewConfig(pose_tolerance=config.pose_tolerance or None,
-                                                   max_neighbours=config.max_neighbours))
-    result, frame = to_object_frame(scans, result)
+                                                   max_neighbours=config.max_neighbours), fixed=held)
+    check_joined(result, scans, Path(config.into or config.source or ctx.inputs.get("range_maps", "")))
+    if not held:
+        result, frame = to_object_frame(scans, result)
     rlog.log_registration_result(ctx.rec, result)
     save_registration(ctx.out, scans, result, overwrite=True, frame=frame)
     median = median_pair_rmse(result.pairs)
-    return {"aligned": len(result.poses), "left_out": len(result.left_out), "up_from": frame.up_from,
+    return {"aligned": len(result.poses), "left_out": len(result.left_out),
+            **({"left_out_scans": ", ".join(sorted(result.left_out))} if result.left_out else {}),
+            **({"added": len(result.poses) - len(held)} if held else {}),
+            "up_from": frame.up_from if frame is not None else None,
             "median_pair_rmse_mm": None if median is None else round(median, 4)}
 
 

@@ -162,6 +162,7 @@ def save_registration(folder: Path, scans, result, *, overwrite: bool = False, f
         "pairs": [{"source": p.source, "target": p.target, "fitness": p.fitness, "rmse_mm": p.rmse}
                   for p in result.pairs],
         "left_out": result.left_out,
+        **({"held": list(result.fixed)} if result.fixed else {}),
         "rejected": [{"source": r.source, "target": r.target, "reason": r.reason,
                       "fitness": _number(r.fitness), "rmse_mm": _number(r.rmse)}
                      for r in result.rejected],
@@ -180,11 +181,20 @@ def _cmd_register(args: argparse.Namespace) -> int:
         raise SlscanError(f"--pose-tolerance must be > 0 mm, got {args.pose_tolerance}")
     if args.max_neighbours < 0:
         raise SlscanError(f"--max-neighbours must be >= 0 (0: every candidate pair), got {args.max_neighbours}")
+    if args.out is None and args.into is None:
+        raise SlscanError("register: --out FOLDER is required (or --into an aligned set, to grow it)")
+    out_folder = args.out if args.out is not None else (args.into if args.into.suffix != ".mlp" else args.into.parent)
     scans, poses = load_scans(args.scans, conf=args.conf, allow_outside=args.allow_outside)
     if args.poses is not None:
         poses = load_poses(args.poses, [s.name for s in scans])
     if args.no_poses:
         poses = None
+    held: list[str] = []
+    old_frame = None
+    if args.into is not None:
+        scans, poses, held, old_frame, reference = load_into(args.into, scans, allow_outside=args.allow_outside)
+        if args.reference is None:
+            args.reference = reference
     config = MultiviewConfig(pose_tolerance=args.pose_tolerance, max_neighbours=args.max_neighbours)
     t0 = time.perf_counter()
     from slscan.viewer.layouts import register_blueprint
@@ -196,13 +206,22 @@ def _cmd_register(args: argparse.Namespace) -> int:
         n_pairs = len(scans) * (len(scans) - 1) // 2
         with ProgressBar(n_pairs + 1, "registering", args.quiet) as bar:
             result = register_scans(scans, initial_poses=poses, reference=args.reference, config=config,
-                                    progress=bar.step, on_total=lambda k: bar.set_total(k + 1))
-        result, frame = to_object_frame(scans, result)
+                                    progress=bar.step, on_total=lambda k: bar.set_total(k + 1), fixed=held)
+        check_joined(result, scans, args.scans)
+        if held:  # the held poses are in the set's object frame already
+            frame = old_frame
+        else:
+            result, frame = to_object_frame(scans, result)
         rlog.log_registration_result(rec, result)
-    project = save_registration(args.out, scans, result, overwrite=args.overwrite, frame=frame)
+    project = save_registration(out_folder, scans, result, overwrite=args.overwrite or args.out is None,
+                                frame=frame)
     out = console()
     median = median_pair_rmse(result.pairs)
     residual = "no pair residual" if median is None else f"median residual {median:.3f} mm"
+    if held:
+        added = [s.name for s in scans if s.name in result.poses and s.name not in held]
+        out.print(f"[green]added[/] {len(added)} of {len(scans) - len(held)} new scans "
+                  f"({', '.join(added) or 'none'}) to the {len(held)} held in {args.into}", highlight=False)
     out.print(f"[green]aligned[/] {len(result.poses)} of {len(scans)} scans in {time.perf_counter() - t0:.1f} s; "
               f"{len(result.pairs)} overlapping pairs, {residual} -> {project}", highlight=False)
     if result.rejected:
@@ -215,10 +234,54 @@ def _cmd_register(args: argparse.Namespace) -> int:
             out.print(f"  ... and {len(result.rejected) - SHOWN_REJECTED} more", highlight=False)
     for name, reason in result.left_out.items():
         out.print(f"[yellow]left out[/] {name}: {reason}", highlight=False)
-    up = (f"the turntable axis of {len(frame.turntable_views)} views" if frame.up_from == "turntable"
-          else "the cameras' up (no turntable axis found)")
-    out.print(f"object frame: y up along {up}, origin at the object's base", highlight=False)
+    if result.left_out:
+        out.print(f"[yellow]warning[/]: {len(result.left_out)} of {len(scans)} scans left out, not aligned: "
+                  f"{', '.join(result.left_out)} (reasons in registration.json)", highlight=False)
+    if frame is not None:
+        up = (f"the turntable axis of {len(frame.turntable_views)} views" if frame.up_from == "turntable"
+              else "the cameras' up (no turntable axis found)")
+        out.print(f"object frame: y up along {up}, origin at the object's base", highlight=False)
     return 0
+
+
+def check_joined(result, scans, source: Path) -> None:
+    """Raise when the registration joined fewer than 2 scans (nothing is written then): one
+    line naming the scans and why each was left out."""
+    if len(result.poses) >= 2:
+        return
+    reasons = "; ".join(f"{name}: {why}" for name, why in result.left_out.items())
+    joined = f" ({', '.join(result.poses)})" if result.poses else ""
+    raise SlscanError(f"{source}: registration joined {len(result.poses)} of {len(scans)} scans{joined}, nothing "
+                      f"written (need at least 2 that overlap): {reasons}")
+
+
+def load_into(into: Path, new_scans: list, *, allow_outside: bool = False):
+    """The aligned set ``into`` (a folder with ``aligned.mlp``, or the .mlp) joined by
+    ``new_scans``: (all scans, their known poses — the set's, held —, the held names, the
+    set's object frame or None, its reference scan or None).
+
+    Raises SlscanError when ``into`` has no aligned set or a new scan's name is in it.
+    """
+    from slscan.register.frame import read_frame
+    from slscan.register.meshlab import load_scan_project
+
+    project = into / "aligned.mlp" if into.is_dir() else into
+    if not project.is_file():
+        raise SlscanError(f"{into}: no aligned set to grow (expected aligned.mlp from `slscan register`)")
+    old, old_poses = load_scan_project(project, allow_outside=allow_outside)
+    clash = sorted({s.name for s in old} & {s.name for s in new_scans})
+    if clash:
+        raise SlscanError(f"{project}: already holds scans {', '.join(clash)}; new scans need other names")
+    summary = project.parent / "registration.json"
+    frame, reference = None, None
+    if summary.is_file():
+        from slscan.fsio import read_json
+
+        frame = read_frame(summary)
+        reference = read_json(summary, "registration result").get("reference")
+        if reference not in old_poses:
+            reference = None
+    return [*old, *new_scans], dict(old_poses), [s.name for s in old], frame, reference
 
 
 def _cmd_fuse(args: argparse.Namespace) -> int:
@@ -289,19 +352,27 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "register", help="align overlapping range maps (ICP + pose graph) into a MeshLab project",
         description="Align range maps into one frame: coarse alignment from their recorded poses "
-                    "(or from geometric features when there are none), point-to-plane ICP on every "
-                    "overlapping pair, then a pose graph. Scans that match nothing are reported and "
-                    "left out. Writes each scan as PLY, aligned.mlp (MeshLab) and registration.json "
+                    "(or from geometric features when there are none: several hypotheses per pair, each "
+                    "verified by its fine residual and free space, then loops of three scans), "
+                    "point-to-plane ICP on every overlapping pair, then a pose graph. Scans that match "
+                    "nothing, or whose alignment their overlaps do not support, are reported and left out. Writes each scan as PLY, aligned.mlp (MeshLab) and registration.json "
                     "(poses, a residual per pair, the pairs rejected and why).",
         epilog="examples:\n  slscan register demo-run/decode --out aligned\n"
                "  slscan register ../shared/data/stanford_bunny --out bunny-aligned --no-poses\n"
                "  slscan register demo-run/decode --poses aligned/registration.json --pose-tolerance 5 "
-               "--out aligned2",
+               "--out aligned2\n"
+               "  slscan register more-views/decode --into aligned        (add views to a registration)\n\n"
+               "A scan whose alignment its overlaps do not support is left out and named (exit 0, with a "
+               "warning); fewer than 2 scans joined is an error (exit 1, nothing written).",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("scans", type=Path, help="range-maps folder (slscan decode), Stanford folder (.conf), "
                                             "folder of PLYs, or a .mlp project")
-    p.add_argument("--out", required=True, type=Path, help="folder for the aligned set")
+    p.add_argument("--out", type=Path, help="folder for the aligned set (default with --into: that set, updated)")
+    p.add_argument("--into", type=Path, metavar="ALIGNED",
+                   help="grow an existing aligned set (a folder of `slscan register`): its poses are "
+                        "held, the new scans found from features against it (their recorded poses "
+                        "unused), and the set rewritten with them (or written to --out)")
     start = p.add_mutually_exclusive_group()
     start.add_argument("--no-poses", action="store_true", help="ignore recorded poses; align from features")
     start.add_argument("--poses", type=Path, metavar="FILE",

@@ -15,7 +15,9 @@ there too (see ``benchmarks/bunny.py``).
 
 A scan that matches nothing, or that the surviving edges do not connect to the
 reference scan, is left out (reported, with a :class:`RegistrationWarning`), never forced
-into place. Poses are ``world_from_scan`` 4×4 float64 on mm; the gauge is fixed by the
+into place. Without poses (free-hand) each pair's alignment is one of several hypotheses,
+verified (residual at full resolution, free space), and checked round loops of three
+scans; a scan the final poses do not support is left out the same way. Poses are ``world_from_scan`` 4×4 float64 on mm; the gauge is fixed by the
 reference scan, which keeps its given pose (identity when none is given).
 
 References
@@ -48,16 +50,22 @@ from slscan.errors import SlscanError
 from slscan.meshes import boundary_vertices
 from slscan.register.pairwise import (
     PairwiseConfig,
+    rotation_angle_deg,
     PairwiseResult,
     ScanFeatures,
+    Verification,
     default_voxel_sizes,
     downsample,
+    feature_hypotheses,
+    free_space_violation,
     median_edge_length,
+    refine_icp,
     register_pair,
     scan_clouds,
     scan_extent,
     scan_features,
     scan_point_cloud,
+    verify_alignment,
 )
 from slscan.register.rangescan import RangeScan
 
@@ -113,6 +121,28 @@ class MultiviewConfig:
     """Degrees. With ``max_neighbours`` > 0, two scans whose view directions (under the
     initial poses) are further apart than this see different sides of the object and are
     no candidates; nor are scans whose bounding boxes lie apart."""
+    hypotheses: tuple[int, ...] = (0, 1, 2)
+    """Without initial poses: the seeds of open3d's feature RANSAC, one coarse alignment
+    each, tried per pair (with open3d's Fast Global Registration, see ``fgr``); each is
+    refined by ICP and verified (overlap, residuals, free space), the best kept."""
+    fgr: bool = True
+    """Without initial poses: also try open3d's Fast Global Registration per pair."""
+    max_violation: float = 0.05
+    """A pair (and, under the final poses, a scan) is rejected when more than this fraction
+    of one scan's samples in the other's view lie in space the other's sensor saw empty
+    (:func:`slscan.register.pairwise.free_space_violation`)."""
+    fine_rmse_factor: float = 1.3
+    """Without initial poses: a pair whose residual at full resolution exceeds this many
+    times the typical pair's (the median of the best N-1 pairs', N scans; with held scans,
+    of the best one per new scan) is rejected: a wrong match fits coarse samples, not the
+    fine ones (on the figurine at quarter size right pairs leave 0.55-0.75 mm, wrong ones
+    0.86 mm and more)."""
+    loop_rotation_deg: float = 3.0
+    """Without initial poses: a loop of three pairwise alignments closes when the motion
+    round it is within this angle (degrees) ..."""
+    loop_distance_factor: float = 5.0
+    """... and moves the scan's centroid by at most this many sample spacings. Pairs in
+    loops that do not close, and in none that does, are rejected (:func:`check_loops`)."""
     overlap_samples: int = 4000
     """With ``max_neighbours`` > 0, the overlap of two scans is estimated from at most this
     many samples of each (an even stride), for speed; pairs whose estimate lies near
@@ -177,6 +207,8 @@ class MultiviewResult:
     left_out: dict[str, str]
     reference: str
     rejected: tuple[RejectedPair, ...] = ()
+    fixed: tuple[str, ...] = ()
+    """The scans whose given pose was held (a registration grown with new scans)."""
 
     def __bool__(self) -> bool:
         return not self.left_out
@@ -275,6 +307,16 @@ def pair_overlaps(
     return out
 
 
+MAX_VERDICT_ROUNDS = 3
+"""Rounds of pose graph, joint refinement and verdict per scan (each without the scans the
+one before doubted)."""
+
+CONTRADICTION = 3.0
+"""A pair found from features that the final poses contradict by more than this many times
+the loop tolerances (``loop_rotation_deg``, ``loop_distance_factor``) leaves both its scans
+in doubt (on the quarter-size figurine the pose graph corrects a pair slid by 3.2 degrees:
+the poses end within 0.8 degrees of the truth)."""
+
 MISFIT_FACTOR = 5.0
 """Without a stated ``pose_tolerance``, the recorded poses are taken to be off by up to this
 many times their measured misfit (:func:`pose_misfit`; between 4 sample spacings and the
@@ -370,15 +412,98 @@ class _Components:
         return True
 
 
+# --- loops ------------------------------------------------------------------------------------
+
+
+def _relative(edges: Mapping[tuple[int, int], PairwiseResult], a: int, b: int) -> np.ndarray:
+    """b_from_a from the edge between a and b (stored as (i, j): j_from_i)."""
+    if (a, b) in edges:
+        return np.asarray(edges[(a, b)].transform, np.float64)
+    return np.linalg.inv(np.asarray(edges[(b, a)].transform, np.float64))
+
+
+def check_loops(
+    edges: Mapping[tuple[int, int], PairwiseResult],
+    centroids: Mapping[int, np.ndarray],
+    *,
+    max_rotation_deg: float,
+    max_distance: float,
+) -> tuple[set[tuple[int, int]], dict[tuple[int, int], str]]:
+    """Which pairwise alignments the loops of three scans confirm, and which they refute.
+
+    Round a loop i → j → k → i the three alignments compose to the identity when all are
+    right; a wrong one (a scan turned round a nearly symmetric object) leaves a large
+    rotation or moves the scan's centroid. An edge is confirmed by a loop that closes
+    within ``max_rotation_deg`` degrees and ``max_distance`` mm. Refuted edges are taken out
+    one at a time, greedily: the edge in the most loops that fail, among those no loop
+    confirms (ties: the lower fitness), until every edge left is in a closing loop or in
+    none that fails; its loops are then counted again without it.
+
+    edges : {(i, j): PairwiseResult with j_from_i}
+    centroids : {scan index: (3,) centroid, mm, scan frame}
+
+    Returns (confirmed edges, {refuted edge: reason}).
+    """
+    keys = set(edges)
+    neighbours: dict[int, set[int]] = {}
+    for i, j in keys:
+        neighbours.setdefault(i, set()).add(j)
+        neighbours.setdefault(j, set()).add(i)
+    loops: dict[tuple[int, int, int], tuple[bool, float, float]] = {}
+    for i, j in keys:
+        for k in neighbours[i] & neighbours[j]:
+            tri = tuple(sorted((i, j, k)))
+            if tri in loops:
+                continue
+            a, b, c = tri
+            round_trip = _relative(edges, c, a) @ _relative(edges, b, c) @ _relative(edges, a, b)
+            angle = rotation_angle_deg(round_trip)
+            moved = float(np.linalg.norm(round_trip[:3, :3] @ centroids[a] + round_trip[:3, 3] - centroids[a]))
+            loops[tri] = (angle <= max_rotation_deg and moved <= max_distance, angle, moved)
+    live = set(keys)
+    refuted: dict[tuple[int, int], str] = {}
+
+    def tally() -> tuple[dict, dict]:
+        good = {e: 0 for e in live}
+        bad = {e: [] for e in live}
+        for tri, (closes, angle, moved) in loops.items():
+            a, b, c = tri
+            sides = [e if e in live else (e[1], e[0]) for e in ((a, b), (b, c), (a, c))]
+            if not all(e in live for e in sides):
+                continue
+            for e in sides:
+                if closes:
+                    good[e] += 1
+                else:
+                    bad[e].append((tri, angle, moved))
+        return good, bad
+
+    while True:
+        good, bad = tally()
+        suspects = [e for e in live if good[e] == 0 and bad[e]]
+        if not suspects:
+            break
+        worst = max(suspects, key=lambda e: (len(bad[e]), -edges[e].fitness, e))
+        tri, angle, moved = bad[worst][0]
+        refuted[worst] = (f"in {len(bad[worst])} loop{'s' * (len(bad[worst]) != 1)} of three scans that do "
+                          f"not close (e.g. scans {tri}: {angle:.1f} degrees, {moved:.1f} mm) and in none "
+                          "that does")
+        live.discard(worst)
+    good, _ = tally()
+    return {e for e in live if good[e] > 0}, refuted
+
+
 # --- pose graph ---------------------------------------------------------------------------------
 
 
 def _spanning_tree(
-    n: int, edges: Mapping[tuple[int, int], PairwiseResult], root: int
+    n: int, edges: Mapping[tuple[int, int], PairwiseResult], root: int,
+    first: set[tuple[int, int]] | frozenset = frozenset(),
 ) -> dict[int, tuple[int, int]]:
-    """Maximum spanning tree (by fitness) grown from ``root``: {node: (parent, edge key)}."""
+    """Maximum spanning tree (by fitness) grown from ``root``: {node: (parent, edge key)};
+    the edges in ``first`` (confirmed by loops) are preferred to the others."""
     tree: dict[int, tuple[int, int]] = {root: (-1, -1)}
-    candidates = sorted(edges, key=lambda k: -edges[k].fitness)
+    candidates = sorted(edges, key=lambda k: (k not in first, -edges[k].fitness))
     grew = True
     while grew:
         grew = False
@@ -492,6 +617,7 @@ def refine_jointly(
     coarse_points: int = 10_000,
     max_iterations: int = 30,
     tolerance: float = 1e-2,
+    fixed: Sequence[int] = (),
 ) -> tuple[dict[int, np.ndarray], list[tuple[float, float]]]:
     """Simultaneous point-to-plane ICP of all scans over all overlapping pairs [2]_, [3]_.
 
@@ -510,6 +636,7 @@ def refine_jointly(
     poses : {scan index: (4, 4) world_from_scan}
     pairs : (i, j) scan indices to match
     distances : correspondence distances (mm), one level each, coarse to fine
+    fixed : scans whose pose is held, like the root's
     max_points : samples per scan used at the finest level (an even stride), for speed
     coarse_points : samples per scan used at the coarser levels: they only bring the
         poses within reach of the finest level, so a sparser stride does (a third of the
@@ -520,7 +647,7 @@ def refine_jointly(
     """
     poses = {k: np.asarray(p, np.float64).copy() for k, p in poses.items()}
     nodes = sorted(poses)
-    cols = {k: a for a, k in enumerate(k for k in nodes if k != root)}
+    cols = {k: a for a, k in enumerate(k for k in nodes if k != root and k not in set(fixed))}
     usable = {k: np.flatnonzero(scans[k].quality >= min_quality) for k in nodes}
     rim = {k: usable_rim(scans[k], min_quality) for k in nodes}
     centre = np.mean([scans[k].transformed_vertices(poses[k]).mean(axis=0) for k in nodes], axis=0)
@@ -614,6 +741,7 @@ def register_scans(
     config: MultiviewConfig = MultiviewConfig(),
     progress: Callable[[str], None] | None = None,
     on_total: Callable[[int], None] | None = None,
+    fixed: Sequence[str] = (),
 ) -> MultiviewResult:
     """Register N overlapping range scans into one frame.
 
@@ -633,6 +761,13 @@ def register_scans(
        at full resolution; a scan the pose graph moved more than twice
        ``pose_tolerance`` from its initial pose starts from the initial pose.
 
+    Without initial poses, each pair gets several coarse alignments from features
+    (:func:`slscan.register.pairwise.feature_hypotheses`), each refined by ICP and
+    verified (overlap, residuals, no surface where the other sensor saw empty space), the
+    best kept; the loops of three scans then confirm or refute them (:func:`check_loops`).
+    Under the final poses every scan must overlap another and put no surface in space
+    another saw empty; a scan that does not is left out and named, never reported aligned.
+
     Parameters
     ----------
     scans : N RangeScan, each in its own frame (mm), distinct names
@@ -645,6 +780,9 @@ def register_scans(
     progress : called with a short label after each pairwise alignment (progress bars)
     on_total : called with the number of pairwise alignments planned, once the pairs are
         chosen and again whenever a joining pair is added (a progress bar's total)
+    fixed : scans whose ``initial_poses`` are exact and held (an existing registration
+        that the other scans join, found from features against it); the reference is
+        one of them
 
     Returns
     -------
@@ -664,11 +802,17 @@ def register_scans(
         raise SlscanError(f"scan names must be distinct, got {names}")
     if reference is not None and reference not in names:
         raise SlscanError(f"reference scan {reference!r} is not among the scans {names}")
-    root = names.index(reference) if reference is not None else 0
     initial_poses = dict(initial_poses or {})
     unknown = sorted(set(initial_poses) - set(names))
     if unknown:
         raise SlscanError(f"poses given for unknown scans {unknown}; scans are {names}")
+    unposed = [name for name in fixed if name not in initial_poses]
+    if unposed:
+        raise SlscanError(f"scans {unposed} are to be held but have no pose")
+    if fixed and reference is not None and reference not in fixed:
+        raise SlscanError(f"reference scan {reference!r} is not among the held scans {list(fixed)}")
+    held = {names.index(name) for name in fixed}
+    root = names.index(reference) if reference is not None else (min(held) if held else 0)
     n = len(scans)
     spacing = float(np.median([median_edge_length(s) for s in scans]))
     extent = float(np.median([scan_extent(s) for s in scans]))
@@ -731,8 +875,20 @@ def register_scans(
         }
     edges: dict[tuple[int, int], PairwiseResult] = {}
 
+    verified: dict[tuple[int, int], Verification] = {}
+    freehand: set[tuple[int, int]] = set()
+    exact: set[tuple[int, int]] = set()
+
     def align(i: int, j: int) -> None:
         """Align scan i onto scan j; an edge when it holds, else rejected with the reason."""
+        if i in held and j in held:
+            # both poses held: the pair is what they say, and closes loops through the others
+            t = np.linalg.inv(poses0[j]) @ poses0[i]
+            information = np.asarray(_reg.get_information_matrix_from_point_clouds(
+                coarse[i], coarse[j], coarse_voxel, np.eye(4)))
+            edges[(i, j)] = PairwiseResult(t, 1.0, 0.0, 100.0 * information, max_distance=coarse_voxel)
+            exact.add((i, j))
+            return
         if have[i] and have[j]:
             init = np.linalg.inv(poses0[j]) @ poses0[i]
             res = register_pair(scans[i], scans[j], init=init, config=first,
@@ -747,14 +903,15 @@ def register_scans(
                 )
                 return
         else:
-            res = register_pair(
-                scans[i],
-                scans[j],
-                init=None,
-                config=replace(first, initial_distance=None),
-                features=(features[i], features[j]),
-                clouds=(clouds[i], clouds[j]),
-            )
+            res, check, verdict = _freehand_pair(i, j)
+            tick(f"{names[i]}-{names[j]}")
+            if verdict:
+                rejected[(names[i], names[j])] = _rejected(names[i], names[j], res, verdict)
+                return
+            edges[(i, j)] = res
+            verified[(i, j)] = check
+            freehand.add((i, j))
+            return
         tick(f"{names[i]}-{names[j]}")
         verdict = _check_edge(res, config)
         if verdict:
@@ -762,6 +919,45 @@ def register_scans(
             return
         edges[(i, j)] = res
 
+    def _freehand_pair(i: int, j: int) -> tuple[PairwiseResult, Verification | None, str]:
+        """The best verified alignment of scan i onto scan j from feature hypotheses, its
+        verification, and why it is rejected ("" when it holds)."""
+        icp = replace(first, initial_distance=None)
+        best: tuple[PairwiseResult, Verification | None, str] | None = None
+        tried: list[tuple[np.ndarray, bool]] = []
+        for hypothesis in feature_hypotheses((features[i], features[j]), seeds=config.hypotheses,
+                                             ransac_iterations=pw.ransac_iterations, fgr=config.fgr):
+            res = refine_icp(scans[i], scans[j], hypothesis, config=icp, clouds=(clouds[i], clouds[j]))
+            same = [passed for t, passed in tried if _close(res.transform, t, scans[i], spacing)]
+            if same and same[0]:
+                break  # two hypotheses agree on an alignment that passed: no need for more
+            if same:
+                continue  # the same alignment as an earlier hypothesis's
+            coarse_transform = res.transform
+            verdict = _check_edge(res, config)
+            check = None
+            if not verdict:
+                # the residual at full resolution tells a right match (the scans' noise) from a
+                # wrong one that fits the coarse samples
+                res = refine_icp(scans[i], scans[j], res.transform, config=fine, clouds=(clouds[i], clouds[j]))
+                verdict = _check_edge(res, config)
+            if not verdict:
+                check = verify_alignment(scans[i], scans[j], res, spacing=spacing)
+                if check.violation > config.max_violation:
+                    verdict = (f"{check.violation:.0%} of one scan lies where the other's sensor saw empty "
+                               f"space (> {config.max_violation:.0%}): a wrong match")
+            tried.append((coarse_transform, not verdict))
+            rank = (not verdict, -res.inlier_rmse if math.isfinite(res.inlier_rmse) else -math.inf)
+            if best is None or rank > (not best[2], -best[0].inlier_rmse
+                                       if math.isfinite(best[0].inlier_rmse) else -math.inf):
+                best = (res, check, verdict)
+        if best is None:
+            return (PairwiseResult(np.eye(4), 0.0, math.nan, success=False, reason="no features"), None,
+                    f"too few feature samples in {names[i]!r} or {names[j]!r}")
+        return best
+
+    fine = replace(pw, voxel_sizes=(0.0,), initial_distance=2.0 * spacing, distance_factor=1.5,
+                   max_iterations=(30,))
     planned = sum(1 for i, j in itertools.combinations(range(n), 2)
                   if (i, j) in chosen or not (have[i] and have[j]))
     if on_total is not None:
@@ -784,57 +980,115 @@ def register_scans(
                 if (i, j) in edges:
                     parts.join(i, j)
 
-    # 3. pose graph
-    poses, _ = _solve(n, edges, root, poses0.get(root, np.eye(4)), spacing, config, names, rejected)
-    # a recorded pose holds where the pose graph moved it beyond its tolerance (as a pair
-    # that moves that far is rejected): the slide of some edges along a symmetric surface
-    for k in sorted(set(poses) & set(poses0)):
-        moved = _median_displacement(poses[k], poses0[k], world[k], poses0[k])
-        if moved > 2 * tolerance:
-            log.info("%s: the pose graph moved it %.1f mm from its recorded pose (tolerance %.1f mm); "
-                     "refined from the recorded pose", names[k], moved, tolerance)
-            poses[k] = poses0[k].copy()
+    # 2b. residuals: a pair found from features is right when its residual at full resolution
+    # is the scans' noise, as the best pairs' are (a wrong match leaves 1.5-3 times it)
+    confirmed: set[tuple[int, int]] = set()
+    if freehand:
+        ranked = sorted(edges[key].inlier_rmse for key in freehand if key in edges)
+        # the fewest pairs that can join the scans: N - 1, or one per new scan joining held ones
+        typical = float(np.median(ranked[: max(1, n - len(held) if held else n - 1)])) if ranked else math.inf
+        limit = config.fine_rmse_factor * typical
+        for key in sorted(freehand):
+            if edges[key].inlier_rmse > limit:
+                rejected[(names[key[0]], names[key[1]])] = _rejected(
+                    names[key[0]], names[key[1]], edges[key],
+                    f"residual at full resolution {edges[key].inlier_rmse:.2f} mm > {config.fine_rmse_factor:g} x "
+                    f"the typical pair's {typical:.2f} mm: a wrong match that fits the coarse samples")
+                del edges[key]
+                freehand.discard(key)
+    if freehand:
+        centroids = {k: s.vertices.mean(axis=0) for k, s in enumerate(scans)}
+        confirmed, refuted = check_loops(edges, centroids, max_rotation_deg=config.loop_rotation_deg,
+                                         max_distance=config.loop_distance_factor * spacing)
+        for key, reason in refuted.items():
+            if key in exact:  # held poses are not in question
+                continue
+            rejected[(names[key[0]], names[key[1]])] = _rejected(names[key[0]], names[key[1]], edges[key], reason)
+            del edges[key]
+        log.info("loops of three scans: %d pairs confirmed, %d refuted", len(confirmed), len(refuted))
+        log.info("pairs found from features: %s", ", ".join(
+            f"{names[i]}-{names[j]} ({edges[(i, j)].inlier_rmse:.2f} mm)" for i, j in sorted(freehand) if (i, j) in edges))
 
-    # 4. joint refinement over the pairs that overlap under the optimised poses
-    pairs: list[tuple[int, int]] = []
-    stats: list[tuple[float, float]] = []
-    if len(poses) > 1:
-        order = sorted(poses)
-        fine = {
-            k: downsample(
-                scan_point_cloud(scans[k], pose=poses[k], min_quality=pw.min_quality), 2 * spacing
+    def _place(edges: dict[tuple[int, int], PairwiseResult]):
+        """Poses from the pose graph over ``edges``, refined jointly; the pairs refined and
+        their (fitness, rmse)."""
+        poses, kept = _solve(n, edges, root, poses0.get(root, np.eye(4)), spacing, config, names, rejected,
+                             confirmed=confirmed, exact=exact)
+        for k in held:
+            if k in poses:
+                poses[k] = poses0[k].copy()
+        # a recorded pose holds where the pose graph moved it beyond its tolerance (as a pair
+        # that moves that far is rejected): the slide of some edges along a symmetric surface
+        for k in sorted(set(poses) & set(poses0) - held):
+            moved = _median_displacement(poses[k], poses0[k], world[k], poses0[k])
+            if moved > 2 * tolerance:
+                log.info("%s: the pose graph moved it %.1f mm from its recorded pose (tolerance %.1f mm); "
+                         "refined from the recorded pose", names[k], moved, tolerance)
+                poses[k] = poses0[k].copy()
+
+        # 4. joint refinement over the pairs that overlap under the optimised poses
+        pairs: list[tuple[int, int]] = []
+        stats: list[tuple[float, float]] = []
+        if len(poses) > 1:
+            order = sorted(poses)
+            fine = {
+                k: downsample(
+                    scan_point_cloud(scans[k], pose=poses[k], min_quality=pw.min_quality), 2 * spacing
+                )
+                for k in order
+            }
+            if prune:
+                estimates = pair_overlaps(
+                    {k: np.asarray(c.points) for k, c in fine.items()},
+                    {k: np.asarray(c.normals) for k, c in fine.items()},
+                    4 * spacing,
+                    directions={k: poses[k][:3, :3] @ scans[k].view_direction for k in order},
+                    max_view_angle=config.max_view_angle,
+                    max_samples=config.overlap_samples,
+                    threshold=config.min_overlap,
+                )
+                pairs = select_pairs(
+                    {key: same for key, (o, same) in estimates.items() if o >= config.min_overlap},
+                    config.max_neighbours,
+                )
+            else:
+                m = overlap_matrix([np.asarray(fine[k].points) for k in order], 4 * spacing)
+                pairs = [
+                    (order[a], order[b])
+                    for a, b in itertools.combinations(range(len(order)), 2)
+                    if _pair_overlap(m, a, b) >= config.min_overlap
+                ]
+            poses, stats = refine_jointly(
+                scans,
+                poses,
+                pairs,
+                root=root,
+                distances=[f * spacing for f in config.joint_distances_factor],
+                min_quality=pw.min_quality,
+                fixed=sorted(held),
             )
-            for k in order
-        }
-        if prune:
-            estimates = pair_overlaps(
-                {k: np.asarray(c.points) for k, c in fine.items()},
-                {k: np.asarray(c.normals) for k, c in fine.items()},
-                4 * spacing,
-                directions={k: poses[k][:3, :3] @ scans[k].view_direction for k in order},
-                max_view_angle=config.max_view_angle,
-                max_samples=config.overlap_samples,
-                threshold=config.min_overlap,
-            )
-            pairs = select_pairs(
-                {key: same for key, (o, same) in estimates.items() if o >= config.min_overlap},
-                config.max_neighbours,
-            )
-        else:
-            m = overlap_matrix([np.asarray(fine[k].points) for k in order], 4 * spacing)
-            pairs = [
-                (order[a], order[b])
-                for a, b in itertools.combinations(range(len(order)), 2)
-                if _pair_overlap(m, a, b) >= config.min_overlap
-            ]
-        poses, stats = refine_jointly(
-            scans,
-            poses,
-            pairs,
-            root=root,
-            distances=[f * spacing for f in config.joint_distances_factor],
-            min_quality=pw.min_quality,
-        )
+        return poses, pairs, stats
+
+    # 3-5. pose graph, joint refinement, a verdict per scan; again without the scans doubted
+    verdicts: dict[int, str] = {}
+    for attempt in range(MAX_VERDICT_ROUNDS):
+        live = {key: res for key, res in edges.items() if key[0] not in verdicts and key[1] not in verdicts}
+        poses, pairs, stats = _place(live)
+        if not freehand or len(poses) < 2:
+            break
+        # the verdict per scan: under the final poses each scan overlaps another and puts no
+        # surface where another's sensor saw empty space, or it is left out
+        doubted = _contradicted(scans, live, poses, freehand, held | {root}, spacing, config)
+        doubted.update({k: r for k, r in _final_verdict(scans, poses, pairs, stats, held | {root}, spacing,
+                                                        config).items() if k not in doubted})
+        if not doubted:
+            break
+        verdicts.update(doubted)
+        if attempt == MAX_VERDICT_ROUNDS - 1:
+            poses = {k: p for k, p in poses.items() if k not in verdicts}
+            kept_pairs = [e for e, (i, j) in enumerate(pairs) if i in poses and j in poses]
+            pairs, stats = [pairs[e] for e in kept_pairs], [stats[e] for e in kept_pairs]
+
     residuals = tuple(
         PairResidual(
             names[i],
@@ -850,7 +1104,9 @@ def register_scans(
 
     left_out = {}
     for k in range(n):
-        if k not in poses:
+        if k in verdicts:
+            left_out[names[k]] = verdicts[k]
+        elif k not in poses:
             touching = [key for key in rejected if names[k] in key]
             matched = any(k in key for key in edges)
             left_out[names[k]] = (
@@ -868,6 +1124,7 @@ def register_scans(
         left_out=left_out,
         reference=names[root],
         rejected=tuple(rejected.values()),
+        fixed=tuple(names[k] for k in sorted(held)),
     )
 
 
@@ -896,6 +1153,119 @@ def median_pair_rmse(pairs: Sequence[PairResidual]) -> float | None:
     (never NaN: a summary shows no number rather than ``nan``)."""
     values = [p.rmse for p in pairs if math.isfinite(p.rmse)]
     return float(np.median(values)) if values else None
+
+
+def _close(a: np.ndarray, b: np.ndarray, scan: RangeScan, spacing: float) -> bool:
+    """Whether two alignments of ``scan`` agree within a degree and a sample spacing at its centroid."""
+    delta = a @ np.linalg.inv(b)
+    c = scan.vertices.mean(axis=0)
+    c = a[:3, :3] @ c + a[:3, 3]
+    return rotation_angle_deg(delta) < 1.0 and float(np.linalg.norm(delta[:3, :3] @ c + delta[:3, 3] - c)) < spacing
+
+
+def _contradicted(
+    scans: Sequence[RangeScan],
+    edges: Mapping[tuple[int, int], PairwiseResult],
+    poses: Mapping[int, np.ndarray],
+    found: set[tuple[int, int]],
+    trusted: set[int],
+    spacing: float,
+    config: MultiviewConfig,
+) -> dict[int, str]:
+    """{scan index: reason} of the scans at either end of a pair found from features that the
+    final poses contradict (the pose graph pruned it, or the joint refinement moved away
+    from it by more than :data:`CONTRADICTION` times what a loop may be off: a pair slid
+    by a few degrees along a symmetric surface is the pose graph's to correct, one on the
+    wrong side of the object is not): both its scans passed every check, the poses
+    can hold only one of them right, and which one is not known; neither is reported
+    aligned (never a ``trusted`` one)."""
+    out: dict[int, str] = {}
+    for i, j in sorted(found & set(edges)):
+        if i not in poses or j not in poses:
+            continue
+        implied = np.linalg.inv(poses[j]) @ poses[i]
+        delta = np.asarray(edges[(i, j)].transform) @ np.linalg.inv(implied)
+        angle = rotation_angle_deg(delta)
+        # how far the pair's alignment and the final poses put scan i's centroid apart
+        c = implied[:3, :3] @ scans[i].vertices.mean(axis=0) + implied[:3, 3]
+        moved = float(np.linalg.norm(delta[:3, :3] @ c + delta[:3, 3] - c))
+        if (angle > CONTRADICTION * config.loop_rotation_deg
+                or moved > CONTRADICTION * config.loop_distance_factor * spacing):
+            for k, other in ((i, j), (j, i)):
+                if k not in trusted and k not in out:
+                    out[k] = (f"the final poses contradict its pair with {scans[other].name} ({angle:.1f} degrees, "
+                              f"{moved:.1f} mm off): the set is ambiguous here (a nearly symmetric part?)")
+    return out
+
+
+def _final_verdict(
+    scans: Sequence[RangeScan],
+    poses: Mapping[int, np.ndarray],
+    pairs: Sequence[tuple[int, int]],
+    stats: Sequence[tuple[float, float]],
+    trusted: set[int],
+    spacing: float,
+    config: MultiviewConfig,
+    samples: int = 3000,
+) -> dict[int, str]:
+    """{scan index: reason} of the scans their overlaps do not support under the final poses.
+
+    A scan is supported when some pair puts at least half ``min_overlap`` of either scan
+    on the other (the joint refinement's fitness) and no scan lies more than
+    ``max_violation`` in space its sensor saw empty. Where two scans contradict each
+    other so, the one with fewer supporting pairs is doubted (both when they have as many;
+    never a ``trusted`` one), one clash at a time, and the rest judged again without it.
+    """
+    nodes = set(poses)
+    world = {k: scans[k].transformed_vertices(poses[k])[:: max(1, scans[k].n_vertices // samples)]
+             for k in nodes}
+    margin, radius = 5.0 * spacing, 1.0 * spacing
+    violation: dict[tuple[int, int], float] = {}
+    for i, j in itertools.permutations(sorted(nodes), 2):
+        inv = np.linalg.inv(poses[j])
+        # only scans whose boxes meet can put surface in each other's view
+        lo, hi = world[j].min(axis=0) - margin, world[j].max(axis=0) + margin
+        if np.any(world[i].max(axis=0) < lo) or np.any(world[i].min(axis=0) > hi):
+            continue
+        violation[(i, j)] = free_space_violation(world[i] @ inv[:3, :3].T + inv[:3, 3], scans[j],
+                                                 margin=margin, radius=radius)
+    overlap = {}
+    for (i, j), (fit, _) in zip(pairs, stats):
+        overlap[(i, j)] = overlap[(j, i)] = max(overlap.get((i, j), 0.0), fit)
+    doubted: dict[int, str] = {}
+    while True:
+        live = nodes - set(doubted)
+        support = {k: sum(1 for j in live if overlap.get((k, j), 0.0) >= config.min_overlap / 2
+                          and max(violation.get((k, j), 0.0), violation.get((j, k), 0.0)) <= config.max_violation)
+                   for k in live}
+        clashes = sorted(((v, key) for key, v in violation.items()
+                          if v > config.max_violation and set(key) <= live), reverse=True)
+        lonely = [k for k in live - trusted if support[k] == 0]
+        if clashes:
+            v, (i, j) = clashes[0]
+            blame = [k for k in (i, j) if k not in trusted]
+            if not blame:
+                break
+            if len(blame) == 2 and support[i] == support[j]:
+                for k in blame:  # as well supported as each other: which is wrong is not known
+                    doubted[k] = (f"under the final poses {v:.0%} of {scans[i].name} lies where "
+                                  f"{scans[j].name}'s sensor saw empty space, and the two have as many "
+                                  f"supporting overlaps ({support[k]}): which is wrong is not known")
+                continue
+            k = min(blame, key=lambda k: (support[k], k))
+            other = j if k == i else i
+            doubted[k] = (f"under the final poses {v:.0%} of {scans[i].name} lies where {scans[j].name}'s "
+                          f"sensor saw empty space; {scans[k].name} has fewer supporting overlaps than "
+                          f"{scans[other].name} ({support[k]} against {support[other]})")
+        elif lonely:
+            for k in lonely:
+                doubted[k] = ("under the final poses it overlaps no other scan by "
+                              f">= {config.min_overlap / 2:.0%} without a free-space clash")
+        else:
+            break
+    if doubted:
+        log.info("final verdict: %s", "; ".join(f"{scans[k].name}: {r}" for k, r in doubted.items()))
+    return doubted
 
 
 def _median_displacement(found: np.ndarray, init: np.ndarray, world_points: np.ndarray,
@@ -939,14 +1309,19 @@ def _solve(
     config: MultiviewConfig,
     names: list[str],
     rejected: dict[tuple[str, str], RejectedPair],
+    *,
+    confirmed: set[tuple[int, int]] | frozenset = frozenset(),
+    exact: set[tuple[int, int]] | frozenset = frozenset(),
 ) -> tuple[dict[int, np.ndarray], set[tuple[int, int]]]:
-    """Spanning tree from the root, initial poses along it, pose-graph optimisation."""
-    tree = _spanning_tree(n, edges, root)
+    """Spanning tree from the root (loop-confirmed edges first), initial poses along it,
+    pose-graph optimisation; the tree's edges and the ``exact`` ones (between held poses)
+    are not pruned."""
+    tree = _spanning_tree(n, edges, root, confirmed)
     if len(tree) < 2:
         return {root: root_pose}, set()
     component = {k: v for k, v in edges.items() if k[0] in tree and k[1] in tree}
     init = _chain_poses(n, component, tree, root, root_pose)
-    certain = {key for node, (parent, key) in tree.items() if parent >= 0}
+    certain = {key for node, (parent, key) in tree.items() if parent >= 0} | set(exact)
     distance = max(res.max_distance for res in component.values())
     poses, kept = optimise_pose_graph(
         init,

@@ -14,17 +14,20 @@ References
 .. [2] Rusu, Blodow, Beetz, "Fast Point Feature Histograms (FPFH) for 3D registration",
    ICRA 2009.
 .. [3] Rusinkiewicz, "A symmetric objective function for ICP", SIGGRAPH 2019.
+.. [4] Fischler, Bolles, "Random sample consensus", CACM 24(6), 1981.
+.. [5] Zhou, Park, Koltun, "Fast global registration", ECCV 2016.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 import open3d as o3d
+from scipy.spatial import cKDTree
 
 from slscan.errors import SlscanError
 from slscan.register.rangescan import RangeScan
@@ -287,6 +290,139 @@ def coarse_align(
             float(result.inlier_rmse),
         )
     return PairwiseResult(transform, fitness, float(result.inlier_rmse), max_distance=distance)
+
+
+def feature_hypotheses(
+    features: tuple[ScanFeatures, ScanFeatures],
+    *,
+    seeds: Sequence[int] = (0, 1, 2),
+    ransac_iterations: int = 200_000,
+    fgr: bool = True,
+) -> Iterator[np.ndarray]:
+    """Candidate coarse alignments (target_from_source) of two scans from their FPFH
+    features [2]_: open3d's Fast Global Registration [5]_, then its RANSAC [4]_ once per
+    seed (mutual matches for the first, all matches for the others, with its edge-length
+    and distance correspondence checkers). One hypothesis alone is often the wrong
+    one on a nearly symmetric object; the caller verifies each (:func:`verify_alignment`)
+    after ICP and keeps the best. A generator: each is computed when asked for, so a
+    caller that has what it needs (two hypotheses that agree) stops early.
+
+    features : the two scans' :func:`scan_features` (source, target)
+
+    Yields (4, 4) float64 transforms; scans with fewer than 10 feature samples give none.
+    """
+    (src, src_f, sv), (tgt, tgt_f, tv) = ((f.cloud, f.features, f.voxel) for f in features)
+    if len(src.points) < 10 or len(tgt.points) < 10:
+        return
+    distance = 1.5 * max(sv, tv)
+    if fgr:  # first: a tenth of a RANSAC's cost, and often the answer
+        result = _reg.registration_fgr_based_on_feature_matching(
+            src, tgt, src_f, tgt_f,
+            _reg.FastGlobalRegistrationOption(maximum_correspondence_distance=distance),
+        )
+        yield np.asarray(result.transformation).copy()
+    for k, seed in enumerate(seeds):
+        o3d.utility.random.seed(int(seed))
+        result = _reg.registration_ransac_based_on_feature_matching(
+            src, tgt, src_f, tgt_f, k == 0, distance,
+            _reg.TransformationEstimationPointToPoint(False), 3,
+            [_reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+             _reg.CorrespondenceCheckerBasedOnDistance(distance)],
+            _reg.RANSACConvergenceCriteria(int(ransac_iterations), 0.9999),
+        )
+        yield np.asarray(result.transformation).copy()
+
+
+def _sensor_projection(scan: RangeScan):
+    """How the scan's sensor sees a point of its frame: a function of (k, 3) points giving
+    ((k, 2) image coordinates, (k,) range along the ray, mm), and the image coordinates'
+    size of one mm at the scan's distance. A perspective sensor at the frame's origin
+    when the view direction points from the scan's centroid to the origin (slscan range
+    maps), else parallel rays along the view direction (Stanford scans)."""
+    d = np.asarray(scan.view_direction, np.float64)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = np.cross(d, helper)
+    u /= np.linalg.norm(u)
+    v = np.cross(d, u)
+    centroid = scan.vertices.mean(axis=0)
+    distance = float(np.linalg.norm(centroid))
+    if distance > 0 and float(np.dot(-centroid / distance, d)) > 1 - 1e-6:
+        def project(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            depth = np.maximum(p @ -d, 1e-9)
+            return np.stack([p @ u / depth, p @ v / depth], axis=1), np.linalg.norm(p, axis=1)
+
+        return project, 1.0 / distance
+
+    def project_parallel(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return np.stack([p @ u, p @ v], axis=1), -(p @ d)
+
+    return project_parallel, 1.0
+
+
+def free_space_violation(
+    points: np.ndarray, scan: RangeScan, *, margin: float, radius: float
+) -> float:
+    """Fraction of ``points`` that lie in space ``scan``'s sensor saw to be empty.
+
+    A point seen by the sensor's ray (samples of ``scan`` within ``radius`` mm of it,
+    across the ray) more than ``margin`` mm nearer the sensor than the nearest of them stands
+    where the ray passed through nothing: a correct alignment puts no surface there. An
+    alignment that overlaps well but is wrong (a nearly symmetric object's front on its
+    back) puts much of one scan there.
+
+    points : (k, 3) float64, mm, in the scan's frame (e.g. another scan mapped by an
+        alignment); scan : the scan whose sensor is asked
+    Returns the fraction of the points in the scan's view (0 when none is).
+    """
+    if len(points) == 0:
+        return 0.0
+    project, per_mm = _sensor_projection(scan)
+    image, depth = project(scan.vertices)
+    tree = cKDTree(image)
+    pi, pd = project(np.asarray(points, np.float64))
+    d, idx = tree.query(pi, k=8, distance_upper_bound=radius * per_mm)
+    seen = np.isfinite(d[:, 0])
+    if not np.any(seen):
+        return 0.0
+    # the nearest surface the ray met near the point (a depth edge's near side counts)
+    nearest = np.where(np.isfinite(d), np.append(depth, np.inf)[idx], np.inf).min(axis=1)
+    return float(np.mean(pd[seen] < nearest[seen] - margin))
+
+
+@dataclass(frozen=True)
+class Verification:
+    """How well an alignment of two scans is supported (see :func:`verify_alignment`).
+
+    overlap : the pair's ICP fitness (fraction of the source's samples matched)
+    rmse : mm, the ICP inlier RMSE
+    violation : the larger of the two :func:`free_space_violation` fractions
+    """
+
+    overlap: float
+    rmse: float
+    violation: float
+
+
+def verify_alignment(
+    source: RangeScan, target: RangeScan, result: PairwiseResult, *, spacing: float,
+    samples: int = 3000,
+) -> Verification:
+    """Overlap, residual and free-space test of an ICP alignment of ``source`` onto
+    ``target`` (``result.transform``: target_from_source), both ways: the source's samples
+    in the target's view and the target's in the source's. ``spacing`` (mm) sets the
+    margin (5 spacings) and the lateral reach (1 spacing: at 2, the far side of a depth edge
+    put up to 6 % of a right alignment of the quarter-size figurine in "empty" space); at most ``samples`` samples
+    of each scan are tested (an even stride)."""
+    t = np.asarray(result.transform, np.float64)
+    inv = np.linalg.inv(t)
+    sp = source.vertices[:: max(1, source.n_vertices // samples)]
+    tp = target.vertices[:: max(1, target.n_vertices // samples)]
+    margin, radius = 5.0 * spacing, 1.0 * spacing
+    violation = max(
+        free_space_violation(sp @ t[:3, :3].T + t[:3, 3], target, margin=margin, radius=radius),
+        free_space_violation(tp @ inv[:3, :3].T + inv[:3, 3], source, margin=margin, radius=radius),
+    )
+    return Verification(float(result.fitness), float(result.inlier_rmse), violation)
 
 
 # --- fine alignment ----------------------------------------------------------------------------
