@@ -90,7 +90,7 @@ def test_shadows_grazing_and_saturation_are_left_out(figurine, projector_light):
     assert np.median(err) < 0.08  # the range map's normals, quarter size
     # the mirror-direction test removes pixels, and only those near the half vector
     glossy = projector_albedo_view(session, view, range_map, projector_light,
-                                   AlbedoConfig(projector_highlight_deg=15))
+                                   AlbedoConfig(min_cos=0.5, projector_highlight_deg=15))
     assert glossy.valid.sum() < result.valid.sum() or not result.valid.any()
     assert not (glossy.valid & ~result.valid & (cos >= 0.5)).any()
 
