@@ -309,7 +309,8 @@ def _open_rig(args, camera_spec, projector_spec) -> _Rig:
             raise SlscanError(f"--scale must be in (0, 2], got {args.scale}")
         config = VirtualCaptureConfig(
             scene=args.scene, camera_scale=args.scale, projector_scale=args.scale, seed=args.seed,
-            lit_images=board is None, sensor=Sensor(exposure=args.exposure), **placement_settings(args),
+            lit_images=board is None and args.lights != "none", sensor=Sensor(exposure=args.exposure),
+            **placement_settings(args),
         )
         if _stage_kind(args) in ("serial", "manual"):
             raise SlscanError(f"--stage {args.stage}: the virtual rig turns its own turntable (--stage virtual)")
@@ -362,6 +363,10 @@ def _open_rig(args, camera_spec, projector_spec) -> _Rig:
                 raise
             devices = scan_devices(world, camera)
             devices.projector = projector
+        if args.lights == "none":  # a rig without ring lights: colour from the projector as the light
+            from slscan.devices.base import NoLights
+
+            devices.lights = NoLights()
         return _Rig(devices, patterns, world, world.rig, None, world.rig.camera, simulated=True)
 
     # real devices
