@@ -24,7 +24,7 @@ import pytest
 from slscan import fsio
 from slscan.recipe.runner import Reporter, check_outputs, load_recipe, run_recipe, shipped_recipe
 
-OVERRIDES = ["capture.views=3"]
+OVERRIDES = ["capture.views=6"]  # fewer views at reduced size do not overlap: registration refuses them
 STAGES = ["capture", "decode", "lights", "albedo", "register", "fuse", "simplify", "texture"]
 
 
@@ -227,7 +227,7 @@ def test_leftovers_of_dead_writers_are_removed_and_never_results(run, tmp_path):
         hidden = run / "decode" / f".view_009.ply.partial-{dead.pid}-x1y2z3w4.ply"
         hidden.write_bytes(b"ply\n")
         assert [p.name for p in fsio.glob_results(run / "decode", "*.ply")] == [
-            f"view_00{i}.ply" for i in range(3)]
+            f"view_00{i}.ply" for i in range(6)]
         runs, notes = _resume(run)
         assert not any(r.ran for r in runs.values())  # a hidden file is no result of decode
         assert any(n.startswith("removed 3 temporary") for n in notes), notes
