@@ -204,8 +204,11 @@ def test_the_baked_colour_matches_the_true_albedo(run):
     value = psnr(srgb8(baked.linear), srgb8(truth), baked.observed)
     # quarter-size scans: blurred albedo, registration within about 1 degree of the true
     # poses: 25.7-26.2 dB for capture seeds 0-3 (15-17 dB while registration let ICP slide
-    # the views round the figurine from their exact turntable poses)
-    assert value > 24.0, f"PSNR {value:.1f} dB"
+    # the views round the figurine from their exact turntable poses). With the paint-edge
+    # default "shift" (decode keeps most line samples beside paint edges: fewer holes) it is
+    # 23.5 dB against 26.1 with "drop": a colour cost of keeping that surface, open in #35's
+    # note; wrong poses still fall far below (12-17 dB, and the 3-degree check below)
+    assert value > 23.0, f"PSNR {value:.1f} dB"
     # the same views with their poses turned 3 degrees about the object's vertical axis
     # (a registration error) bake visibly worse colour
     from dataclasses import replace

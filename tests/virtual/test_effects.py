@@ -47,7 +47,7 @@ def test_a_recipe_switches_effects_on_and_the_session_records_what_was_rendered(
                           "capture")
     assert config.effects == parse_effects("tone,vignetting")
     assert (config.optics, config.sensor) == apply_effects(config.effects, Optics(), Sensor(), 1300.0)
-    with pytest.raises(SlscanError, match="capture: effects: unknown effect .sparkle."):
+    with pytest.raises(SlscanError, match="capture.effects: unknown effect .sparkle."):
         from_mapping(VirtualCaptureConfig, {"effects": ["sparkle"]}, "capture")
     capture_session(config, tmp_path / "s")
     recorded = json.loads((tmp_path / "s" / "session.json").read_text())["device"]["config"]
