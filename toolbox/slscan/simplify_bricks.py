@@ -23,6 +23,7 @@ The peak memory of a brick task is estimated from its face count before it start
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import resource
@@ -293,6 +294,7 @@ def simplify_bricks(
         whose estimated memory is over ``max_memory`` (one line naming the brick and the cap).
     """
     from slscan.executor import Executor
+    from slscan.fsio import human_size
     from slscan.fuse import write_mesh
     from slscan.meshes import vertex_normals
     from slscan.simplify import _fast_pass
@@ -363,7 +365,7 @@ def simplify_bricks(
             if max_memory is not None and need > max_memory:
                 raise SlscanError(
                     f"{layout.path}: brick {k} ({int(counts[k]):,} faces, {edge:g} mm) needs about "
-                    f"{need / 2**30:.2f} GiB > --max-memory {max_memory / 2**30:.2f} GiB; use a smaller --brick")
+                    f"{human_size(need)} > --max-memory {human_size(max_memory)}; use a smaller --brick")
             share = max(4, round(target * counts[k] / layout.n_faces))
             tasks.append(BrickTask(int(k), layout, scratch / f"brick{k:04d}.faces", shared_raw,
                                    scratch / f"brick{k:04d}.npz", share, aggressiveness))
@@ -371,27 +373,27 @@ def simplify_bricks(
                  edge, "x".join(map(str, dims)))
         results = tuple(executor.map(_simplify_brick, tasks))
         # 4. stitch on global ids
-        parts_v, parts_f, offset = [], [], 0
-        gmap: dict[int, int] = {}
+        parts_v, parts_f, parts_g, offset = [], [], [], 0
         for task in tasks:
             with np.load(task.out_file) as z:
-                v, f, gid = z["vertices"], z["faces"].astype(np.int64), z["gid"]
-            new = np.empty(len(v), np.int64)
-            fresh = gid < 0
-            new[fresh] = offset + np.arange(int(fresh.sum()))
-            offset += int(fresh.sum())
-            parts_v.append(v[fresh])
-            for j in np.flatnonzero(~fresh):
-                g = int(gid[j])
-                if g not in gmap:
-                    gmap[g] = offset
-                    parts_v.append(v[j:j + 1])
-                    offset += 1
-                new[j] = gmap[g]
-            parts_f.append(new[f])
+                parts_v.append(z["vertices"])
+                parts_f.append(z["faces"].astype(np.int64) + offset)
+                parts_g.append(z["gid"])
+            offset += len(parts_v[-1])
             task.out_file.unlink()
-        vertices = np.concatenate(parts_v) if parts_v else np.zeros((0, 3))
+        all_v = np.concatenate(parts_v) if parts_v else np.zeros((0, 3))
+        all_g = np.concatenate(parts_g) if parts_g else np.zeros(0, np.int64)
         tri = np.concatenate(parts_f) if parts_f else np.zeros((0, 3), np.int64)
+        del parts_v, parts_f, parts_g
+        fresh = all_g < 0
+        n_fresh = int(fresh.sum())
+        _, first, inverse = np.unique(all_g[~fresh], return_index=True, return_inverse=True)
+        new = np.empty(len(all_v), np.int64)
+        new[fresh] = np.arange(n_fresh)
+        new[~fresh] = n_fresh + inverse.ravel()
+        vertices = np.concatenate([all_v[fresh], all_v[~fresh][first]])
+        tri = new[tri]
+        del all_v, all_g, new
         stitched = len(tri)
         # 5. the last pass over the whole stitched mesh (about the target's size)
         v, f = _fast_pass(vertices, tri.astype(np.int32), target, True, aggressiveness)
@@ -435,3 +437,84 @@ def boundary_edges(faces: np.ndarray) -> int:
 
 __all__: Sequence[str] = ("simplify_bricks", "BrickReport", "BrickResult", "ply_layout", "parse_memory",
                           "incore_memory", "surface_distance", "boundary_edges")
+
+
+INCORE_FACE_LIMIT = 20_000_000
+"""``slscan simplify`` without ``--max-memory``, ``--brick`` or ``--bricks`` simplifies meshes of
+up to this many faces in one process (about 5 GiB), larger ones in bricks."""
+
+
+def extend_simplify_parser(p) -> None:
+    """Give ``slscan simplify`` (``p``, made by :mod:`slscan.register.command`) its out-of-core
+    options, and route it: in bricks with ``--brick``/``--bricks`` or when the mesh is too large
+    for one process, else in-core (the parser's own command)."""
+    from slscan.executor import add_executor_arguments
+
+    p.description += (
+        f" Meshes above {INCORE_FACE_LIMIT:,} faces (or whose in-core estimate exceeds --max-memory), or any "
+        "with --brick/--bricks, are simplified out of core: the binary PLY is streamed into spatial bricks on "
+        "disk, each brick simplified as a task (--workers, --scheduler) with its border locked, then the "
+        "bricks are stitched and simplified once more across the borders.")
+    p.epilog += ("\n  slscan simplify big.ply --out small.ply --faces 1000000 --brick 60 --workers 2 "
+                 "--max-memory 4GiB")
+    g = p.add_argument_group("out of core", "simplify in bricks (binary PLY input, --method fast)")
+    g.add_argument("--brick", type=float, metavar="MM", help="simplify in bricks of this edge (mm)")
+    g.add_argument("--bricks", type=int, metavar="N", help="simplify in about N bricks")
+    g.add_argument("--max-memory", metavar="SIZE", help="memory one process may use, e.g. 4GiB: in-core when "
+                   "the estimate fits, else bricks; a brick over it is refused")
+    g.add_argument("--against", type=Path, metavar="MESH", help="also report the surface distance (both ways) "
+                   "to this mesh, e.g. the in-core result")
+    add_executor_arguments(p)
+    p.set_defaults(func=functools.partial(_cmd_simplify, p.get_default("func")))
+
+
+def _cmd_simplify(incore, args) -> int:
+    from slscan.executor import executor_from_args
+    from slscan.fsio import human_size
+    from slscan.fuse import read_mesh
+    from slscan.progress import console
+
+    if args.out.exists() and not args.overwrite:
+        raise SlscanError(f"{args.out}: already exists (--overwrite replaces it)")
+    cap = parse_memory(args.max_memory) if args.max_memory else None
+    forced = args.brick is not None or args.bricks is not None
+    n_faces = None
+    if not forced and args.mesh.suffix.lower() == ".ply" and _binary_ply(args.mesh):
+        n_faces = ply_layout(args.mesh).n_faces
+    if not forced and (n_faces is None or (n_faces * INCORE_BYTES_PER_FACE <= cap if cap
+                                           else n_faces <= INCORE_FACE_LIMIT)):
+        why = ("not a binary PLY" if n_faces is None else
+               f"estimate {human_size(n_faces * INCORE_BYTES_PER_FACE)} within --max-memory" if cap
+               else f"{n_faces:,} faces, at most {INCORE_FACE_LIMIT:,}")
+        console().print(f"simplify: in-core ({why})", highlight=False, soft_wrap=True)
+        rc = incore(args)
+    else:
+        if args.method != "fast" or args.free_boundary:
+            raise SlscanError("simplifying in bricks: only --method fast, without --free-boundary "
+                              "(the brick borders must stay locked)")
+        from slscan.register.meshlab import write_mesh_project
+
+        rep = simplify_bricks(args.mesh, args.out, args.faces, brick_mm=args.brick, bricks=args.bricks,
+                              executor=executor_from_args(args), max_memory=cap)
+        write_mesh_project(args.out)
+        peak = max((b.peak_rss for b in rep.bricks), default=0)
+        console().print(
+            f"simplify: bricks ({len(rep.bricks)} of grid {'x'.join(map(str, rep.grid))}): {rep.faces_in:,} -> "
+            f"{rep.faces_stitched:,} stitched -> {rep.faces_out:,} faces in {rep.seconds:.1f} s, task peak "
+            f"{human_size(peak)}, this process {human_size(rep.final_peak_rss)}; wrote {args.out}",
+            highlight=False, soft_wrap=True)
+        rc = 0
+    if args.against:
+        d = surface_distance(read_mesh(args.out), read_mesh(args.against))
+        console().print(f"distance to {args.against}: mean {d['mean']:.4f} mm, p95 {d['p95']:.4f} mm, "
+                        f"max {d['max']:.4f} mm (both ways)", highlight=False, soft_wrap=True)
+    return rc
+
+
+def _binary_ply(path: Path) -> bool:
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(4096)
+    except OSError:
+        return False
+    return b"format binary_" in head
