@@ -41,13 +41,17 @@ from slscan.fuse import Mesh
 
 log = logging.getLogger(__name__)
 
-TASK_BYTES_PER_FACE = 220
-"""Peak bytes per input face of one brick task (faces, vertices, fast-simplification's
-arrays), measured with ``benchmarks/simplify_bricks.py``; used to check ``max_memory``."""
+TASK_BYTES_PER_FACE = 450
+TASK_BASE_BYTES = 128 << 20
+"""Peak memory of one brick task: ``TASK_BASE_BYTES`` (the process) plus this per input face
+(faces, vertices, fast-simplification's arrays, the memory-mapped pages read): 417 B/face
+measured on a 1.75M-face fused mesh in one brick (``benchmarks/simplify_bricks.py``);
+checked against ``max_memory`` before a task starts."""
 
-INCORE_BYTES_PER_FACE = 260
-"""Peak bytes per input face of the in-core path (:func:`slscan.simplify.simplify_file`:
-slscan's PLY reader, then fast-simplification), measured the same way."""
+INCORE_BYTES_PER_FACE = 500
+INCORE_BASE_BYTES = 256 << 20
+"""Peak memory of the in-core path (:func:`slscan.simplify.simplify_file`: slscan's PLY reader,
+then fast-simplification; Open3D imported): 822 MiB for 1.75M faces, measured the same way."""
 
 CHUNK = 1 << 20
 """Vertices or faces read from the memory map at a time."""
@@ -373,7 +377,7 @@ def simplify_bricks(
         # 3. one task per non-empty brick, checked against the cap first
         tasks = []
         for k in np.flatnonzero(counts):
-            need = int(counts[k]) * TASK_BYTES_PER_FACE
+            need = TASK_BASE_BYTES + int(counts[k]) * TASK_BYTES_PER_FACE
             if max_memory is not None and need > max_memory:
                 raise SlscanError(
                     f"{layout.path}: brick {k} ({int(counts[k]):,} faces, {edge:g} mm) needs about "
@@ -419,7 +423,7 @@ def simplify_bricks(
 
 def incore_memory(mesh_path: str | os.PathLike) -> int:
     """Estimated peak bytes of simplifying ``mesh_path`` in one process (from its header)."""
-    return ply_layout(mesh_path).n_faces * INCORE_BYTES_PER_FACE
+    return INCORE_BASE_BYTES + ply_layout(mesh_path).n_faces * INCORE_BYTES_PER_FACE
 
 
 def surface_distance(a: Mesh, b: Mesh) -> dict[str, float]:
@@ -451,9 +455,9 @@ __all__: Sequence[str] = ("simplify_bricks", "BrickReport", "BrickResult", "ply_
                           "incore_memory", "surface_distance", "boundary_edges")
 
 
-INCORE_FACE_LIMIT = 20_000_000
+INCORE_FACE_LIMIT = 10_000_000
 """``slscan simplify`` without ``--max-memory``, ``--brick`` or ``--bricks`` simplifies meshes of
-up to this many faces in one process (about 5 GiB), larger ones in bricks."""
+up to this many faces in one process (about 5 GiB, see ``INCORE_BYTES_PER_FACE``), larger ones in bricks."""
 
 
 def extend_simplify_parser(p) -> None:
@@ -493,10 +497,11 @@ def _cmd_simplify(incore, args) -> int:
     n_faces = None
     if not forced and args.mesh.suffix.lower() == ".ply" and _binary_ply(args.mesh):
         n_faces = ply_layout(args.mesh).n_faces
-    if not forced and (n_faces is None or (n_faces * INCORE_BYTES_PER_FACE <= cap if cap
+    estimate = INCORE_BASE_BYTES + (n_faces or 0) * INCORE_BYTES_PER_FACE
+    if not forced and (n_faces is None or (estimate <= cap if cap
                                            else n_faces <= INCORE_FACE_LIMIT)):
         why = ("not a binary PLY" if n_faces is None else
-               f"estimate {human_size(n_faces * INCORE_BYTES_PER_FACE)} within --max-memory" if cap
+               f"estimate {human_size(estimate)} within --max-memory" if cap
                else f"{n_faces:,} faces, at most {INCORE_FACE_LIMIT:,}")
         console().print(f"simplify: in-core ({why})", highlight=False, soft_wrap=True)
         rc = incore(args)
