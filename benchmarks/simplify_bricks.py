@@ -10,7 +10,8 @@ Each configuration runs in a fresh Python process (so its peak RSS is its own):
 Usage::
 
     nice -n 10 python benchmarks/simplify_bricks.py MESH.ply --faces 1000000 [--bricks 8 | --brick MM]
-    nice -n 10 python benchmarks/simplify_bricks.py --make 8000000 --faces 1000000   # synthetic input
+    nice -n 10 python benchmarks/simplify_bricks.py --make 6000000 --faces 1000000   # synthetic input
+    (--to-input: also each result's distance to the input)
 
 ``--make N`` writes a bumpy sphere of about N faces (radius 100 mm, 0.5 mm bumps of several
 frequencies, so nothing is trivially flat) to /tmp/oocs-bench/bumpy-N.ply first.
@@ -75,6 +76,23 @@ def _run_one(mode: str, mesh: str, out: str, faces: int, bricks: int | None, bri
             "task_peak_max": max(task_peaks, default=0), "faces": n, "bricks": len(task_peaks)}
 
 
+def _to_input(mesh: str, paths: list[str]) -> list[str]:
+    """Each result's vertices to the input's triangles (one way), mm: mean / p95 / max."""
+    import open3d as o3d
+
+    from slscan.fuse import read_mesh
+
+    src = read_mesh(mesh)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(src.vertices.astype(np.float32)), o3d.core.Tensor(src.faces.astype(np.uint32)))
+    del src
+    out = []
+    for path in paths:
+        d = scene.compute_distance(o3d.core.Tensor(read_mesh(path).vertices.astype(np.float32))).numpy()
+        out.append(f"{d.mean():.4f} / {np.percentile(d, 95):.4f} / {d.max():.3f}")
+    return out
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("mesh", nargs="?", help="binary PLY mesh (default: --make)")
@@ -83,6 +101,8 @@ def main() -> None:
     p.add_argument("--bricks", type=int, help="about N bricks (default 8)")
     p.add_argument("--brick", type=float, metavar="MM", help="brick edge, mm")
     p.add_argument("--out", type=Path, default=Path("/tmp/oocs-bench"), help="scratch folder")
+    p.add_argument("--to-input", action="store_true",
+                   help="also each result's distance to the input (its vertices to the input's triangles)")
     p.add_argument("--_run", help=argparse.SUPPRESS)
     args = p.parse_args()
     if args._run:
@@ -113,18 +133,21 @@ def main() -> None:
         row["mode"], row["path"] = mode, out
         rows.append(row)
     ref = read_mesh(rows[0]["path"])
+    to_input = _to_input(mesh, [r["path"] for r in rows]) if args.to_input else None
     print(f"input {mesh}: {n_in:,} faces -> target {args.faces:,}; {os.cpu_count()} cores\n")
+    extra = f" {'to input mean / p95 / max, mm':>29} |" if to_input else ""
     print(f"| {'run':<10} | {'wall s':>7} | {'CPU s':>7} | {'peak RSS main':>13} | {'peak RSS task':>13} | "
-          f"{'bricks':>6} | {'faces':>10} | {'to in-core mean / p95 / max, mm':>31} |")
-    print("|" + "|".join("-" * w for w in (12, 9, 9, 15, 15, 8, 12, 33)) + "|")
-    for r in rows:
+          f"{'bricks':>6} | {'faces':>10} | {'to in-core mean / p95 / max, mm':>31} |" + extra)
+    print("|" + "|".join("-" * w for w in (12, 9, 9, 15, 15, 8, 12, 33, *((31,) if to_input else ()))) + "|")
+    for i, r in enumerate(rows):
         dist = "-"
         if r["mode"] != "in-core":
             d = surface_distance(read_mesh(r["path"]), ref)
             dist = f"{d['mean']:.4f} / {d['p95']:.4f} / {d['max']:.3f}"
         task = human_size(r["task_peak_max"]) if r["bricks"] else "-"
+        tail = f" {to_input[i]:>29} |" if to_input else ""
         print(f"| {r['mode']:<10} | {r['wall']:7.1f} | {r['cpu']:7.1f} | {human_size(r['peak']):>13} | {task:>13} | "
-              f"{r['bricks'] or '-':>6} | {r['faces']:>10,} | {dist:>31} |")
+              f"{r['bricks'] or '-':>6} | {r['faces']:>10,} | {dist:>31} |" + tail)
     print("\npeak RSS task: the largest brick task's peak (VmHWM reset at the task's start; in-process it "
           "includes the caller's own memory). Distances: both ways, vertices to triangles (Open3D).")
 
