@@ -10,7 +10,7 @@ Each configuration runs in a fresh Python process (so its peak RSS is its own):
 Usage::
 
     nice -n 10 python benchmarks/simplify_bricks.py MESH.ply --faces 1000000 [--bricks 8 | --brick MM]
-    nice -n 10 python benchmarks/simplify_bricks.py --make 6000000 --faces 1000000   # synthetic input
+    nice -n 10 python benchmarks/simplify_bricks.py --make 12000000 --faces 1000000   # synthetic input
     (--to-input: also each result's distance to the input)
 
 ``--make N`` writes a bumpy sphere of about N faces (radius 100 mm, 0.5 mm bumps of several
@@ -36,7 +36,7 @@ def _bumpy_sphere(faces: int, path: Path) -> Path:
 
     from slscan.fuse import Mesh, write_mesh
 
-    res = max(8, int(round(np.sqrt(faces / 2))))  # open3d's UV sphere: about 2 res**2 faces
+    res = max(8, int(round(np.sqrt(faces / 4))))  # open3d's UV sphere: about 4 res**2 faces
     m = o3d.geometry.TriangleMesh.create_sphere(100.0, resolution=res)
     v = np.asarray(m.vertices)
     d = v / np.linalg.norm(v, axis=1, keepdims=True)
