@@ -11,6 +11,7 @@ from slscan.cli import main
 from slscan.errors import SlscanError
 from slscan.executor import Executor
 from slscan.fuse import Mesh, read_mesh, write_mesh
+from slscan.ply import write_triangle_ply
 from slscan.simplify import simplify_mesh
 from slscan.simplify_bricks import (
     boundary_edges,
@@ -84,6 +85,11 @@ def test_only_binary_triangle_ply(tmp_path):
                          "property list uchar int vertex_indices\nend_header\n")
     with pytest.raises(SlscanError, match=r"a\.ply: PLY format 'ascii 1.0': expected binary"):
         ply_layout(ascii_ply)
+    verts = np.zeros(3, np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4")]))
+    write_triangle_ply(tmp_path / "bad.ply", verts, np.array([[0, 1, 7]]), [])
+    with pytest.raises(SlscanError, match=r"bad\.ply: faces 0\.\.0 refer to vertices outside 0\.\.2"):
+        simplify_bricks(tmp_path / "bad.ply", tmp_path / "out.ply", 4)
+    assert not (tmp_path / "out.ply").exists()
     with pytest.raises(SlscanError, match="expected a size like 4GiB"):
         parse_memory("lots")
 

@@ -349,10 +349,12 @@ def simplify_bricks(
                 rec = frec[s:s + CHUNK]
                 if (rec["n"] != 3).any():
                     bad = s + int(np.argmax(rec["n"] != 3))
-                    raise SlscanError(f"{layout.path}: face {bad} has {rec['n'][bad - s]} vertices; expected triangles")
+                    raise SlscanError(f"{layout.path}: face {bad} has {rec['n'][bad - s]} vertices; "
+                                      "expected triangles")
                 idx = rec["i"].astype(np.int64)
                 if idx.size and (idx.min() < 0 or idx.max() >= layout.n_vertices):
-                    raise SlscanError(f"{layout.path}: faces {s}.. refer to vertices outside 0..{layout.n_vertices - 1}")
+                    raise SlscanError(f"{layout.path}: faces {s}..{s + len(idx) - 1} refer to vertices outside "
+                                      f"0..{layout.n_vertices - 1}")
                 centre = _xyz(vrec[idx.ravel()]).reshape(-1, 3, 3).mean(1)
                 cell = np.minimum(((centre - lo) / edge).astype(np.int64), dims - 1)
                 b = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
