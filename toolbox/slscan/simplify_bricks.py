@@ -41,12 +41,13 @@ from slscan.fuse import Mesh
 
 log = logging.getLogger(__name__)
 
-TASK_BYTES_PER_FACE = 450
+TASK_BYTES_PER_FACE = 800
 TASK_BASE_BYTES = 128 << 20
 """Peak memory of one brick task: ``TASK_BASE_BYTES`` (the process) plus this per input face
-(faces, vertices, fast-simplification's arrays, the memory-mapped pages read): 417 B/face
-measured on a 1.75M-face fused mesh in one brick (``benchmarks/simplify_bricks.py``);
-checked against ``max_memory`` before a task starts."""
+(faces, vertices, fast-simplification's arrays, the memory-mapped pages read), checked against
+``max_memory`` before a task starts. Measured with ``benchmarks/simplify_bricks.py``: 417 B/face
+with a 1.75M-face fused mesh as one brick, about 800 B/face with 1.5M-face bricks of a 12M-face
+mesh (1.2 GiB; there the caller's own stitching memory is in the figure too)."""
 
 INCORE_BYTES_PER_FACE = 500
 INCORE_BASE_BYTES = 256 << 20
