@@ -1105,6 +1105,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.set_defaults(func=_cmd_response)
 
+    from slscan.simplify_bricks import extend_simplify_parser
+
+    extend_simplify_parser(sub.choices["simplify"])
+
     p = sub.add_parser("info", help="check a capture session and summarise it",
                        description="Validate every image of a capture session against its metadata and summarise it.")
     p.add_argument("session", type=Path, help="capture-session folder, or a multi-camera folder (cameras.json)")
