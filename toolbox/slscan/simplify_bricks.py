@@ -36,8 +36,12 @@ from pathlib import Path
 
 import numpy as np
 
+from typing import TYPE_CHECKING
+
 from slscan.errors import SlscanError
-from slscan.fuse import Mesh
+
+if TYPE_CHECKING:
+    from slscan.fuse import Mesh
 
 log = logging.getLogger(__name__)
 
@@ -312,7 +316,7 @@ def simplify_bricks(
     """
     from slscan.executor import Executor
     from slscan.fsio import human_size
-    from slscan.fuse import write_mesh
+    from slscan.fuse import Mesh, write_mesh
     from slscan.meshes import vertex_normals
     from slscan.simplify import _fast_pass
 
@@ -494,7 +498,7 @@ def _cmd_simplify(incore, args) -> int:
     from slscan.progress import console
 
     if args.out.exists() and not args.overwrite:
-        raise SlscanError(f"{args.out}: already exists (--overwrite replaces it)")
+        raise SlscanError(f"{args.out}: exists (pass --overwrite to replace it)")
     cap = parse_memory(args.max_memory) if args.max_memory else None
     forced = args.brick is not None or args.bricks is not None
     n_faces = None
