@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import dataclasses
+import json
+from pathlib import Path
 
 import numpy as np
 import open3d as o3d
 import pytest
 from synthetic_poses import looking_from
 
+from slscan.cli import main
 from slscan.errors import SlscanError
 from slscan.executor import Executor
 from slscan.register.multiview import PairTask, align_pair_task, register_scans
@@ -114,3 +117,25 @@ def test_a_worker_that_reads_another_file_says_so(blob_files, tmp_path):
                     feature_voxel=6.4)
     with pytest.raises(SlscanError, match="view0.ply.*same files at the same paths"):
         align_pair_task(task)
+
+
+def test_pairs_on_a_dask_cluster_give_the_poses_of_one_process(blob_files):
+    distributed = pytest.importorskip("distributed")
+    scans, _, perturbed = blob_files
+    here = register_scans(scans, initial_poses=perturbed)
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster:
+        there = register_scans(scans, initial_poses=perturbed, executor=Executor(scheduler=cluster.scheduler_address))
+    assert _same(here, there) <= 1e-9
+
+
+def test_register_command_takes_workers(figurine_files, tmp_path):
+    scans, _ = figurine_files
+    folder = Path(scan_source(scans[0])[0]).parent  # the figurine's PLYs: registered free-hand
+    poses = {}
+    for workers in (1, 2):
+        out = tmp_path / f"w{workers}"
+        assert main(["register", str(folder), "--out", str(out), "--workers", str(workers), "--quiet"]) == 0
+        poses[workers] = json.loads((out / "registration.json").read_text())["poses"]
+    assert set(poses[1]) == {s.name for s in scans}
+    assert max(np.abs(np.subtract(poses[1][k], poses[2][k])).max() for k in poses[1]) <= 1e-9

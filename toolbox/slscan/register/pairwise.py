@@ -292,6 +292,10 @@ def coarse_align(
     return PairwiseResult(transform, fitness, float(result.inlier_rmse), max_distance=distance)
 
 
+FGR_SEED = 0
+"""Seed of open3d's generator for each pair's Fast Global Registration."""
+
+
 def feature_hypotheses(
     features: tuple[ScanFeatures, ScanFeatures],
     *,
@@ -309,6 +313,9 @@ def feature_hypotheses(
 
     features : the two scans' :func:`scan_features` (source, target)
 
+    Every hypothesis is seeded (FGR by :data:`FGR_SEED`, each RANSAC by its seed): the same
+    two scans give the same hypotheses in any process, after any other pair.
+
     Yields (4, 4) float64 transforms; scans with fewer than 10 feature samples give none.
     """
     (src, src_f, sv), (tgt, tgt_f, tv) = ((f.cloud, f.features, f.voxel) for f in features)
@@ -316,6 +323,9 @@ def feature_hypotheses(
         return
     distance = 1.5 * max(sv, tv)
     if fgr:  # first: a tenth of a RANSAC's cost, and often the answer
+        # FGR draws from open3d's global generator: seeded, its hypothesis does not depend on
+        # what ran before it in this process (the pairs before, in whatever order they came)
+        o3d.utility.random.seed(FGR_SEED)
         result = _reg.registration_fgr_based_on_feature_matching(
             src, tgt, src_f, tgt_f,
             _reg.FastGlobalRegistrationOption(maximum_correspondence_distance=distance),
