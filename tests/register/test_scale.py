@@ -139,3 +139,21 @@ def test_register_command_takes_workers(figurine_files, tmp_path):
         poses[workers] = json.loads((out / "registration.json").read_text())["poses"]
     assert set(poses[1]) == {s.name for s in scans}
     assert max(np.abs(np.subtract(poses[1][k], poses[2][k])).max() for k in poses[1]) <= 1e-9
+
+
+def test_a_worker_keeps_a_bounded_number_of_scans(blob_files, monkeypatch):
+    """Past ``CACHED_SCANS`` the least recently used scan's inputs are dropped (and made
+    again when needed: the same poses)."""
+    from slscan.register import multiview
+
+    scans, _, perturbed = blob_files
+    here = register_scans(scans, initial_poses=perturbed)
+    monkeypatch.setattr(multiview, "CACHED_SCANS", 2)
+    assert _same(here, register_scans(scans, initial_poses=perturbed)) == 0.0
+    task = PairTask(run="bounded", i=0, j=1, scans=(scans[0], scans[1]), names=("view0", "view1"),
+                    n_vertices=(0, 0), init=None, first=PairwiseConfig(), fine=PairwiseConfig(),
+                    config=register_scans.__kwdefaults__["config"], spacing=1.0, feature_voxel=4.0)
+    for k in range(4):
+        multiview._cached(task, "clouds", k, lambda k=k: k)
+    assert sorted(multiview._cache["clouds"]) == [2, 3] and multiview._cache["used"] == [2, 3]
+    multiview._seed_cache(None, ())

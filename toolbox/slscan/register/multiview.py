@@ -778,28 +778,43 @@ class PairOutcome:
     verdict: str = ""
 
 
+CACHED_SCANS = 16
+"""A worker keeps the inputs (scan, ICP clouds, features) of at most this many scans, the
+ones it used last: its memory stays bounded however many scans a registration has, and
+after the registration (the helpers outlive it, into the next stages) it holds no more."""
+
 _cache_lock = threading.Lock()
-_cache: dict = {"run": None, "scans": {}, "clouds": {}, "features": {}}
+_cache: dict = {"run": None, "scans": {}, "clouds": {}, "features": {}, "used": [], "seeded": False}
 """This process's inputs of the registration under way: {scan index: RangeScan}, its
-clouds per ICP level and its features, each made once per process."""
+clouds per ICP level and its features, each made once per process; "used": the scan
+indices, least recently used first."""
 
 
 def _seed_cache(run: str | None, scans: Sequence[RangeScan]) -> None:
-    """Start this process's cache for ``run`` with the scans in hand (None: empty it)."""
+    """Start this process's cache for ``run`` with the scans in hand (None: empty it). The
+    caller's own scans are all kept (it holds them anyway)."""
     with _cache_lock:
-        _cache.update(run=run, scans=dict(enumerate(scans)), clouds={}, features={})
+        _cache.update(run=run, scans=dict(enumerate(scans)), clouds={}, features={}, used=[], seeded=True)
 
 
 def _cached(task: PairTask, kind: str, k: int, make: Callable[[], object]) -> object:
+    """``kind``'s entry for scan ``k`` in this process's cache, made by ``make`` when missing."""
     with _cache_lock:
         if _cache["run"] != task.run:
-            _cache.update(run=task.run, scans={}, clouds={}, features={})
+            _cache.update(run=task.run, scans={}, clouds={}, features={}, used=[], seeded=False)
+        if k in _cache["used"]:
+            _cache["used"].remove(k)
+        _cache["used"].append(k)
         if k in _cache[kind]:
             return _cache[kind][k]
     value = make()  # outside the lock: a Dask worker's threads make different scans' at once
     with _cache_lock:
         if _cache["run"] == task.run:
             _cache[kind].setdefault(k, value)
+            while len(_cache["used"]) > CACHED_SCANS:
+                old = _cache["used"].pop(0)
+                for entries in (_cache["clouds"], _cache["features"], {} if _cache["seeded"] else _cache["scans"]):
+                    entries.pop(old, None)
     return value
 
 
