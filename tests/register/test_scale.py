@@ -157,3 +157,26 @@ def test_a_worker_keeps_a_bounded_number_of_scans(blob_files, monkeypatch):
         multiview._cached(task, "clouds", k, lambda k=k: k)
     assert sorted(multiview._cache["clouds"]) == [2, 3] and multiview._cache["used"] == [2, 3]
     multiview._seed_cache(None, ())
+
+
+class _CountingExecutor(Executor):
+    """A fake executor: counts the tasks each map is given, then runs them as the real one."""
+
+    calls: list[int] = []
+
+    def map(self, fn, items):
+        items = list(items)
+        self.calls.append(len(items))
+        return super().map(fn, items)
+
+
+def test_the_recipe_register_stage_hands_its_pairs_to_the_run_executor(figurine_files, tmp_path):
+    from slscan.recipe.stages import RegisterConfig, StageContext, _run_register
+
+    scans, _ = figurine_files
+    folder = Path(scan_source(scans[0])[0]).parent
+    _CountingExecutor.calls.clear()
+    summary = _run_register(StageContext(out=tmp_path / "aligned", inputs={}, executor=_CountingExecutor(workers=2)),
+                            RegisterConfig(source=str(folder), use_poses=False))
+    assert summary["aligned"] == len(scans)
+    assert _CountingExecutor.calls == [len(scans) * (len(scans) - 1) // 2]  # every pair, free-hand
