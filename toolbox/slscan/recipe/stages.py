@@ -221,6 +221,7 @@ class SimplifyConfig:
 
 
 def _run_register(ctx: StageContext, config: RegisterConfig) -> dict[str, Any]:
+    from slscan.executor import LOCAL
     from slscan.register.command import check_joined, load_into, load_poses, load_scans, save_registration
     from slscan.register.multiview import median_pair_rmse, register_scans
 
@@ -250,7 +251,8 @@ def _run_register(ctx: StageContext, config: RegisterConfig) -> dict[str, Any]:
     rlog.log_registration_start(ctx.rec, scans, start.apply(poses) if start else poses)
     result = register_scans(scans, initial_poses=poses, reference=reference, progress=ctx.progress,
                             config=MultiviewConfig(pose_tolerance=config.pose_tolerance or None,
-                                                   max_neighbours=config.max_neighbours), fixed=held)
+                                                   max_neighbours=config.max_neighbours), fixed=held,
+                            executor=ctx.executor or LOCAL)
     check_joined(result, scans, Path(config.into or config.source or ctx.inputs.get("range_maps", "")))
     if not held:
         result, frame = to_object_frame(scans, result)

@@ -172,6 +172,7 @@ def save_registration(folder: Path, scans, result, *, overwrite: bool = False, f
 
 
 def _cmd_register(args: argparse.Namespace) -> int:
+    from slscan.executor import executor_from_args
     from slscan.register.frame import preview_frame, to_object_frame
     from slscan.register.multiview import MultiviewConfig, median_pair_rmse, register_scans
     from slscan.viewer import log_register as rlog
@@ -206,7 +207,8 @@ def _cmd_register(args: argparse.Namespace) -> int:
         n_pairs = len(scans) * (len(scans) - 1) // 2
         with ProgressBar(n_pairs + 1, "registering", args.quiet) as bar:
             result = register_scans(scans, initial_poses=poses, reference=args.reference, config=config,
-                                    progress=bar.step, on_total=lambda k: bar.set_total(k + 1), fixed=held)
+                                    progress=bar.step, on_total=lambda k: bar.set_total(k + 1), fixed=held,
+                                    executor=executor_from_args(args))
         check_joined(result, scans, args.scans)
         if held:  # the held poses are in the set's object frame already
             frame = old_frame
@@ -347,6 +349,7 @@ def _cmd_simplify(args: argparse.Namespace) -> int:
 
 def add_command(subparsers: argparse._SubParsersAction) -> None:
     """Add ``register``, ``fuse`` and ``simplify`` to the ``slscan`` subcommands."""
+    from slscan.executor import add_executor_arguments
     from slscan.viewer.recording import add_recording_arguments
 
     p = subparsers.add_parser(
@@ -396,6 +399,7 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_recording_arguments(p)
+    add_executor_arguments(p)  # the pairwise alignments run on helper processes or a Dask cluster
     p.set_defaults(func=_cmd_register)
 
     p = subparsers.add_parser(

@@ -37,6 +37,8 @@ from __future__ import annotations
 import itertools
 import logging
 import math
+import threading
+import uuid
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -47,6 +49,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from slscan.errors import SlscanError
+from slscan.executor import Executor
 from slscan.meshes import boundary_vertices
 from slscan.register.pairwise import (
     PairwiseConfig,
@@ -67,7 +70,7 @@ from slscan.register.pairwise import (
     scan_point_cloud,
     verify_alignment,
 )
-from slscan.register.rangescan import RangeScan
+from slscan.register.rangescan import RangeScan, scan_source
 
 log = logging.getLogger(__name__)
 
@@ -730,6 +733,167 @@ def refine_jointly(
     return poses, stats
 
 
+# --- pairwise alignments as tasks -----------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PairTask:
+    """One pairwise alignment of :func:`register_scans`, runnable in any process: this one,
+    a helper process or a Dask worker (:class:`slscan.executor.Executor`).
+
+    run : the registration it belongs to (a worker keeps that run's scans, coarse clouds
+        and features, and drops them when a task of another run arrives)
+    i, j : scan indices; the alignment is of scan i onto scan j
+    scans : per scan, (absolute path, units) of its file (:func:`scan_source`: the
+        worker loads it once), or the :class:`RangeScan` itself (made in memory: sent
+        with every task)
+    names, n_vertices : the two scans', to check what a worker loads
+    init : (4, 4) j_from_i from the recorded poses, or None: from features
+    first, fine : the ICP options of the pass (coarse levels; the check at full resolution)
+    spacing : mm, median sample spacing of the scans
+    feature_voxel : mm, voxel of the FPFH features
+    """
+
+    run: str
+    i: int
+    j: int
+    scans: tuple[tuple[str, str] | RangeScan, tuple[str, str] | RangeScan]
+    names: tuple[str, str]
+    n_vertices: tuple[int, int]
+    init: np.ndarray | None
+    first: PairwiseConfig
+    fine: PairwiseConfig
+    config: MultiviewConfig
+    spacing: float
+    feature_voxel: float
+
+
+@dataclass(frozen=True)
+class PairOutcome:
+    """What a :class:`PairTask` found: the alignment, and without poses its verification
+    and why it is rejected ("" when it holds; with poses the caller judges it)."""
+
+    result: PairwiseResult
+    check: Verification | None = None
+    verdict: str = ""
+
+
+CACHED_SCANS = 16
+"""A worker keeps the inputs (scan, ICP clouds, features) of at most this many scans, the
+ones it used last: its memory stays bounded however many scans a registration has, and
+after the registration (the helpers outlive it, into the next stages) it holds no more."""
+
+_cache_lock = threading.Lock()
+_cache: dict = {"run": None, "scans": {}, "clouds": {}, "features": {}, "used": [], "seeded": False}
+"""This process's inputs of the registration under way: {scan index: RangeScan}, its
+clouds per ICP level and its features, each made once per process; "used": the scan
+indices, least recently used first."""
+
+
+def _seed_cache(run: str | None, scans: Sequence[RangeScan]) -> None:
+    """Start this process's cache for ``run`` with the scans in hand (None: empty it). The
+    caller's own scans are all kept (it holds them anyway)."""
+    with _cache_lock:
+        _cache.update(run=run, scans=dict(enumerate(scans)), clouds={}, features={}, used=[], seeded=True)
+
+
+def _cached(task: PairTask, kind: str, k: int, make: Callable[[], object]) -> object:
+    """``kind``'s entry for scan ``k`` in this process's cache, made by ``make`` when missing."""
+    with _cache_lock:
+        if _cache["run"] != task.run:
+            _cache.update(run=task.run, scans={}, clouds={}, features={}, used=[], seeded=False)
+        if k in _cache["used"]:
+            _cache["used"].remove(k)
+        _cache["used"].append(k)
+        if k in _cache[kind]:
+            return _cache[kind][k]
+    value = make()  # outside the lock: a Dask worker's threads make different scans' at once
+    with _cache_lock:
+        if _cache["run"] == task.run:
+            _cache[kind].setdefault(k, value)
+            while len(_cache["used"]) > CACHED_SCANS:
+                old = _cache["used"].pop(0)
+                for entries in (_cache["clouds"], _cache["features"], {} if _cache["seeded"] else _cache["scans"]):
+                    entries.pop(old, None)
+    return value
+
+
+def _task_scan(task: PairTask, side: int) -> RangeScan:
+    """The task's scan ``side`` (0: i, 1: j), loaded once per process."""
+    ref, name, count = task.scans[side], task.names[side], task.n_vertices[side]
+
+    def load() -> RangeScan:
+        if isinstance(ref, RangeScan):
+            return ref
+        from slscan.register.rangescan import load_range_scan
+
+        path, units = ref
+        scan = load_range_scan(path, units=units)
+        if scan.name != name or scan.n_vertices != count:
+            raise SlscanError(f"{path}: a worker read scan {scan.name!r} of {scan.n_vertices} vertices, expected "
+                              f"{name!r} of {count}: the workers need the same files at the same paths")
+        return scan
+
+    return _cached(task, "scans", (task.i, task.j)[side], load)
+
+
+def align_pair_task(task: PairTask) -> PairOutcome:
+    """Run one :class:`PairTask` (the work :func:`register_scans` hands its executor): with
+    ``init``, multi-scale ICP from it (:func:`register_pair`); without, the best verified
+    alignment from feature hypotheses (:func:`feature_hypotheses`, seeded per hypothesis:
+    the same outcome in any process and order)."""
+    si, sj = _task_scan(task, 0), _task_scan(task, 1)
+    pw = task.config.pairwise
+    ci, cj = (_cached(task, "clouds", k,
+                      lambda s=s: scan_clouds(s, task.first.voxel_sizes, min_quality=pw.min_quality))
+              for k, s in ((task.i, si), (task.j, sj)))
+    if task.init is not None:
+        return PairOutcome(register_pair(si, sj, init=task.init, config=task.first, clouds=(ci, cj)))
+    fi, fj = (_cached(task, "features", k,
+                      lambda s=s: scan_features(s, task.feature_voxel, min_quality=pw.min_quality))
+              for k, s in ((task.i, si), (task.j, sj)))
+    return _freehand_pair(task, si, sj, (ci, cj), (fi, fj))
+
+
+def _freehand_pair(task: PairTask, si: RangeScan, sj: RangeScan, clouds: tuple, features: tuple) -> PairOutcome:
+    """The best verified alignment of scan i onto scan j from feature hypotheses, its
+    verification, and why it is rejected ("" when it holds)."""
+    config, spacing, pw = task.config, task.spacing, task.config.pairwise
+    icp = replace(task.first, initial_distance=None)
+    best: tuple[PairwiseResult, Verification | None, str] | None = None
+    tried: list[tuple[np.ndarray, bool]] = []
+    for hypothesis in feature_hypotheses(features, seeds=config.hypotheses,
+                                         ransac_iterations=pw.ransac_iterations, fgr=config.fgr):
+        res = refine_icp(si, sj, hypothesis, config=icp, clouds=clouds)
+        same = [passed for t, passed in tried if _close(res.transform, t, si, spacing)]
+        if same and same[0]:
+            break  # two hypotheses agree on an alignment that passed: no need for more
+        if same:
+            continue  # the same alignment as an earlier hypothesis's
+        coarse_transform = res.transform
+        verdict = _check_edge(res, config)
+        check = None
+        if not verdict:
+            # the residual at full resolution tells a right match (the scans' noise) from a
+            # wrong one that fits the coarse samples
+            res = refine_icp(si, sj, res.transform, config=task.fine, clouds=clouds)
+            verdict = _check_edge(res, config)
+        if not verdict:
+            check = verify_alignment(si, sj, res, spacing=spacing)
+            if check.violation > config.max_violation:
+                verdict = (f"{check.violation:.0%} of one scan lies where the other's sensor saw empty "
+                           f"space (> {config.max_violation:.0%}): a wrong match")
+        tried.append((coarse_transform, not verdict))
+        rank = (not verdict, -res.inlier_rmse if math.isfinite(res.inlier_rmse) else -math.inf)
+        if best is None or rank > (not best[2], -best[0].inlier_rmse
+                                   if math.isfinite(best[0].inlier_rmse) else -math.inf):
+            best = (res, check, verdict)
+    if best is None:
+        return PairOutcome(PairwiseResult(np.eye(4), 0.0, math.nan, success=False, reason="no features"), None,
+                           f"too few feature samples in {task.names[0]!r} or {task.names[1]!r}")
+    return PairOutcome(*best)
+
+
 # --- main entry -----------------------------------------------------------------------------------
 
 
@@ -742,6 +906,7 @@ def register_scans(
     progress: Callable[[str], None] | None = None,
     on_total: Callable[[int], None] | None = None,
     fixed: Sequence[str] = (),
+    executor: Executor | None = None,
 ) -> MultiviewResult:
     """Register N overlapping range scans into one frame.
 
@@ -783,6 +948,11 @@ def register_scans(
     fixed : scans whose ``initial_poses`` are exact and held (an existing registration
         that the other scans join, found from features against it); the reference is
         one of them
+    executor : where the pairwise alignments run (:class:`PairTask`, independent of each
+        other: local helper processes or a Dask cluster); the pose graph, loops and
+        verdicts run here. Scans loaded from files go to the workers as their paths (each
+        worker loads a scan once); the poses are the same wherever the pairs ran. None:
+        all in this process
 
     Returns
     -------
@@ -866,22 +1036,28 @@ def register_scans(
         initial_distance=pw.initial_distance or tolerance,
         voxel_sizes=pw.voxel_sizes or default_voxel_sizes(spacing, extent)[:-1] or (2 * spacing,),
     )
-    clouds = [scan_clouds(s, first.voxel_sizes, min_quality=pw.min_quality) for s in scans]
-    features: dict[int, ScanFeatures] = {}
-    if not all(have):
-        voxel = pw.feature_voxel or 4.0 * spacing
-        features = {
-            k: scan_features(s, voxel, min_quality=pw.min_quality) for k, s in enumerate(scans)
-        }
+    fine = replace(pw, voxel_sizes=(0.0,), initial_distance=2.0 * spacing, distance_factor=1.5,
+                   max_iterations=(30,))
+    feature_voxel = pw.feature_voxel or 4.0 * spacing
+    run = uuid.uuid4().hex
+    _seed_cache(run, scans)  # this process aligns pairs too: from the scans in hand
+    refs = [scan_source(s) or s for s in scans]
     edges: dict[tuple[int, int], PairwiseResult] = {}
 
     verified: dict[tuple[int, int], Verification] = {}
     freehand: set[tuple[int, int]] = set()
     exact: set[tuple[int, int]] = set()
 
-    def align(i: int, j: int) -> None:
-        """Align scan i onto scan j; an edge when it holds, else rejected with the reason."""
-        if i in held and j in held:
+    def task(i: int, j: int) -> PairTask:
+        return PairTask(run=run, i=i, j=j, scans=(refs[i], refs[j]), names=(names[i], names[j]),
+                        n_vertices=(scans[i].n_vertices, scans[j].n_vertices),
+                        init=np.linalg.inv(poses0[j]) @ poses0[i] if have[i] and have[j] else None,
+                        first=first, fine=fine, config=config, spacing=spacing, feature_voxel=feature_voxel)
+
+    def align(i: int, j: int, outcome: PairOutcome | None) -> None:
+        """Scan i onto scan j from its task's ``outcome`` (None: both poses held): an edge
+        when it holds, else rejected with the reason."""
+        if outcome is None:
             # both poses held: the pair is what they say, and closes loops through the others
             t = np.linalg.inv(poses0[j]) @ poses0[i]
             information = np.asarray(_reg.get_information_matrix_from_point_clouds(
@@ -889,96 +1065,58 @@ def register_scans(
             edges[(i, j)] = PairwiseResult(t, 1.0, 0.0, 100.0 * information, max_distance=coarse_voxel)
             exact.add((i, j))
             return
+        res = outcome.result
+        tick(f"{names[i]}-{names[j]}")
         if have[i] and have[j]:
-            init = np.linalg.inv(poses0[j]) @ poses0[i]
-            res = register_pair(scans[i], scans[j], init=init, config=first,
-                                clouds=(clouds[i], clouds[j]))
-            moved = _median_displacement(res.transform, init, world[i], poses0[i])
+            moved = _median_displacement(res.transform, np.linalg.inv(poses0[j]) @ poses0[i], world[i], poses0[i])
             if res and moved > 2 * tolerance:
-                tick(f"{names[i]}-{names[j]}")
                 rejected[(names[i], names[j])] = _rejected(
                     names[i], names[j], res,
                     f"ICP moved it {moved:.1f} mm from the recorded poses, more than twice their "
                     f"tolerance ({tolerance:.1f} mm): a slide along a symmetric surface",
                 )
                 return
-        else:
-            res, check, verdict = _freehand_pair(i, j)
-            tick(f"{names[i]}-{names[j]}")
+            verdict = _check_edge(res, config)
             if verdict:
                 rejected[(names[i], names[j])] = _rejected(names[i], names[j], res, verdict)
                 return
             edges[(i, j)] = res
-            verified[(i, j)] = check
-            freehand.add((i, j))
             return
-        tick(f"{names[i]}-{names[j]}")
-        verdict = _check_edge(res, config)
-        if verdict:
-            rejected[(names[i], names[j])] = _rejected(names[i], names[j], res, verdict)
+        if outcome.verdict:
+            rejected[(names[i], names[j])] = _rejected(names[i], names[j], res, outcome.verdict)
             return
         edges[(i, j)] = res
+        verified[(i, j)] = outcome.check
+        freehand.add((i, j))
 
-    def _freehand_pair(i: int, j: int) -> tuple[PairwiseResult, Verification | None, str]:
-        """The best verified alignment of scan i onto scan j from feature hypotheses, its
-        verification, and why it is rejected ("" when it holds)."""
-        icp = replace(first, initial_distance=None)
-        best: tuple[PairwiseResult, Verification | None, str] | None = None
-        tried: list[tuple[np.ndarray, bool]] = []
-        for hypothesis in feature_hypotheses((features[i], features[j]), seeds=config.hypotheses,
-                                             ransac_iterations=pw.ransac_iterations, fgr=config.fgr):
-            res = refine_icp(scans[i], scans[j], hypothesis, config=icp, clouds=(clouds[i], clouds[j]))
-            same = [passed for t, passed in tried if _close(res.transform, t, scans[i], spacing)]
-            if same and same[0]:
-                break  # two hypotheses agree on an alignment that passed: no need for more
-            if same:
-                continue  # the same alignment as an earlier hypothesis's
-            coarse_transform = res.transform
-            verdict = _check_edge(res, config)
-            check = None
-            if not verdict:
-                # the residual at full resolution tells a right match (the scans' noise) from a
-                # wrong one that fits the coarse samples
-                res = refine_icp(scans[i], scans[j], res.transform, config=fine, clouds=(clouds[i], clouds[j]))
-                verdict = _check_edge(res, config)
-            if not verdict:
-                check = verify_alignment(scans[i], scans[j], res, spacing=spacing)
-                if check.violation > config.max_violation:
-                    verdict = (f"{check.violation:.0%} of one scan lies where the other's sensor saw empty "
-                               f"space (> {config.max_violation:.0%}): a wrong match")
-            tried.append((coarse_transform, not verdict))
-            rank = (not verdict, -res.inlier_rmse if math.isfinite(res.inlier_rmse) else -math.inf)
-            if best is None or rank > (not best[2], -best[0].inlier_rmse
-                                       if math.isfinite(best[0].inlier_rmse) else -math.inf):
-                best = (res, check, verdict)
-        if best is None:
-            return (PairwiseResult(np.eye(4), 0.0, math.nan, success=False, reason="no features"), None,
-                    f"too few feature samples in {names[i]!r} or {names[j]!r}")
-        return best
-
-    fine = replace(pw, voxel_sizes=(0.0,), initial_distance=2.0 * spacing, distance_factor=1.5,
-                   max_iterations=(30,))
-    planned = sum(1 for i, j in itertools.combinations(range(n), 2)
-                  if (i, j) in chosen or not (have[i] and have[j]))
+    todo = [(i, j) for i, j in itertools.combinations(range(n), 2)
+            if (i, j) in chosen or not (have[i] and have[j])]
+    planned = len(todo)
     if on_total is not None:
         on_total(planned)
-    for i, j in itertools.combinations(range(n), 2):
-        if (i, j) in chosen or not (have[i] and have[j]):
-            align(i, j)
-    if prune:
-        # pairs that failed may leave the graph in pieces: try the best remaining
-        # candidates that would join them
-        parts = _Components()
-        for i, j in edges:
-            parts.join(i, j)
-        for i, j in sorted(set(candidates) - chosen, key=lambda key: (-candidates[key], key)):
-            if parts.find(i) != parts.find(j):
-                planned += 1
-                if on_total is not None:
-                    on_total(planned)
-                align(i, j)
-                if (i, j) in edges:
-                    parts.join(i, j)
+    # the pairs are independent: aligned wherever the executor runs them (in input order
+    # back here, so the result does not depend on where or in which order they ran)
+    tasks = [task(i, j) for i, j in todo if not (i in held and j in held)]
+    try:
+        outcomes = (executor or Executor(workers=1)).map(align_pair_task, tasks)
+        for i, j in todo:
+            align(i, j, None if i in held and j in held else next(outcomes))
+        if prune:
+            # pairs that failed may leave the graph in pieces: try the best remaining
+            # candidates that would join them (one at a time, here: each depends on the last)
+            parts = _Components()
+            for i, j in edges:
+                parts.join(i, j)
+            for i, j in sorted(set(candidates) - chosen, key=lambda key: (-candidates[key], key)):
+                if parts.find(i) != parts.find(j):
+                    planned += 1
+                    if on_total is not None:
+                        on_total(planned)
+                    align(i, j, None if i in held and j in held else align_pair_task(task(i, j)))
+                    if (i, j) in edges:
+                        parts.join(i, j)
+    finally:
+        _seed_cache(None, ())
 
     # 2b. residuals: a pair found from features is right when its residual at full resolution
     # is the scans' noise, as the best pairs' are (a wrong match leaves 1.5-3 times it)

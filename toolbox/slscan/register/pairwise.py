@@ -292,6 +292,10 @@ def coarse_align(
     return PairwiseResult(transform, fitness, float(result.inlier_rmse), max_distance=distance)
 
 
+FGR_SEED = 0
+"""Seed of open3d's generator for each pair's Fast Global Registration."""
+
+
 def feature_hypotheses(
     features: tuple[ScanFeatures, ScanFeatures],
     *,
@@ -309,6 +313,10 @@ def feature_hypotheses(
 
     features : the two scans' :func:`scan_features` (source, target)
 
+    Every hypothesis is seeded (FGR by :data:`FGR_SEED`, each RANSAC by its seed) and found
+    on one thread: the same two scans give the same hypotheses in any process, after any
+    other pair, on any number of cores.
+
     Yields (4, 4) float64 transforms; scans with fewer than 10 feature samples give none.
     """
     (src, src_f, sv), (tgt, tgt_f, tv) = ((f.cloud, f.features, f.voxel) for f in features)
@@ -316,21 +324,36 @@ def feature_hypotheses(
         return
     distance = 1.5 * max(sv, tv)
     if fgr:  # first: a tenth of a RANSAC's cost, and often the answer
-        result = _reg.registration_fgr_based_on_feature_matching(
+        # FGR draws from open3d's global generator: seeded, its hypothesis does not depend on
+        # what ran before it in this process (the pairs before, in whatever order they came)
+        o3d.utility.random.seed(FGR_SEED)
+        result = _on_one_thread(lambda: _reg.registration_fgr_based_on_feature_matching(
             src, tgt, src_f, tgt_f,
             _reg.FastGlobalRegistrationOption(maximum_correspondence_distance=distance),
-        )
+        ))
         yield np.asarray(result.transformation).copy()
     for k, seed in enumerate(seeds):
         o3d.utility.random.seed(int(seed))
-        result = _reg.registration_ransac_based_on_feature_matching(
+        result = _on_one_thread(lambda k=k: _reg.registration_ransac_based_on_feature_matching(
             src, tgt, src_f, tgt_f, k == 0, distance,
             _reg.TransformationEstimationPointToPoint(False), 3,
             [_reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
              _reg.CorrespondenceCheckerBasedOnDistance(distance)],
             _reg.RANSACConvergenceCriteria(int(ransac_iterations), 0.9999),
-        )
+        ))
         yield np.asarray(result.transformation).copy()
+
+
+def _on_one_thread(fn):
+    """``fn()`` with open3d on one thread: seeded, its RANSAC still gives different
+    hypotheses run to run on several threads (its early exit depends on which thread
+    finishes first; open3d issue 7475)."""
+    before = o3d.utility.get_max_threads()
+    o3d.utility.set_max_threads(1)
+    try:
+        return fn()
+    finally:
+        o3d.utility.set_max_threads(before)
 
 
 def _sensor_projection(scan: RangeScan):

@@ -20,6 +20,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import weakref
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -274,6 +275,22 @@ def boundary_ramp(grid: np.ndarray, referenced: np.ndarray, cells: float) -> np.
 # --- Stanford files ----------------------------------------------------------------------------
 
 
+_SOURCES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def scan_source(scan: RangeScan) -> tuple[str, str] | None:
+    """(absolute path, units) of the file ``scan`` was loaded from, as it was loaded
+    (:func:`load_range_scan` reads it again the same), or None for a scan made or changed
+    in memory. Registration's worker processes load scans from their files by this
+    rather than receiving the arrays with every pair."""
+    return _SOURCES.get(scan)
+
+
+def _loaded(scan: RangeScan, path: Path, units: str) -> RangeScan:
+    _SOURCES[scan] = (str(path.resolve()), units)
+    return scan
+
+
 def load_stanford_scan(
     path: str | os.PathLike,
     *,
@@ -351,7 +368,10 @@ def load_stanford_scan(
         used = np.zeros(len(points), bool)
         used[faces.reshape(-1)] = True
         quality *= np.clip(vertex["confidence"][used], 0.0, 1.0)
-    return replace(scan, quality=quality.astype(np.float32))
+    scan = replace(scan, quality=quality.astype(np.float32))
+    if max_edge_factor == 4.0 and ramp_cells == 8.0:  # as load_range_scan reads it
+        _loaded(scan, path, units)
+    return scan
 
 
 def load_bun_conf(path: str | os.PathLike, *, units: str = "m") -> dict[str, np.ndarray]:
@@ -662,7 +682,7 @@ def load_range_scan(
         r, cc = vertex["row"].astype(np.int64), vertex["col"].astype(np.int64)
         ok = (r >= 0) & (r < rows) & (cc >= 0) & (cc < cols)
         grid[r[ok], cc[ok]] = np.flatnonzero(ok)
-    return scan_from_mesh(
+    scan = scan_from_mesh(
         points,
         faces,
         view_direction=direction,
@@ -672,6 +692,7 @@ def load_range_scan(
         grid=grid,
         up_direction=up,
     )
+    return _loaded(scan, path, units) if view_direction is None else scan
 
 
 def write_range_scan(scan: RangeScan, path: str | os.PathLike) -> Path:
