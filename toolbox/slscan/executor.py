@@ -276,12 +276,14 @@ LOCAL = Executor()
 
 def add_executor_arguments(parser) -> None:
     """Add ``--workers N`` and ``--scheduler tcp://HOST:PORT`` to an argparse parser."""
-    group = parser.add_argument_group("scale-out", "per-view stages run in parallel over views")
-    group.add_argument("--workers", type=int, metavar="N", help="processes working on views, this one included (default: one per core); "
+    group = parser.add_argument_group(
+        "scale-out", "independent tasks (views; registration's pairs; simplification's bricks) run in parallel")
+    group.add_argument("--workers", type=int, metavar="N",
+                       help="processes working on tasks, this one included (default: one per core); "
                             "the others start once per run and are reused by every stage")
     group.add_argument("--scheduler", metavar="tcp://HOST:PORT",
-                       help="run per-view work on this Dask distributed cluster instead "
-                            "(its workers must see the same files)")
+                       help="run the tasks on this Dask distributed cluster instead "
+                            "(its workers must see the same files at the same paths)")
 
 
 def executor_from_args(args) -> Executor:
