@@ -42,6 +42,7 @@ References
 from __future__ import annotations
 
 import contextlib
+import itertools
 import logging
 import math
 import os
@@ -241,12 +242,16 @@ def height_map(
     *,
     pixel: float,
     weighting: str = "quality",
+    window: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> HeightMap:
     """Ray cast ``scan`` (placed by ``pose``, world_from_scan) into an orthographic height map.
 
     Rays run along -view direction from above the scan; a ray's height is the first
     surface it meets, its weight the scan's quality interpolated there (or 1 with
     ``weighting="uniform"``). Hits on faces turned away from the sensor are dropped.
+    window : (lo, hi) (3,) world box, mm: only the pixels whose rays pass through it
+        (and two around them) are cast, the others see no surface; the map's grid and
+        the pixels cast are those of the whole map (a brick of :func:`fuse_bricks`).
     """
     import open3d as o3d
     import open3d.core as o3c
@@ -275,11 +280,19 @@ def height_map(
     height = np.full((rows, cols), np.nan, np.float32)
     weight = np.zeros((rows, cols), np.float32)
     quality = scan.quality.astype(np.float32)
-    band = max(1, 4_000_000 // cols)
-    for r_start in range(0, rows, band):
-        r_stop = min(rows, r_start + band)
-        rr, cc = np.mgrid[r_start:r_stop, 0:cols]
-        rays = np.zeros((r_stop - r_start, cols, 6), np.float32)
+    r_lo, r_hi, c_lo, c_hi = 0, rows, 0, cols
+    if window is not None:
+        corners = np.stack(np.meshgrid(*zip(window[0], window[1]), indexing="ij"), -1).reshape(-1, 3)
+        px = ((corners @ frame.T)[:, :2] - origin_local[:2]) / pixel
+        c_lo, c_hi = max(0, math.floor(px[:, 0].min()) - 2), min(cols, math.ceil(px[:, 0].max()) + 3)
+        r_lo, r_hi = max(0, math.floor(px[:, 1].min()) - 2), min(rows, math.ceil(px[:, 1].max()) + 3)
+        if c_lo >= c_hi:
+            r_hi = r_lo
+    band = max(1, 4_000_000 // max(c_hi - c_lo, 1))
+    for r_start in range(r_lo, r_hi, band):
+        r_stop = min(r_hi, r_start + band)
+        rr, cc = np.mgrid[r_start:r_stop, c_lo:c_hi]
+        rays = np.zeros((r_stop - r_start, c_hi - c_lo, 6), np.float32)
         rays[..., 0] = cc * pixel
         rays[..., 1] = rr * pixel
         rays[..., 2] = top
@@ -288,9 +301,9 @@ def height_map(
         t = hit["t_hit"].numpy()
         ok = np.isfinite(t) & (hit["primitive_normals"].numpy()[..., 2] > 0)
         h = np.where(ok, top - t, np.nan).astype(np.float32)
-        height[r_start:r_stop] = h
+        height[r_start:r_stop, c_lo:c_hi] = h
         if weighting == "uniform":
-            weight[r_start:r_stop] = ok.astype(np.float32)
+            weight[r_start:r_stop, c_lo:c_hi] = ok.astype(np.float32)
         else:
             prim = hit["primitive_ids"].numpy()[ok].astype(np.int64)
             uv = hit["primitive_uvs"].numpy()[ok]
@@ -302,7 +315,7 @@ def height_map(
             )
             w = np.zeros(ok.shape, np.float32)
             w[ok] = np.clip(q, 0.0, 1.0)
-            weight[r_start:r_stop] = w
+            weight[r_start:r_stop, c_lo:c_hi] = w
     origin = origin_local @ frame
     return HeightMap(frame=frame, origin=origin, pixel=float(pixel), height=height, weight=weight)
 
@@ -607,7 +620,7 @@ class TsdfVolume:
         if n == 0:
             return Mesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.float32))
         if n <= MAX_EXTRACT_BLOCKS:
-            return _mesh_arrays(self.grid.extract_triangle_mesh(weight_threshold=float(min_weight)))
+            return _extract(self.grid, min_weight)
         buf = hashmap.active_buf_indices().numpy().astype(np.int64)
         keys = hashmap.key_tensor().numpy()[buf].astype(np.int64)
         order = np.argsort(keys[:, 0], kind="stable")
@@ -652,7 +665,7 @@ class TsdfVolume:
             grid.attribute("weight").numpy().reshape(-1, BLOCK_RESOLUTION**3)[new_buf] = weight[
                 group_buf
             ]
-            mesh = _mesh_arrays(grid.extract_triangle_mesh(weight_threshold=float(min_weight)))
+            mesh = _extract(grid, min_weight)
             del grid
             if mesh.n_faces:
                 centroid_x = mesh.vertices[mesh.faces].mean(axis=1)[:, 0]
@@ -675,6 +688,17 @@ class TsdfVolume:
             block_count=max(int(block_count), 1),
             device=o3c.Device("CPU:0"),
         )
+
+
+def _extract(grid, min_weight: float) -> Mesh:
+    """open3d's marching cubes of ``grid``; an empty mesh where its blocks hold no surface
+    (open3d raises then, on the empty colour tensor it makes)."""
+    try:
+        return _mesh_arrays(grid.extract_triangle_mesh(weight_threshold=float(min_weight)))
+    except RuntimeError as exc:
+        if "has shape {0}" not in str(exc):
+            raise
+        return Mesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.float32))
 
 
 def _mesh_arrays(mesh) -> Mesh:
@@ -788,6 +812,7 @@ def fuse_scans(
     expected_blocks: int | None = None,
     progress: Callable[[str], None] | None = None,
     executor: Executor | None = None,
+    progress_total: Callable[[int], None] | None = None,
 ) -> FusionResult:
     """Fuse aligned range scans into one mesh with a weighted TSDF (Curless & Levoy [1]_).
 
@@ -802,6 +827,7 @@ def fuse_scans(
     progress : called with the scan's name after each scan is integrated (with
         ``config.brick_size``: with the brick's name after each brick)
     executor : where the bricks run when ``config.brick_size`` is set (None: this process)
+    progress_total : called with the number of bricks before the first runs (progress bars)
 
     Returns
     -------
@@ -816,7 +842,8 @@ def fuse_scans(
     if config.brick_size is not None:
         if not isinstance(scans, Sequence):
             scans = list(scans)
-        return fuse_bricks(scans, poses, config=config, executor=executor, progress=progress)
+        return fuse_bricks(scans, poses, config=config, executor=executor, progress=progress,
+                           progress_total=progress_total)
     if config.weighting not in ("quality", "uniform"):
         raise SlscanError(f"weighting {config.weighting!r}: expected 'quality' or 'uniform'")
     voxel = float(config.voxel_size)
@@ -906,17 +933,16 @@ def _size(n_bytes: float) -> str:
 def _brick_blocks(
     scans: Sequence[RangeScan], poses: Mapping[str, np.ndarray], *, voxel: float, truncation: float,
     edge: int,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Bricks of ``edge`` blocks a side that hold blocks of the scans (estimated from their
-    vertices, as :func:`estimate_blocks`): (b, 3) int64 brick coordinates with core blocks,
-    and (b,) the blocks each allocates, its one-block halo included."""
+) -> dict[tuple[int, int, int], int]:
+    """The blocks each brick of ``edge`` blocks a side will allocate, its one-block halo
+    included, estimated from the scans' vertices as :func:`estimate_blocks` does:
+    {brick coordinates: blocks}."""
     block = voxel * BLOCK_RESOLUTION
     keys = np.zeros(0, np.int64)
     for scan in scans:
         keys = np.union1d(keys, _block_keys(scan.transformed_vertices(poses[scan.name]), block,
                                             truncation * voxel))
     coords = _key_coords(keys).astype(np.int64)
-    core = np.unique(np.floor_divide(coords, edge), axis=0)
     # a block is in the halo of the bricks of its neighbours one block away
     pairs = []
     for d in np.stack(np.meshgrid(*([np.array([-1, 0, 1])] * 3), indexing="ij"), -1).reshape(-1, 3):
@@ -927,8 +953,7 @@ def _brick_blocks(
     order = np.unique(np.stack([pair_keys, block_ids], 1), axis=0)
     bricks, counts = np.unique(order[:, 0], return_counts=True)
     brick_coords = _key_coords(bricks).astype(np.int64)
-    lookup = {tuple(b): int(c) for b, c in zip(brick_coords.tolist(), counts)}
-    return core, np.array([lookup[tuple(b)] for b in core.tolist()], np.int64)
+    return {tuple(b): int(c) for b, c in zip(brick_coords.tolist(), counts)}
 
 
 def _fuse_brick(task: _BrickTask) -> _BrickResult:
@@ -941,10 +966,16 @@ def _fuse_brick(task: _BrickTask) -> _BrickResult:
     volume = TsdfVolume(voxel, truncation=config.truncation,
                         block_count=int(task.expected_blocks * 1.05) + 16)
     reach = (task.lo - 1, task.hi + 1)
+    # the rays that can reach the brick's blocks: the block keys of a surface point span
+    # the truncation distance around it, and a voxel samples the four pixels around it
+    margin = config.truncation * voxel + 2 * pixel
+    block = voxel * BLOCK_RESOLUTION
+    window = (reach[0] * block - margin, reach[1] * block + margin)
     seconds = {"height_maps": 0.0, "integrate": 0.0, "extract": 0.0}
     for scan in task.scans:
         t0 = time.perf_counter()
-        depth = height_map(scan, task.poses[scan.name], pixel=pixel, weighting=config.weighting)
+        depth = height_map(scan, task.poses[scan.name], pixel=pixel, weighting=config.weighting,
+                           window=window)
         t1 = time.perf_counter()
         volume.integrate(depth, chunk_blocks=config.chunk_blocks, block_range=reach)
         seconds["height_maps"] += t1 - t0
@@ -1000,6 +1031,21 @@ def _stitch(meshes: Sequence[Mesh], *, plane_spacing: float, voxel: float) -> Me
     return Mesh(v, f, nrm)
 
 
+def parse_memory(text: str) -> float:
+    """GiB in a memory size such as "4GiB", "512MiB", "2.5G", "800M" or "4" (GiB)."""
+    units = {"gib": 1.0, "gb": 1.0, "g": 1.0, "mib": 2**-10, "mb": 2**-10, "m": 2**-10, "": 1.0}
+    t = text.strip().lower()
+    number = t.rstrip("abcdefghijklmnopqrstuvwxyz ")
+    unit = t[len(number):].strip()
+    try:
+        value = float(number) * units[unit]
+    except (KeyError, ValueError):
+        raise SlscanError(f"memory size {text!r}: expected a size such as 4GiB or 512MiB") from None
+    if not (math.isfinite(value) and value > 0):
+        raise SlscanError(f"memory size {text!r}: expected a positive size such as 4GiB")
+    return value
+
+
 def fuse_bricks(
     scans: Sequence[RangeScan],
     poses: Mapping[str, np.ndarray],
@@ -1007,6 +1053,7 @@ def fuse_bricks(
     config: FuseConfig,
     executor: Executor | None = None,
     progress: Callable[[str], None] | None = None,
+    progress_total: Callable[[int], None] | None = None,
 ) -> FusionResult:
     """:func:`fuse_scans` in spatial bricks, each a task on ``executor``, under a memory cap.
 
@@ -1033,6 +1080,7 @@ def fuse_bricks(
     executor : :class:`slscan.executor.Executor` (local processes or a Dask cluster); None:
         in this process
     progress : called with the brick's name, e.g. "brick (2, 0, 1)", as each is done
+    progress_total : called with the number of bricks before the first runs
 
     Raises
     ------
@@ -1052,28 +1100,37 @@ def fuse_bricks(
         raise SlscanError(f"no pose for scans {missing}")
     block = voxel * BLOCK_RESOLUTION
     edge = max(1, round(brick / block))
-    core, needs = _brick_blocks(scans, poses, voxel=voxel, truncation=config.truncation, edge=edge)
+    needs = _brick_blocks(scans, poses, voxel=voxel, truncation=config.truncation, edge=edge)
     limit = config.max_memory_gib * 2**30
-    for b, n in zip(core.tolist(), needs.tolist()):
+    for b, n in sorted(needs.items()):
         if grid_memory_bytes(n) > limit:
             raise SlscanError(
-                f"brick {tuple(b)} needs {_size(grid_memory_bytes(n))}, the cap is "
+                f"brick {b} needs {_size(grid_memory_bytes(n))}, the cap is "
                 f"{config.max_memory_gib:g} GiB: lower --brick (now {brick:g} mm)"
             )
+    # the bricks and their scans from the scans' bounds, not their vertices: a long
+    # triangle's ray hits can reach blocks that none of its vertices does
     reach = config.truncation * voxel
     bounds = []
     for scan in scans:
         world = scan.transformed_vertices(poses[scan.name])
         bounds.append((world.min(axis=0) - reach, world.max(axis=0) + reach))
+    span = edge * block
+    bricks = set()
+    for a, z in bounds:
+        first, last = np.floor(a / span).astype(int), np.floor(z / span).astype(int)
+        bricks.update(itertools.product(*(range(f, t + 1) for f, t in zip(first, last))))
     tasks = []
-    for b, n in zip(core, needs):
-        lo, hi = b * edge, (b + 1) * edge
+    for b in sorted(bricks):
+        lo, hi = np.array(b, np.int64) * edge, (np.array(b, np.int64) + 1) * edge
         box_lo, box_hi = (lo - 1) * block, (hi + 1) * block
         mine = tuple(s for s, (a, z) in zip(scans, bounds) if np.all(a <= box_hi) and np.all(z >= box_lo))
-        tasks.append(_BrickTask(tuple(int(x) for x in b), lo, hi, mine,
-                                {s.name: np.asarray(poses[s.name], np.float64) for s in mine},
-                                config, int(n)))
+        if mine:
+            tasks.append(_BrickTask(b, lo, hi, mine, {s.name: np.asarray(poses[s.name], np.float64) for s in mine},
+                                    config, needs.get(b, 0)))
     log.info("fusing in %d bricks of %d blocks (%.3g mm) a side", len(tasks), edge, edge * block)
+    if progress_total is not None:
+        progress_total(len(tasks))
     results = []
     runner = executor.map if executor is not None else map
     for result in runner(_fuse_brick, tasks):
