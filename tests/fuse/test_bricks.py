@@ -75,3 +75,29 @@ def test_a_cap_too_small_for_a_brick_names_it(sphere_views):
     with pytest.raises(SlscanError, match=r"^brick \(-?\d+, -?\d+, -?\d+\) needs \d+ MiB, the cap is "
                                           r"0.0001 GiB: lower --brick \(now 12.8 mm\)$"):
         fuse_bricks(scans, poses, config=config)
+
+
+def test_fuse_command_in_bricks(sphere_views, single, tmp_path, capsys):
+    """`slscan fuse --brick MM --workers 1` writes the single-volume mesh; a --max-memory too
+    small for a brick is one line naming it, exit 2, nothing written."""
+    from slscan.cli import main
+    from slscan.fuse import read_mesh
+    from slscan.register.meshlab import write_scan_project
+
+    scans, poses = sphere_views
+    aligned = write_scan_project(tmp_path / "aligned", scans, poses)
+    out = tmp_path / "fused.ply"
+    assert main(["fuse", str(aligned), "--voxel", str(VOXEL), "--brick", "12.8", "--workers", "1",
+                 "--out", str(out), "--quiet"]) == 0
+    mesh = read_mesh(out)
+    assert mesh.n_faces == single.n_faces
+    np.testing.assert_allclose(mesh.vertices, single.vertices, rtol=0, atol=1e-5)
+    capsys.readouterr()
+    small = tmp_path / "small.ply"
+    assert main(["fuse", str(aligned), "--voxel", str(VOXEL), "--brick", "12.8", "--max-memory", "0.1MiB",
+                 "--out", str(small), "--quiet"]) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert "needs" in err and "the cap is 9.8e-05 GiB: lower --brick (now 12.8 mm)" in err
+    assert not small.exists() and not small.with_suffix(".mlp").exists()
+    assert main(["fuse", str(aligned), "--brick", "12.8", "--max-memory", "lots", "--out", str(small)]) == 2
+    assert "memory size 'lots': expected a size such as 4GiB" in capsys.readouterr().err
