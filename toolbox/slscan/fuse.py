@@ -924,10 +924,12 @@ class _BrickResult:
 
 
 def _size(n_bytes: float) -> str:
-    """``n_bytes`` for people: "5.1 GiB", "12 MiB"."""
+    """``n_bytes`` for people: "5.1 GiB", "12 MiB", "40 KiB"."""
     if n_bytes >= 2**30 / 10:
         return f"{n_bytes / 2**30:.1f} GiB"
-    return f"{n_bytes / 2**20:.0f} MiB"
+    if n_bytes >= 2**20:
+        return f"{n_bytes / 2**20:.0f} MiB"
+    return f"{n_bytes / 2**10:.0f} KiB"
 
 
 def _brick_blocks(
@@ -984,7 +986,7 @@ def _fuse_brick(task: _BrickTask) -> _BrickResult:
         if grid_memory_bytes(volume.n_blocks) > limit:
             raise SlscanError(
                 f"brick {task.index} grew to {_size(grid_memory_bytes(volume.n_blocks))}, the cap is "
-                f"{config.max_memory_gib:g} GiB: lower --brick (now {config.brick_size:g} mm)"
+                f"{_size(limit)}: lower --brick (now {config.brick_size:g} mm)"
             )
     t0 = time.perf_counter()
     mesh = volume.extract_mesh(min_weight=config.min_weight)
@@ -1106,7 +1108,7 @@ def fuse_bricks(
         if grid_memory_bytes(n) > limit:
             raise SlscanError(
                 f"brick {b} needs {_size(grid_memory_bytes(n))}, the cap is "
-                f"{config.max_memory_gib:g} GiB: lower --brick (now {brick:g} mm)"
+                f"{_size(limit)}: lower --brick (now {brick:g} mm)"
             )
     # the bricks and their scans from the scans' bounds, not their vertices: a long
     # triangle's ray hits can reach blocks that none of its vertices does
