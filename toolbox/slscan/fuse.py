@@ -958,6 +958,15 @@ def _brick_blocks(
     return {tuple(b): int(c) for b, c in zip(brick_coords.tolist(), counts)}
 
 
+def _bricks_over(first: np.ndarray, last: np.ndarray) -> set[tuple[int, int, int]]:
+    """Bricks ``first <= b <= last`` of any row of (k, 3) brick coordinates (floats)."""
+    ranges = np.unique(np.concatenate([first, last], axis=1).astype(np.int64), axis=0)
+    out: set[tuple[int, int, int]] = set()
+    for row in ranges.tolist():
+        out.update(itertools.product(*(range(row[a], row[a + 3] + 1) for a in range(3))))
+    return out
+
+
 def _fuse_brick(task: _BrickTask) -> _BrickResult:
     """Integrate the brick's scans into its core blocks and a one-block halo around them, and
     mesh it; keep the triangles of the marching cubes in the core (a task on a worker)."""
@@ -1110,26 +1119,23 @@ def fuse_bricks(
                 f"brick {b} needs {_size(grid_memory_bytes(n))}, the cap is "
                 f"{_size(limit)}: lower --brick (now {brick:g} mm)"
             )
-    # the bricks and their scans from the scans' bounds, not their vertices: a long
+    # the bricks and their scans from the scans' triangles, not their vertices: a long
     # triangle's ray hits can reach blocks that none of its vertices does
     reach = config.truncation * voxel
-    bounds = []
-    for scan in scans:
-        world = scan.transformed_vertices(poses[scan.name])
-        bounds.append((world.min(axis=0) - reach, world.max(axis=0) + reach))
     span = edge * block
-    bricks = set()
-    for a, z in bounds:
-        first, last = np.floor(a / span).astype(int), np.floor(z / span).astype(int)
-        bricks.update(itertools.product(*(range(f, t + 1) for f, t in zip(first, last))))
+    core: set[tuple[int, int, int]] = set()
+    reached = []
+    for scan in scans:
+        tri = scan.transformed_vertices(poses[scan.name])[scan.faces]
+        lo_mm, hi_mm = tri.min(axis=1) - reach, tri.max(axis=1) + reach
+        core |= _bricks_over(np.floor(lo_mm / span), np.floor(hi_mm / span))
+        reached.append(_bricks_over(np.floor((lo_mm - block) / span), np.floor((hi_mm + block) / span)))
     tasks = []
-    for b in sorted(bricks):
+    for b in sorted(core):
         lo, hi = np.array(b, np.int64) * edge, (np.array(b, np.int64) + 1) * edge
-        box_lo, box_hi = (lo - 1) * block, (hi + 1) * block
-        mine = tuple(s for s, (a, z) in zip(scans, bounds) if np.all(a <= box_hi) and np.all(z >= box_lo))
-        if mine:
-            tasks.append(_BrickTask(b, lo, hi, mine, {s.name: np.asarray(poses[s.name], np.float64) for s in mine},
-                                    config, needs.get(b, 0)))
+        mine = tuple(s for s, bricks in zip(scans, reached) if b in bricks)
+        tasks.append(_BrickTask(b, lo, hi, mine, {s.name: np.asarray(poses[s.name], np.float64) for s in mine},
+                                config, needs.get(b, 0)))
     log.info("fusing in %d bricks of %d blocks (%.3g mm) a side", len(tasks), edge, edge * block)
     if progress_total is not None:
         progress_total(len(tasks))
