@@ -48,6 +48,7 @@ import math
 import os
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -1139,12 +1140,22 @@ def fuse_bricks(
     log.info("fusing in %d bricks of %d blocks (%.3g mm) a side", len(tasks), edge, edge * block)
     if progress_total is not None:
         progress_total(len(tasks))
-    results = []
+    done: dict[tuple[int, int, int], _BrickResult] = {}
     runner = executor.map if executor is not None else map
-    for result in runner(_fuse_brick, tasks):
-        results.append(result)
-        if progress is not None:
-            progress(f"brick {result.index}")
+    for attempt in (1, 2):  # a local helper process that dies: its bricks are run once more
+        pending = [t for t in tasks if t.index not in done]
+        try:
+            for result in runner(_fuse_brick, pending):
+                done[result.index] = result
+                if progress is not None:
+                    progress(f"brick {result.index}")
+        except SlscanError as exc:
+            if attempt == 2 or not isinstance(exc.__context__, BrokenProcessPool):
+                raise
+            log.warning("a worker process died; running its %d brick(s) again", len(tasks) - len(done))
+            continue
+        break
+    results = [done[t.index] for t in tasks]
     seconds = {k: sum(r.seconds[k] for r in results) for k in ("height_maps", "integrate", "extract")}
     t0 = time.perf_counter()
     mesh = canonical_order(_stitch([r.mesh for r in results], plane_spacing=edge * block, voxel=voxel))
