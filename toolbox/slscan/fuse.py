@@ -42,17 +42,20 @@ References
 from __future__ import annotations
 
 import contextlib
+import itertools
 import logging
 import math
 import os
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from slscan.errors import SlscanError
+from slscan.executor import Executor
 from slscan.fsio import atomic_output_file, native_stderr_silenced
 from slscan.meshes import MESH_SUFFIXES, check_face_indices, check_finite_vertices, read_ply_mesh
 from slscan.register.rangescan import RangeScan
@@ -111,7 +114,11 @@ class FuseConfig:
     """Blocks updated at once (memory of the update: about chunk_blocks × 512 × 60 bytes;
     small enough to stay in the CPU's cache, which is faster than larger chunks)."""
     max_memory_gib: float = 10.0
-    """Refuse (SlscanError) when the voxel grid would need more than this."""
+    """Refuse (SlscanError) when the voxel grid would need more than this; with
+    ``brick_size``, the cap of each brick (one task on one worker)."""
+    brick_size: float | None = None
+    """Fuse in cubic bricks of about this edge (mm, rounded to whole 8-voxel blocks), each a
+    task on the executor (:func:`fuse_bricks`); None: one volume in this process."""
 
 
 @dataclass(frozen=True)
@@ -132,6 +139,9 @@ class FusionResult:
     grid_bytes: int
     n_scans: int
     seconds: dict[str, float] = field(default_factory=dict)
+    n_bricks: int = 1
+    """Bricks fused (:func:`fuse_bricks`; n_blocks and grid_bytes are then summed over
+    them, halo blocks included, and n_scans counts a scan once per brick it reaches)."""
 
 
 # --- height maps ----------------------------------------------------------------------------------
@@ -233,12 +243,16 @@ def height_map(
     *,
     pixel: float,
     weighting: str = "quality",
+    window: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> HeightMap:
     """Ray cast ``scan`` (placed by ``pose``, world_from_scan) into an orthographic height map.
 
     Rays run along -view direction from above the scan; a ray's height is the first
     surface it meets, its weight the scan's quality interpolated there (or 1 with
     ``weighting="uniform"``). Hits on faces turned away from the sensor are dropped.
+    window : (lo, hi) (3,) world box, mm: only the pixels whose rays pass through it
+        (and two around them) are cast, the others see no surface; the map's grid and
+        the pixels cast are those of the whole map (a brick of :func:`fuse_bricks`).
     """
     import open3d as o3d
     import open3d.core as o3c
@@ -267,11 +281,19 @@ def height_map(
     height = np.full((rows, cols), np.nan, np.float32)
     weight = np.zeros((rows, cols), np.float32)
     quality = scan.quality.astype(np.float32)
-    band = max(1, 4_000_000 // cols)
-    for r_start in range(0, rows, band):
-        r_stop = min(rows, r_start + band)
-        rr, cc = np.mgrid[r_start:r_stop, 0:cols]
-        rays = np.zeros((r_stop - r_start, cols, 6), np.float32)
+    r_lo, r_hi, c_lo, c_hi = 0, rows, 0, cols
+    if window is not None:
+        corners = np.stack(np.meshgrid(*zip(window[0], window[1]), indexing="ij"), -1).reshape(-1, 3)
+        px = ((corners @ frame.T)[:, :2] - origin_local[:2]) / pixel
+        c_lo, c_hi = max(0, math.floor(px[:, 0].min()) - 2), min(cols, math.ceil(px[:, 0].max()) + 3)
+        r_lo, r_hi = max(0, math.floor(px[:, 1].min()) - 2), min(rows, math.ceil(px[:, 1].max()) + 3)
+        if c_lo >= c_hi:
+            r_hi = r_lo
+    band = max(1, 4_000_000 // max(c_hi - c_lo, 1))
+    for r_start in range(r_lo, r_hi, band):
+        r_stop = min(r_hi, r_start + band)
+        rr, cc = np.mgrid[r_start:r_stop, c_lo:c_hi]
+        rays = np.zeros((r_stop - r_start, c_hi - c_lo, 6), np.float32)
         rays[..., 0] = cc * pixel
         rays[..., 1] = rr * pixel
         rays[..., 2] = top
@@ -280,9 +302,9 @@ def height_map(
         t = hit["t_hit"].numpy()
         ok = np.isfinite(t) & (hit["primitive_normals"].numpy()[..., 2] > 0)
         h = np.where(ok, top - t, np.nan).astype(np.float32)
-        height[r_start:r_stop] = h
+        height[r_start:r_stop, c_lo:c_hi] = h
         if weighting == "uniform":
-            weight[r_start:r_stop] = ok.astype(np.float32)
+            weight[r_start:r_stop, c_lo:c_hi] = ok.astype(np.float32)
         else:
             prim = hit["primitive_ids"].numpy()[ok].astype(np.int64)
             uv = hit["primitive_uvs"].numpy()[ok]
@@ -294,7 +316,7 @@ def height_map(
             )
             w = np.zeros(ok.shape, np.float32)
             w[ok] = np.clip(q, 0.0, 1.0)
-            weight[r_start:r_stop] = w
+            weight[r_start:r_stop, c_lo:c_hi] = w
     origin = origin_local @ frame
     return HeightMap(frame=frame, origin=origin, pixel=float(pixel), height=height, weight=weight)
 
@@ -460,7 +482,12 @@ class TsdfVolume:
         return int(self.grid.hashmap().size())
 
     def integrate(
-        self, depth: HeightMap, *, chunk_blocks: int = 256, compiled: bool | None = None
+        self,
+        depth: HeightMap,
+        *,
+        chunk_blocks: int = 256,
+        compiled: bool | None = None,
+        block_range: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> None:
         """Add one scan's height map to the volume (see the module docstring).
 
@@ -468,6 +495,9 @@ class TsdfVolume:
             the ``fast`` extra) or in numpy, whose results are the same bit for bit;
             None: the kernel when numba is installed and either this process has loaded
             it already or the volume has updated :data:`COMPILED_FROM_BLOCKS` blocks.
+        block_range : (lo, hi) (3,) int block coordinates: only the blocks with
+            ``lo <= coords < hi`` are allocated and updated (a brick of
+            :func:`fuse_bricks`); each is updated exactly as without the range.
         """
         points = depth.surface_points()
         if len(points) == 0:
@@ -476,6 +506,12 @@ class TsdfVolume:
         res3 = BLOCK_RESOLUTION**3
         coords = _key_coords(_block_keys(points, self.voxel_size * BLOCK_RESOLUTION, trunc))
         del points
+        if block_range is not None:
+            lo, hi = block_range
+            coords = coords[np.all((coords >= lo) & (coords < hi), axis=1)]
+            if len(coords) == 0:
+                self.n_scans += 1
+                return
         buf = self._blocks(coords)
         # voxel (x, y, z) of a block sits at (block * res + (x, y, z)) * voxel_size; in the
         # map's frame (pixels across, mm along d) that is a per-block offset plus a
@@ -585,7 +621,7 @@ class TsdfVolume:
         if n == 0:
             return Mesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.float32))
         if n <= MAX_EXTRACT_BLOCKS:
-            return _mesh_arrays(self.grid.extract_triangle_mesh(weight_threshold=float(min_weight)))
+            return _extract(self.grid, min_weight)
         buf = hashmap.active_buf_indices().numpy().astype(np.int64)
         keys = hashmap.key_tensor().numpy()[buf].astype(np.int64)
         order = np.argsort(keys[:, 0], kind="stable")
@@ -630,7 +666,7 @@ class TsdfVolume:
             grid.attribute("weight").numpy().reshape(-1, BLOCK_RESOLUTION**3)[new_buf] = weight[
                 group_buf
             ]
-            mesh = _mesh_arrays(grid.extract_triangle_mesh(weight_threshold=float(min_weight)))
+            mesh = _extract(grid, min_weight)
             del grid
             if mesh.n_faces:
                 centroid_x = mesh.vertices[mesh.faces].mean(axis=1)[:, 0]
@@ -653,6 +689,17 @@ class TsdfVolume:
             block_count=max(int(block_count), 1),
             device=o3c.Device("CPU:0"),
         )
+
+
+def _extract(grid, min_weight: float) -> Mesh:
+    """open3d's marching cubes of ``grid``; an empty mesh where its blocks hold no surface
+    (open3d raises then, on the empty colour tensor it makes)."""
+    try:
+        return _mesh_arrays(grid.extract_triangle_mesh(weight_threshold=float(min_weight)))
+    except RuntimeError as exc:
+        if "has shape {0}" not in str(exc):
+            raise
+        return Mesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.float32))
 
 
 def _mesh_arrays(mesh) -> Mesh:
@@ -765,6 +812,8 @@ def fuse_scans(
     config: FuseConfig = FuseConfig(),
     expected_blocks: int | None = None,
     progress: Callable[[str], None] | None = None,
+    executor: Executor | None = None,
+    progress_total: Callable[[int], None] | None = None,
 ) -> FusionResult:
     """Fuse aligned range scans into one mesh with a weighted TSDF (Curless & Levoy [1]_).
 
@@ -776,7 +825,10 @@ def fuse_scans(
     poses : {name: (4, 4) world_from_scan} for every scan, mm
     config : FuseConfig
     expected_blocks : block capacity to allocate when ``scans`` is not a sequence
-    progress : called with the scan's name after each scan is integrated
+    progress : called with the scan's name after each scan is integrated (with
+        ``config.brick_size``: with the brick's name after each brick)
+    executor : where the bricks run when ``config.brick_size`` is set (None: this process)
+    progress_total : called with the number of bricks before the first runs (progress bars)
 
     Returns
     -------
@@ -788,6 +840,11 @@ def fuse_scans(
     SlscanError
         A scan without a pose, bad options, or a grid larger than ``max_memory_gib``.
     """
+    if config.brick_size is not None:
+        if not isinstance(scans, Sequence):
+            scans = list(scans)
+        return fuse_bricks(scans, poses, config=config, executor=executor, progress=progress,
+                           progress_total=progress_total)
     if config.weighting not in ("quality", "uniform"):
         raise SlscanError(f"weighting {config.weighting!r}: expected 'quality' or 'uniform'")
     voxel = float(config.voxel_size)
@@ -837,6 +894,275 @@ def fuse_scans(
     return FusionResult(
         mesh, volume.n_blocks, grid_memory_bytes(volume.n_blocks), volume.n_scans, seconds
     )
+
+
+# --- fusion in bricks -----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class _BrickTask:
+    """One brick of :func:`fuse_bricks`: its core blocks ``lo <= coords < hi`` (int (3,)),
+    the scans that reach it (in the caller's order) and their poses."""
+
+    index: tuple[int, int, int]
+    lo: np.ndarray
+    hi: np.ndarray
+    scans: tuple[RangeScan, ...]
+    poses: dict[str, np.ndarray]
+    config: FuseConfig
+    expected_blocks: int
+
+
+@dataclass(frozen=True, eq=False)
+class _BrickResult:
+    """A brick's triangles (those of the marching cubes in its core) and its grid's size."""
+
+    index: tuple[int, int, int]
+    mesh: Mesh
+    n_blocks: int
+    n_scans: int
+    seconds: dict[str, float]
+
+
+def _size(n_bytes: float) -> str:
+    """``n_bytes`` for people: "5.1 GiB", "12 MiB", "40 KiB"."""
+    if n_bytes >= 2**30 / 10:
+        return f"{n_bytes / 2**30:.1f} GiB"
+    if n_bytes >= 2**20:
+        return f"{n_bytes / 2**20:.0f} MiB"
+    return f"{n_bytes / 2**10:.0f} KiB"
+
+
+def _brick_blocks(
+    scans: Sequence[RangeScan], poses: Mapping[str, np.ndarray], *, voxel: float, truncation: float,
+    edge: int,
+) -> dict[tuple[int, int, int], int]:
+    """The blocks each brick of ``edge`` blocks a side will allocate, its one-block halo
+    included, estimated from the scans' vertices as :func:`estimate_blocks` does:
+    {brick coordinates: blocks}."""
+    block = voxel * BLOCK_RESOLUTION
+    keys = np.zeros(0, np.int64)
+    for scan in scans:
+        keys = np.union1d(keys, _block_keys(scan.transformed_vertices(poses[scan.name]), block,
+                                            truncation * voxel))
+    coords = _key_coords(keys).astype(np.int64)
+    # a block is in the halo of the bricks of its neighbours one block away
+    pairs = []
+    for d in np.stack(np.meshgrid(*([np.array([-1, 0, 1])] * 3), indexing="ij"), -1).reshape(-1, 3):
+        brick = np.floor_divide(coords + d, edge) + 2**20
+        pairs.append((brick[:, 0] << 42) | (brick[:, 1] << 21) | brick[:, 2])
+    pair_keys = np.concatenate(pairs)
+    block_ids = np.tile(np.arange(len(coords)), 27)
+    order = np.unique(np.stack([pair_keys, block_ids], 1), axis=0)
+    bricks, counts = np.unique(order[:, 0], return_counts=True)
+    brick_coords = _key_coords(bricks).astype(np.int64)
+    return {tuple(b): int(c) for b, c in zip(brick_coords.tolist(), counts)}
+
+
+def _bricks_over(first: np.ndarray, last: np.ndarray) -> set[tuple[int, int, int]]:
+    """Bricks ``first <= b <= last`` of any row of (k, 3) brick coordinates (floats)."""
+    ranges = np.unique(np.concatenate([first, last], axis=1).astype(np.int64), axis=0)
+    out: set[tuple[int, int, int]] = set()
+    for row in ranges.tolist():
+        out.update(itertools.product(*(range(row[a], row[a + 3] + 1) for a in range(3))))
+    return out
+
+
+def _fuse_brick(task: _BrickTask) -> _BrickResult:
+    """Integrate the brick's scans into its core blocks and a one-block halo around them, and
+    mesh it; keep the triangles of the marching cubes in the core (a task on a worker)."""
+    config = task.config
+    voxel = float(config.voxel_size)
+    pixel = config.pixel_size or voxel
+    limit = config.max_memory_gib * 2**30
+    volume = TsdfVolume(voxel, truncation=config.truncation,
+                        block_count=int(task.expected_blocks * 1.05) + 16)
+    reach = (task.lo - 1, task.hi + 1)
+    # the rays that can reach the brick's blocks: the block keys of a surface point span
+    # the truncation distance around it, and a voxel samples the four pixels around it
+    margin = config.truncation * voxel + 2 * pixel
+    block = voxel * BLOCK_RESOLUTION
+    window = (reach[0] * block - margin, reach[1] * block + margin)
+    seconds = {"height_maps": 0.0, "integrate": 0.0, "extract": 0.0}
+    for scan in task.scans:
+        t0 = time.perf_counter()
+        depth = height_map(scan, task.poses[scan.name], pixel=pixel, weighting=config.weighting,
+                           window=window)
+        t1 = time.perf_counter()
+        volume.integrate(depth, chunk_blocks=config.chunk_blocks, block_range=reach)
+        seconds["height_maps"] += t1 - t0
+        seconds["integrate"] += time.perf_counter() - t1
+        del depth
+        if grid_memory_bytes(volume.n_blocks) > limit:
+            raise SlscanError(
+                f"brick {task.index} grew to {_size(grid_memory_bytes(volume.n_blocks))}, the cap is "
+                f"{_size(limit)}: lower --brick (now {config.brick_size:g} mm)"
+            )
+    t0 = time.perf_counter()
+    mesh = volume.extract_mesh(min_weight=config.min_weight)
+    n_blocks = volume.n_blocks
+    del volume
+    if mesh.n_faces:
+        block_size = voxel * BLOCK_RESOLUTION
+        # a triangle lies in its marching cube: its centroid names the cube's block, computed
+        # from the same float32 vertices by both bricks beside a shared face
+        block = np.floor(mesh.vertices[mesh.faces].mean(axis=1) / block_size + 1e-9).astype(np.int64)
+        keep = np.all((block >= task.lo) & (block < task.hi), axis=1)
+        used, faces = np.unique(mesh.faces[keep], return_inverse=True)
+        mesh = Mesh(mesh.vertices[used], faces.reshape(-1, 3),
+                    None if mesh.normals is None else mesh.normals[used])
+    seconds["extract"] = time.perf_counter() - t0
+    return _BrickResult(task.index, mesh, n_blocks, len(task.scans), seconds)
+
+
+def _stitch(meshes: Sequence[Mesh], *, plane_spacing: float, voxel: float) -> Mesh:
+    """Join brick meshes: vertices on the brick planes (coordinates on multiples of
+    ``plane_spacing`` mm) equal as float32 are merged; the others are left as they are."""
+    vertices, faces, normals = [], [], []
+    offset = 0
+    for mesh in meshes:
+        vertices.append(mesh.vertices)
+        faces.append(mesh.faces + offset)
+        normals.append(mesh.normals if mesh.normals is not None
+                       else np.zeros((mesh.n_vertices, 3), np.float32))
+        offset += mesh.n_vertices
+    if not vertices:
+        return Mesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.float32))
+    v, f, nrm = np.concatenate(vertices), np.concatenate(faces), np.concatenate(normals)
+    ratio = v / plane_spacing
+    on_plane = np.any(np.abs(ratio - np.round(ratio)) * plane_spacing < 1e-3 * voxel, axis=1)
+    candidates = np.flatnonzero(on_plane)
+    if len(candidates):
+        rows = np.ascontiguousarray(v[candidates].astype(np.float32)).view(np.dtype((np.void, 12))).ravel()
+        _, first, inverse = np.unique(rows, return_index=True, return_inverse=True)
+        target = np.arange(len(v))
+        target[candidates] = candidates[first[inverse.ravel()]]
+        f = target[f]
+        used, f = np.unique(f, return_inverse=True)
+        v, nrm, f = v[used], nrm[used], f.reshape(-1, 3)
+    return Mesh(v, f, nrm)
+
+
+def parse_memory(text: str) -> float:
+    """GiB in a memory size such as "4GiB", "512MiB", "2.5G", "800M" or "4" (GiB)."""
+    units = {"gib": 1.0, "gb": 1.0, "g": 1.0, "mib": 2**-10, "mb": 2**-10, "m": 2**-10, "": 1.0}
+    t = text.strip().lower()
+    number = t.rstrip("abcdefghijklmnopqrstuvwxyz ")
+    unit = t[len(number):].strip()
+    try:
+        value = float(number) * units[unit]
+    except (KeyError, ValueError):
+        raise SlscanError(f"memory size {text!r}: expected a size such as 4GiB or 512MiB") from None
+    if not (math.isfinite(value) and value > 0):
+        raise SlscanError(f"memory size {text!r}: expected a positive size such as 4GiB")
+    return value
+
+
+def fuse_bricks(
+    scans: Sequence[RangeScan],
+    poses: Mapping[str, np.ndarray],
+    *,
+    config: FuseConfig,
+    executor: Executor | None = None,
+    progress: Callable[[str], None] | None = None,
+    progress_total: Callable[[int], None] | None = None,
+) -> FusionResult:
+    """:func:`fuse_scans` in spatial bricks, each a task on ``executor``, under a memory cap.
+
+    The volume is cut into cubes of ``config.brick_size`` mm rounded to whole 8-voxel
+    blocks, so brick faces lie on voxel planes. A brick integrates, in the order of
+    ``scans``, the scans whose bounds (grown by the truncation distance) reach it, into
+    its own blocks and a one-block halo around them (the marching cubes on its upper faces
+    need the next voxels; the normals, the gradient on both sides); every voxel gets the
+    same float32 updates, in the same order, as in one volume. Each brick keeps the
+    triangles of the marching cubes in its core; the caller stitches them, merging the
+    vertices on brick faces (the same float32 positions, computed from the same voxels by
+    both bricks). The result is the single-volume mesh, in :func:`canonical_order`.
+
+    Memory: before anything runs, each brick's blocks (halo included) are estimated from
+    the scans' vertices; a brick whose grid (:func:`grid_memory_bytes`) would exceed
+    ``config.max_memory_gib`` is refused, naming it. A worker process holds one brick's
+    grid, the height map of one scan and the brick's mesh at a time.
+
+    Parameters
+    ----------
+    scans : RangeScan, each in its own frame (mm); they travel to the workers with the task
+    poses : {name: (4, 4) world_from_scan}, mm
+    config : FuseConfig with ``brick_size`` (mm) set
+    executor : :class:`slscan.executor.Executor` (local processes or a Dask cluster); None:
+        in this process
+    progress : called with the brick's name, e.g. "brick (2, 0, 1)", as each is done
+    progress_total : called with the number of bricks before the first runs
+
+    Raises
+    ------
+    SlscanError
+        A scan without a pose, bad options, or a brick that cannot fit under the cap.
+    """
+    if config.weighting not in ("quality", "uniform"):
+        raise SlscanError(f"weighting {config.weighting!r}: expected 'quality' or 'uniform'")
+    voxel = float(config.voxel_size)
+    if not (math.isfinite(voxel) and voxel > 0):
+        raise SlscanError(f"voxel size must be a positive number of mm, got {voxel}")
+    brick = config.brick_size
+    if brick is None or not (math.isfinite(brick) and brick > 0):
+        raise SlscanError(f"brick size must be a positive number of mm, got {brick}")
+    missing = [s.name for s in scans if s.name not in poses]
+    if missing:
+        raise SlscanError(f"no pose for scans {missing}")
+    block = voxel * BLOCK_RESOLUTION
+    edge = max(1, round(brick / block))
+    needs = _brick_blocks(scans, poses, voxel=voxel, truncation=config.truncation, edge=edge)
+    limit = config.max_memory_gib * 2**30
+    for b, n in sorted(needs.items()):
+        if grid_memory_bytes(n) > limit:
+            raise SlscanError(
+                f"brick {b} needs {_size(grid_memory_bytes(n))}, the cap is "
+                f"{_size(limit)}: lower --brick (now {brick:g} mm)"
+            )
+    # the bricks and their scans from the scans' triangles, not their vertices: a long
+    # triangle's ray hits can reach blocks that none of its vertices does
+    reach = config.truncation * voxel
+    span = edge * block
+    core: set[tuple[int, int, int]] = set()
+    reached = []
+    for scan in scans:
+        tri = scan.transformed_vertices(poses[scan.name])[scan.faces]
+        lo_mm, hi_mm = tri.min(axis=1) - reach, tri.max(axis=1) + reach
+        core |= _bricks_over(np.floor(lo_mm / span), np.floor(hi_mm / span))
+        reached.append(_bricks_over(np.floor((lo_mm - block) / span), np.floor((hi_mm + block) / span)))
+    tasks = []
+    for b in sorted(core):
+        lo, hi = np.array(b, np.int64) * edge, (np.array(b, np.int64) + 1) * edge
+        mine = tuple(s for s, bricks in zip(scans, reached) if b in bricks)
+        tasks.append(_BrickTask(b, lo, hi, mine, {s.name: np.asarray(poses[s.name], np.float64) for s in mine},
+                                config, needs.get(b, 0)))
+    log.info("fusing in %d bricks of %d blocks (%.3g mm) a side", len(tasks), edge, edge * block)
+    if progress_total is not None:
+        progress_total(len(tasks))
+    done: dict[tuple[int, int, int], _BrickResult] = {}
+    runner = executor.map if executor is not None else map
+    for attempt in (1, 2):  # a local helper process that dies: its bricks are run once more
+        pending = [t for t in tasks if t.index not in done]
+        try:
+            for result in runner(_fuse_brick, pending):
+                done[result.index] = result
+                if progress is not None:
+                    progress(f"brick {result.index}")
+        except SlscanError as exc:
+            if attempt == 2 or not isinstance(exc.__context__, BrokenProcessPool):
+                raise
+            log.warning("a worker process died; running its %d brick(s) again", len(tasks) - len(done))
+            continue
+        break
+    results = [done[t.index] for t in tasks]
+    seconds = {k: sum(r.seconds[k] for r in results) for k in ("height_maps", "integrate", "extract")}
+    t0 = time.perf_counter()
+    mesh = canonical_order(_stitch([r.mesh for r in results], plane_spacing=edge * block, voxel=voxel))
+    seconds["stitch"] = time.perf_counter() - t0
+    n_blocks = sum(r.n_blocks for r in results)
+    return FusionResult(mesh, n_blocks, grid_memory_bytes(n_blocks), sum(r.n_scans for r in results),
+                        seconds, n_bricks=len(results))
 
 
 # --- screened Poisson (pymeshlab) -----------------------------------------------------------------

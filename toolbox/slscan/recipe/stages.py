@@ -274,7 +274,10 @@ def _run_fuse(ctx: StageContext, config) -> dict[str, Any]:
     scans, poses = load_scan_project(ctx.inputs["aligned"] / "aligned.mlp")
     from slscan.viewer.log_register import log_fused_mesh
 
-    result = fuse_scans(scans, poses, config=config, progress=ctx.progress)
+    from slscan.executor import LOCAL
+
+    # with fuse.brick_size the bricks run on the run's executor (--workers, --scheduler)
+    result = fuse_scans(scans, poses, config=config, progress=ctx.progress, executor=ctx.executor or LOCAL)
     with atomic_output_dir(ctx.out, overwrite=True) as tmp:
         write_mesh(result.mesh, tmp / "mesh.ply")
         write_mesh_project(tmp / "mesh.ply")  # mesh.mlp: MeshLab opens the model upright

@@ -287,7 +287,8 @@ def load_into(into: Path, new_scans: list, *, allow_outside: bool = False):
 
 
 def _cmd_fuse(args: argparse.Namespace) -> int:
-    from slscan.fuse import FuseConfig, fuse_scans, poisson_reconstruct, write_mesh
+    from slscan.executor import executor_from_args
+    from slscan.fuse import FuseConfig, fuse_scans, parse_memory, poisson_reconstruct, write_mesh
     from slscan.register.meshlab import write_mesh_project
     from slscan.viewer import log_register as rlog
     from slscan.viewer.layouts import register_blueprint
@@ -296,6 +297,8 @@ def _cmd_fuse(args: argparse.Namespace) -> int:
     if not (math.isfinite(args.voxel) and args.voxel > 0):
         raise SlscanError(f"--voxel must be a positive number of mm, got {args.voxel}")
     _check_mesh_out(args.out, args.overwrite)
+    config = FuseConfig(voxel_size=args.voxel, brick_size=args.brick,
+                        **({"max_memory_gib": parse_memory(args.max_memory)} if args.max_memory else {}))
     scans, poses = load_scans(args.aligned, allow_outside=args.allow_outside)
     if poses is None:
         raise SlscanError(f"{args.aligned}: the scans have no poses; run `slscan register` first")
@@ -303,7 +306,8 @@ def _cmd_fuse(args: argparse.Namespace) -> int:
     with recording_from_args(args, recording_name=f"fuse {args.aligned.name}", blueprint=register_blueprint()) as rec:
         with ProgressBar(len(scans), f"fusing ({args.method})", args.quiet) as bar:
             if args.method == "tsdf":
-                mesh = fuse_scans(scans, poses, config=FuseConfig(voxel_size=args.voxel), progress=bar.step).mesh
+                mesh = fuse_scans(scans, poses, config=config, progress=bar.step, progress_total=bar.set_total,
+                                  executor=executor_from_args(args)).mesh
             else:
                 mesh = poisson_reconstruct(scans, poses, voxel_size=args.voxel)
         rlog.log_fused_mesh(rec, mesh)
@@ -415,11 +419,18 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
                    help="mesh file to write (PLY); a MeshLab project OUT.mlp opening it is written beside")
     p.add_argument("--voxel", type=float, default=0.57, help="voxel size, mm (default 0.57, the paper's)")
     p.add_argument("--method", choices=("tsdf", "poisson"), default="tsdf", help="default: tsdf")
+    p.add_argument("--brick", type=float, metavar="MM",
+                   help="fuse in cubic bricks of about MM mm a side (whole 8-voxel blocks), each a task "
+                        "for --workers or --scheduler; the same mesh as one volume (default: one volume)")
+    p.add_argument("--max-memory", metavar="SIZE",
+                   help="memory cap of the voxel grid, e.g. 4GiB; with --brick, per brick (per worker); "
+                        "a brick that cannot fit is named before anything runs (default 10GiB)")
     p.add_argument("--allow-outside", action="store_true",
                    help="read mesh files the .mlp names outside its folder (each is named in a warning)")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_recording_arguments(p)
+    add_executor_arguments(p)
     p.set_defaults(func=_cmd_fuse)
 
     p = subparsers.add_parser(
