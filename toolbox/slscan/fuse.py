@@ -805,6 +805,18 @@ def _weld(pieces: list[tuple[Mesh, np.ndarray, float]], voxel_size: float) -> Me
     return Mesh(v, f, nrm)
 
 
+def _integrate_scan(volume: TsdfVolume, scan, pose: np.ndarray, pixel: float, config: FuseConfig,
+                    seconds: dict[str, float], *, window=None, block_range=None) -> None:
+    """Cast one scan's height map (within ``window``) and add it to ``volume`` (its blocks in
+    ``block_range``), adding the times to ``seconds["height_maps"]`` and ``["integrate"]``."""
+    t0 = time.perf_counter()
+    depth = height_map(scan, pose, pixel=pixel, weighting=config.weighting, window=window)
+    t1 = time.perf_counter()
+    volume.integrate(depth, chunk_blocks=config.chunk_blocks, block_range=block_range)
+    seconds["height_maps"] += t1 - t0
+    seconds["integrate"] += time.perf_counter() - t1
+
+
 def fuse_scans(
     scans: Iterable[RangeScan],
     poses: Mapping[str, np.ndarray],
@@ -873,13 +885,7 @@ def fuse_scans(
     for scan in scans:
         if scan.name not in poses:
             raise SlscanError(f"no pose for scan {scan.name!r}")
-        t0 = time.perf_counter()
-        depth = height_map(scan, poses[scan.name], pixel=pixel, weighting=config.weighting)
-        t1 = time.perf_counter()
-        volume.integrate(depth, chunk_blocks=config.chunk_blocks)
-        seconds["height_maps"] += t1 - t0
-        seconds["integrate"] += time.perf_counter() - t1
-        del depth
+        _integrate_scan(volume, scan, poses[scan.name], pixel, config, seconds)
         if grid_memory_bytes(volume.n_blocks) > limit:
             raise SlscanError(
                 f"fusion grid grew past max_memory_gib {config.max_memory_gib:g} "
@@ -985,14 +991,8 @@ def _fuse_brick(task: _BrickTask) -> _BrickResult:
     window = (reach[0] * block - margin, reach[1] * block + margin)
     seconds = {"height_maps": 0.0, "integrate": 0.0, "extract": 0.0}
     for scan in task.scans:
-        t0 = time.perf_counter()
-        depth = height_map(scan, task.poses[scan.name], pixel=pixel, weighting=config.weighting,
-                           window=window)
-        t1 = time.perf_counter()
-        volume.integrate(depth, chunk_blocks=config.chunk_blocks, block_range=reach)
-        seconds["height_maps"] += t1 - t0
-        seconds["integrate"] += time.perf_counter() - t1
-        del depth
+        _integrate_scan(volume, scan, task.poses[scan.name], pixel, config, seconds, window=window,
+                        block_range=reach)
         if grid_memory_bytes(volume.n_blocks) > limit:
             raise SlscanError(
                 f"brick {task.index} grew to {_size(grid_memory_bytes(volume.n_blocks))}, the cap is "
