@@ -71,14 +71,16 @@ def log_lit_image(
     shadow, highlight : (h, w) bool, where this light was left out as shadowed / rejected
         as a highlight
     frame_index : the image's frame in its view (its place in ``session.json``)
+    light : the ring light's index, or -1 for the projector as the light (the white frame)
     """
     if rec is None:
         return
-    image = _check_image(image, f"lit image of light {light}")
+    source = "the projector (white frame)" if light < 0 else f"light {light}"  # -1: the projector as light
+    image = _check_image(image, f"lit image of {source}")
     for name, mask in (("shadow", shadow), ("highlight", highlight)):
         if mask is not None and mask.shape != image.shape[:2]:
             raise SlscanError(
-                f"{name} mask of light {light} is {mask.shape}, the image {image.shape[:2]}"
+                f"{name} mask of {source} is {mask.shape}, the image {image.shape[:2]}"
             )
     _set_view(rec, view_index, frame_index)
     rec.log(f"{ALBEDO_PATH}/lit", rr.Image(_to_uint8(image)).compress(jpeg_quality=JPEG_QUALITY))
@@ -88,7 +90,7 @@ def log_lit_image(
         rec.log(f"{ALBEDO_PATH}/highlight", _overlay(highlight, HIGHLIGHT_COLOR))
     rec.log(
         ALBEDO_LOG_PATH,
-        rr.TextLog(f"view {view_index} · frame {frame_index} · light {light}", level="INFO"),
+        rr.TextLog(f"view {view_index} · frame {frame_index} · {source}", level="INFO"),
     )
 
 
