@@ -506,6 +506,18 @@ PEAK_NEAR = 0.9
 exposure (peak 68 %) where it was, 17 points under the 85 % the docs promise."""
 
 
+def shoot_once(projector: Projector, camera: Camera, image: np.ndarray | None, *, settle_s: float,
+               label: str) -> np.ndarray:
+    """Show ``image`` (None: blank), wait ``settle_s``, and capture one fresh frame; ``label``
+    tells a camera that must be triggered by hand what the shot is. The camera's pixels."""
+    projector.blank() if image is None else projector.show(image)
+    if settle_s:
+        time.sleep(settle_s)
+    camera.flush()
+    camera.about_to_capture(label)
+    return camera.capture().image
+
+
 def find_exposure(
     projector: Projector,
     camera: Camera,
@@ -538,12 +550,7 @@ def find_exposure(
         for name, img in (("black", None), ("white", white_img), ("finest pattern", lines_img)):
             if img is None and shots:
                 continue
-            projector.blank() if img is None else projector.show(img)
-            if settle_s:
-                time.sleep(settle_s)
-            camera.flush()
-            camera.about_to_capture(f"exposure check, {name}")
-            shots.append(camera.capture().image)
+            shots.append(shoot_once(projector, camera, img, settle_s=settle_s, label=f"exposure check, {name}"))
         dark, white = shots[0], shots[1]
         lines = shots[2] if len(shots) > 2 else None
         clipped, peak = _exposure_stats(white, lines, dark)

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from slscan.capture.driver import shoot_once
 from slscan.devices.base import Camera, DeviceError, Projector
 
 log = logging.getLogger(__name__)
@@ -134,12 +135,7 @@ def measure_once(
     t0 = time.monotonic()
     shots = []
     for name, image in (("black", None), ("white", white), ("stripes", stripes), ("inverse stripes", inverse)):
-        projector.blank() if image is None else projector.show(image)
-        if settle_s:
-            time.sleep(settle_s)
-        camera.flush()
-        camera.about_to_capture(f"preview, {name}")
-        shots.append(camera.capture().image)
+        shots.append(shoot_once(projector, camera, image, settle_s=settle_s, label=f"preview, {name}"))
     return preview_measures(*shots, tiles=tiles, seconds=time.monotonic() - t0)
 
 
