@@ -72,8 +72,9 @@ def add_command(subparsers) -> None:
         description="Calibrate the ring lights once per rig: fit each light's position (mm, rig "
         "frame) and RGB intensity, and the ambient light, to the irradiance a matte "
         "panel of known reflectance shows at known poses (nonlinear least squares). "
-        "The session's views must record the panel's pose; the panel is described by "
-        "SESSION/light_panel.json or --panel-* options.",
+        "The panel's pose comes from the session (the virtual rig records it) or, on a real "
+        "rig, from a plane fitted to each view's range map (--range-maps); the panel is "
+        "described by SESSION/light_panel.json or --panel-* options.",
         epilog="example:\n  slscan calibrate-lights lights-session --out lights.json",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
