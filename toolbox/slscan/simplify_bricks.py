@@ -264,7 +264,7 @@ def parse_memory(text: str) -> int:
         value = float(num) * units[s[len(num):].strip()]
     except (ValueError, KeyError):
         raise SlscanError(f"--max-memory {text!r}: expected a size like 4GiB, 512MiB or 2e9") from None
-    if value <= 0:
+    if not 0 < value < float("inf"):  # NaN and inf too: int() of them would raise
         raise SlscanError(f"--max-memory {text!r}: must be positive")
     return int(value)
 
