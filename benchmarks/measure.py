@@ -62,12 +62,17 @@ def _rss_bytes(pid: int) -> int:
 
 def tree_rss_bytes(root: int) -> int:
     """Resident memory of process ``root`` and all its descendants now, bytes."""
-    tree, total, todo = _children(), 0, [root]
+    return sum(tree_rss_by_pid(root).values())
+
+
+def tree_rss_by_pid(root: int, tree: dict[int, list[int]] | None = None) -> dict[int, int]:
+    """{pid: resident memory now, bytes} of process ``root`` and all its descendants."""
+    tree, out, todo = tree if tree is not None else _children(), {}, [root]
     while todo:
         pid = todo.pop()
-        total += _rss_bytes(pid)
+        out[pid] = _rss_bytes(pid)
         todo.extend(tree.get(pid, ()))
-    return total
+    return out
 
 
 @dataclass
@@ -77,6 +82,8 @@ class Measured:
     peak_bytes: int  # largest sampled sum over the process tree
     stdout: str
     stderr: str
+    peak_main_bytes: int = 0  # largest sampled resident memory of the command's own process
+    peak_other_bytes: int = 0  # of any one other process (a helper, a Dask worker)
 
 
 def run_measured(command: list[str], *, interval: float = 0.1, extra_pids: Sequence[int] = (),
@@ -90,13 +97,19 @@ def run_measured(command: list[str], *, interval: float = 0.1, extra_pids: Seque
     """
     t0 = time.perf_counter()
     proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kwargs)
-    peak = 0
+    peak = peak_main = peak_other = 0
     done = threading.Event()
 
     def sample() -> None:
-        nonlocal peak
+        nonlocal peak, peak_main, peak_other
         while not done.is_set():
-            peak = max(peak, tree_rss_bytes(proc.pid) + sum(tree_rss_bytes(pid) for pid in extra_pids))
+            tree = _children()
+            rss = tree_rss_by_pid(proc.pid, tree)
+            for pid in extra_pids:
+                rss.update(tree_rss_by_pid(pid, tree))
+            peak = max(peak, sum(rss.values()))
+            peak_main = max(peak_main, rss.get(proc.pid, 0))
+            peak_other = max([peak_other, *(v for k, v in rss.items() if k != proc.pid)])
             done.wait(interval)
 
     sampler = threading.Thread(target=sample, daemon=True)
@@ -104,7 +117,7 @@ def run_measured(command: list[str], *, interval: float = 0.1, extra_pids: Seque
     stdout, stderr = proc.communicate()
     done.set()
     sampler.join()
-    return Measured(proc.returncode, time.perf_counter() - t0, peak, stdout, stderr)
+    return Measured(proc.returncode, time.perf_counter() - t0, peak, stdout, stderr, peak_main, peak_other)
 
 
 def kamino410_gray_views(src: Path):

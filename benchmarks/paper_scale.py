@@ -195,7 +195,7 @@ class DaskCluster:
     """A local Dask cluster: single-threaded worker processes, their CPU and memory
     measured from outside (they are not children of the stage's process)."""
 
-    def __init__(self, workers: int, threads: int = 1) -> None:
+    def __init__(self, workers: int, threads: int = 1, memory_limit: str | None = None) -> None:
         import dask
         from distributed import LocalCluster
 
@@ -205,8 +205,9 @@ class DaskCluster:
         env = {f"distributed.nanny.pre-spawn-environ.{k}": threads
                for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
         with dask.config.set(env if threads != 1 else {}):
+            # memory_limit: Dask's nanny restarts a worker past 95 % of it (the task is retried)
             self.cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                        dashboard_address=None)
+                                        dashboard_address=None, **({"memory_limit": memory_limit} if memory_limit else {}))
         self.address = self.cluster.scheduler_address
 
     def pids(self) -> list[int]:

@@ -1,0 +1,315 @@
+"""The paper's statue beyond one process: fusion in bricks at 0.57 mm against one volume,
+the statue at 0.25 mm on a Dask cluster whose workers are capped, and an extrapolation
+to campaigns larger than this machine.
+
+    python benchmarks/paper_scale.py --work /work/ps146              # the 146 views, once (decode, register, ...)
+    python benchmarks/statue_bricks.py compare --work /work/ps146    # 0.57 mm: one volume, bricks, bricks on Dask
+    python benchmarks/statue_bricks.py capped --work /work/ps146 --voxel 0.25 --worker-memory 4GiB
+    python benchmarks/statue_bricks.py capped --work /work/ps146 --voxel 0.57 --worker-memory 4GiB
+    python benchmarks/statue_bricks.py table --work /work/ps146      # every stored table + the extrapolation
+
+Each way runs the real ``slscan`` commands in their own processes on ``paper_scale.py``'s
+local run (``WORK/runs/local``: its registration, albedo and capture):
+
+**compare** fuses the aligned range maps at ``--voxel`` (0.57 mm) three ways, side by side
+in one run: one volume (``slscan fuse``), bricks on 2 local processes (``--brick --workers
+2``) and bricks on a ``distributed.LocalCluster`` of 2 single-threaded workers
+(``--scheduler``). Per way: wall, CPU (the command's process tree, plus the Dask workers'
+CPU over the run), peak resident memory of the command's own process, of any one other
+process (a helper or a Dask worker) and of all of them together (sampled every 0.1 s), the
+faces, and the distance of each bricked mesh to the single volume's (vertex for vertex
+when the meshes have the same size, and surface to surface from 300,000 points each way).
+
+**capped** runs fusion in bricks, out-of-core simplification (to ``--faces``) and texture
+on a LocalCluster whose 2 workers are capped at ``--worker-memory`` (Dask's nanny kills a
+worker that passes 95 % of it; the task is then retried elsewhere and, if it dies again,
+the run fails), and compares the simplified model with the statue as ``paper_scale.py``
+does. Stages that do not depend on the voxel (decode, albedo, register) are those of the
+local run; their memory on Dask is in ``docs/paper-scale.md``.
+
+Tables are stored in ``WORK/bricks.json``; ``table`` prints them with an extrapolation
+from the measured per-view and per-surface costs (labelled as such).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from measure import distances_to_mesh, run_measured, surface_samples
+from paper_scale import TOOLBOX, DaskCluster, _children_cpu
+
+SLSCAN = [sys.executable, "-m", "slscan.cli"]
+GIB = 2**30
+
+
+def ply_counts(path: Path) -> tuple[int, int]:
+    """(vertices, faces) from a PLY header, without reading the body."""
+    vertices = faces = 0
+    with open(path, "rb") as f:
+        for raw in f:
+            line = raw.decode("ascii", "replace").split()
+            if line[:2] == ["element", "vertex"]:
+                vertices = int(line[2])
+            elif line[:2] == ["element", "face"]:
+                faces = int(line[2])
+            elif line[:1] == ["end_header"]:
+                break
+    return vertices, faces
+
+
+def run(command: list[str], dask: DaskCluster | None = None) -> dict:
+    """Run ``command`` measured; raise SystemExit with its stderr when it fails."""
+    cpu0 = _children_cpu()
+    dask_cpu0 = dask.cpu() if dask else 0.0
+    measured = run_measured(command, extra_pids=dask.pids() if dask else ())
+    if measured.returncode != 0:
+        raise SystemExit(f"failed (exit {measured.returncode}): {' '.join(command)}\n{measured.stderr[-4000:]}")
+    return {"wall_s": measured.seconds, "cpu_s": _children_cpu() - cpu0 + ((dask.cpu() - dask_cpu0) if dask else 0),
+            "peak_main_gib": measured.peak_main_bytes / GIB, "peak_other_gib": measured.peak_other_bytes / GIB,
+            "peak_all_gib": measured.peak_bytes / GIB, "stdout": measured.stdout[-2000:]}
+
+
+def mesh_distance(a_path: Path, b_path: Path, samples: int = 300_000) -> dict:
+    """How far mesh ``b`` is from mesh ``a``: vertex for vertex (after slscan's canonical
+    order) when they have the same size, and surface to surface both ways."""
+    sys.path.insert(0, str(TOOLBOX))
+    from slscan.fuse import canonical_order, read_mesh
+
+    a, b = read_mesh(a_path), read_mesh(b_path)
+    out: dict = {"same_size": a.n_vertices == b.n_vertices and a.n_faces == b.n_faces}
+    if out["same_size"]:
+        ca, cb = canonical_order(a), canonical_order(b)
+        out["same_faces"] = bool(np.array_equal(ca.faces, cb.faces))
+        out["max_dv_mm"] = float(np.abs(ca.vertices.astype(np.float64) - cb.vertices).max())
+    d_ab = distances_to_mesh(surface_samples(b.vertices, b.faces, samples), a.vertices, a.faces)
+    d_ba = distances_to_mesh(surface_samples(a.vertices, a.faces, samples), b.vertices, b.faces)
+    out["hausdorff_mm"] = float(max(d_ab.max(), d_ba.max()))
+    out["mean_mm"] = float(0.5 * (d_ab.mean() + d_ba.mean()))
+    return out
+
+
+def compare(args: argparse.Namespace, store: dict) -> None:
+    local = args.work / "runs" / "local"
+    aligned = local / "aligned" / "aligned.mlp"
+    if not aligned.is_file():
+        raise SystemExit(f"{aligned}: not found; run benchmarks/paper_scale.py --work {args.work} first")
+    out = args.work / "bricks" / f"compare_{args.voxel:g}"
+    out.mkdir(parents=True, exist_ok=True)
+    fuse = [*SLSCAN, "fuse", str(aligned), "--voxel", f"{args.voxel:g}", "--quiet", "--overwrite"]
+    bricks = ["--brick", f"{args.brick:g}", "--max-memory", args.grid_memory]
+    rows = []
+    ways = [w.strip() for w in args.ways.split(",") if w.strip()]
+    for way in ways:
+        print(f"  compare {way} ...", file=sys.stderr, flush=True)
+        dask = DaskCluster(2) if way == "dask2" else None
+        try:
+            extra = {"single": [], "local2": [*bricks, "--workers", "2"],
+                     "dask2": [*bricks, "--scheduler", dask.address if dask else ""]}[way]
+            row = {"way": way, **run([*fuse, *extra, "--out", str(out / f"{way}.ply")], dask)}
+        finally:
+            if dask:
+                dask.close()
+        row["faces"] = ply_counts(out / f"{way}.ply")[1]
+        rows.append(row)
+        print(f"    {row['wall_s']:.1f} s wall, {row['cpu_s']:.1f} s CPU, {row['faces']:,} faces", file=sys.stderr)
+    for row in rows:
+        if row["way"] != "single" and (out / "single.ply").is_file():
+            row.update(mesh_distance(out / "single.ply", out / f"{row['way']}.ply"))
+    store["compare"] = {"voxel": args.voxel, "brick": args.brick, "grid_memory": args.grid_memory,
+                        "views": views_of(args.work), "rows": rows}
+
+
+def views_of(work: Path) -> int:
+    table = work / "table.json"
+    return json.loads(table.read_text())["capture"]["views"] if table.is_file() else 0
+
+
+def capped(args: argparse.Namespace, store: dict) -> None:
+    from paper_scale import model_accuracy
+
+    local = args.work / "runs" / "local"
+    out = args.work / "bricks" / f"capped_{args.voxel:g}"
+    if out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    # model_accuracy reads out/aligned/registration.json and out/simplified.ply
+    (out / "aligned").symlink_to(local / "aligned")
+    dask = DaskCluster(2, memory_limit=args.worker_memory)
+    rows = []
+    try:
+        stages = [
+            ("fuse", [*SLSCAN, "fuse", str(local / "aligned" / "aligned.mlp"), "--voxel", f"{args.voxel:g}",
+                      "--brick", f"{args.brick:g}", "--max-memory", args.grid_memory,
+                      "--scheduler", dask.address, "--out", str(out / "fused.ply"), "--quiet", "--overwrite"]),
+            ("simplify", [*SLSCAN, "simplify", str(out / "fused.ply"), "--faces", str(args.faces),
+                          "--max-memory", args.worker_memory, "--scheduler", dask.address,
+                          "--out", str(out / "simplified.ply"), "--quiet", "--overwrite"]),
+            ("texture", [*SLSCAN, "texture", str(out / "simplified.ply"), "--views", str(local / "albedo"),
+                         "--poses", str(local / "aligned" / "registration.json"),
+                         "--session", str(args.work / "capture"), "--size", str(args.texture_size),
+                         "--no-preview", "--out", str(out / "textured"), "--quiet", "--overwrite",
+                         *(["--scheduler", dask.address] if args.texture_on_dask else [])]),
+        ]
+        for stage, command in stages:
+            if stage not in args.stages.split(","):
+                continue
+            print(f"  capped {args.voxel:g} mm {stage} ...", file=sys.stderr, flush=True)
+            row = {"stage": stage, **run(command, dask)}
+            print(f"    {row['wall_s']:.1f} s wall, {row['cpu_s']:.1f} s CPU, worker peak "
+                  f"{row['peak_other_gib']:.2f} GiB, caller {row['peak_main_gib']:.2f} GiB", file=sys.stderr)
+            rows.append(row)
+    finally:
+        dask.close()
+    result = {"voxel": args.voxel, "brick": args.brick, "worker_memory": args.worker_memory,
+              "grid_memory": args.grid_memory, "views": views_of(args.work), "rows": rows}
+    if (out / "fused.ply").is_file():
+        result["fused_faces"] = ply_counts(out / "fused.ply")[1]
+        result["fused_bytes"] = (out / "fused.ply").stat().st_size
+    if (out / "simplified.ply").is_file():
+        result["accuracy"] = model_accuracy(out, args.work)
+    store.setdefault("capped", {})[f"{args.voxel:g}"] = result
+
+
+# --- the tables -------------------------------------------------------------------------------------
+
+
+def print_compare(c: dict) -> None:
+    print(f"\nfusion of the {c['views']}-view statue at {c['voxel']:g} mm: one volume vs bricks of "
+          f"{c['brick']:g} mm (grid cap {c['grid_memory']}), 2 local processes vs 2 Dask workers")
+    head = (f"{'way':8s} {'wall s':>8s} {'CPU s':>8s} {'peak caller':>12s} {'peak 1 helper':>14s} "
+            f"{'peak all':>9s} {'faces':>12s} {'same mesh':>9s} {'max |dv| mm':>11s} {'Hausdorff mm':>12s} "
+            f"{'mean mm':>8s}")
+    print(head)
+    print("-" * len(head))
+    for r in c["rows"]:
+        same = "-" if r["way"] == "single" else str(r.get("same_faces", False))
+        dv = f"{r['max_dv_mm']:.2g}" if "max_dv_mm" in r else "-"
+        h = f"{r['hausdorff_mm']:.3g}" if "hausdorff_mm" in r else "-"
+        m = f"{r['mean_mm']:.2g}" if "mean_mm" in r else "-"
+        print(f"{r['way']:8s} {r['wall_s']:8.1f} {r['cpu_s']:8.1f} {r['peak_main_gib']:8.2f} GiB "
+              f"{r['peak_other_gib']:10.2f} GiB {r['peak_all_gib']:5.2f} GiB {r['faces']:12,} {same:>9s} "
+              f"{dv:>11s} {h:>12s} {m:>8s}")
+    by = {r["way"]: r for r in c["rows"]}
+    if "dask2" in by and "local2" in by:
+        print(f"Dask vs 2 local processes: {100 * (by['dask2']['wall_s'] / by['local2']['wall_s'] - 1):+.0f} % wall, "
+              f"{100 * (by['dask2']['cpu_s'] / by['local2']['cpu_s'] - 1):+.0f} % CPU")
+
+
+def print_capped(c: dict) -> None:
+    print(f"\nthe {c['views']}-view statue at {c['voxel']:g} mm on a LocalCluster of 2 workers capped at "
+          f"{c['worker_memory']} (bricks of {c['brick']:g} mm, grid cap {c['grid_memory']})")
+    head = f"{'stage':9s} {'wall s':>8s} {'CPU s':>8s} {'peak/worker':>12s} {'peak caller':>12s} {'peak all':>9s}"
+    print(head)
+    print("-" * len(head))
+    for r in c["rows"]:
+        print(f"{r['stage']:9s} {r['wall_s']:8.1f} {r['cpu_s']:8.1f} {r['peak_other_gib']:8.2f} GiB "
+              f"{r['peak_main_gib']:8.2f} GiB {r['peak_all_gib']:5.2f} GiB")
+    rows = c["rows"]
+    print(f"total: {sum(r['wall_s'] for r in rows):.1f} s wall ({sum(r['wall_s'] for r in rows) / 60:.1f} min), "
+          f"{sum(r['cpu_s'] for r in rows):.1f} s CPU, largest worker {max(r['peak_other_gib'] for r in rows):.2f} GiB, "
+          f"largest caller {max(r['peak_main_gib'] for r in rows):.2f} GiB")
+    if "fused_faces" in c:
+        print(f"fused: {c['fused_faces']:,} faces ({c['fused_bytes'] / GIB:.2f} GiB PLY)", end="")
+    if "accuracy" in c:
+        a = c["accuracy"]
+        print(f"; simplified: {a['faces']:,} faces, {a['mean_mm']:.3f} mm mean / {a['p95_mm']:.3f} mm p95 from the "
+              "statue")
+    else:
+        print()
+
+
+def extrapolate(store: dict, work: Path) -> None:
+    """Costs per view and per m2 of surface from the measured runs, scaled to larger
+    campaigns. An extrapolation: nothing below was run at that size."""
+    table = work / "table.json"
+    if not table.is_file() or not store.get("capped"):
+        return
+    ps = json.loads(table.read_text())
+    views = ps["capture"]["views"]
+    stage = {}
+    for r in ps["rows"]:  # the latest local-executor figure per stage
+        if not r["mode"].startswith("dask"):
+            stage[r["stage"]] = r
+    area_m2 = 3.33  # the statue's surface (statue.ply)
+    fine = store["capped"]
+    print("\nEXTRAPOLATION (not measured at these sizes): per-view costs (decode, albedo, register, texture) "
+          "from the 146-view run,\nper-m2 costs of fusion and simplification from the capped runs; CPU-hours "
+          "and wall on W single-threaded workers")
+    cases = [("statue, 1,000 views", 1000, area_m2, None), ("10 m facade x 5 m (60 m2), 0.5 mm", None, 60.0, 0.5)]
+    density = views / area_m2
+    head = (f"{'campaign':36s} {'views':>6s} {'voxel':>6s} {'per-view CPU h':>14s} {'fuse CPU h':>10s} "
+            f"{'simplify CPU h':>14s} {'fused faces':>12s} {'fused PLY GiB':>13s} {'wall on 16 workers h':>20s}")
+    print(head)
+    print("-" * len(head))
+    for name, n_views, area, voxel in cases:
+        n = n_views or round(density * area)
+        for key, res in sorted(fine.items()):
+            v = voxel or float(key)
+            if voxel and abs(float(key) - 0.57) > 0.01 and len(fine) > 1 and abs(float(key) - voxel) > abs(0.57 - voxel):
+                continue
+            fuse = next((r for r in res["rows"] if r["stage"] == "fuse"), None)
+            simp = next((r for r in res["rows"] if r["stage"] == "simplify"), None)
+            if fuse is None or "fused_faces" not in res:
+                continue
+            scale_area = (area / area_m2) * (float(key) / v) ** 2  # surface voxels grow as 1/voxel^2
+            # fusion: each view's rays and each surface voxel are touched once per view that sees them
+            fuse_h = fuse["cpu_s"] * scale_area * (n / views) / (area / area_m2) / 3600
+            simp_h = (simp["cpu_s"] if simp else 0.0) * scale_area / 3600
+            per_view_h = sum(stage[s]["cpu_s"] for s in ("decode", "albedo", "register", "texture") if s in stage) \
+                * n / views / 3600
+            faces = res["fused_faces"] * scale_area
+            ply = res["fused_bytes"] * scale_area / GIB
+            wall = (per_view_h + fuse_h + simp_h) / 16
+            print(f"{name:36s} {n:6d} {v:6.2f} {per_view_h:14.1f} {fuse_h:10.1f} {simp_h:14.1f} {faces:12,.0f} "
+                  f"{ply:13.1f} {wall:20.1f}   (from the {key} mm run)")
+            break
+    print("per worker: the memory of one brick (the cap) and of one view (decode about 1 GiB at full size); the "
+          "caller streams the fused mesh to disk")
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("what", choices=("compare", "capped", "table"))
+    p.add_argument("--work", type=Path, default=Path("/tmp/slscan_paper_scale"), help="paper_scale.py's --work")
+    p.add_argument("--voxel", type=float, default=0.57, help="mm")
+    p.add_argument("--brick", type=float, default=0.0, help="brick edge, mm (default 160 at 0.57 mm, 240 finer)")
+    p.add_argument("--grid-memory", default="2.5GiB", help="fuse --max-memory: the cap on one brick's grid")
+    p.add_argument("--worker-memory", default="4GiB", help="capped: each Dask worker's memory limit")
+    p.add_argument("--ways", default="single,local2,dask2", help="compare: which ways to run")
+    p.add_argument("--stages", default="fuse,simplify,texture", help="capped: which stages to run")
+    p.add_argument("--faces", type=int, default=1_000_000)
+    p.add_argument("--texture-size", type=int, default=4096)
+    p.add_argument("--texture-on-dask", action="store_true", help="capped: texture with --scheduler too")
+    args = p.parse_args()
+    os.environ["PYTHONPATH"] = os.pathsep.join([str(TOOLBOX), *filter(None, [os.environ.get("PYTHONPATH")])])
+    if not args.brick:
+        args.brick = 160.0 if args.voxel >= 0.5 else 240.0
+    path = args.work / "bricks.json"
+    store = json.loads(path.read_text()) if path.is_file() else {}
+    t0 = time.perf_counter()
+    if args.what == "compare":
+        compare(args, store)
+    elif args.what == "capped":
+        capped(args, store)
+    if args.what != "table":
+        tmp = path.with_suffix(".partial.json")
+        tmp.write_text(json.dumps(store, indent=1))
+        os.replace(tmp, path)
+        print(f"({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
+    if "compare" in store:
+        print_compare(store["compare"])
+    for _, c in sorted(store.get("capped", {}).items()):
+        print_capped(c)
+    extrapolate(store, args.work)
+
+
+if __name__ == "__main__":
+    main()
