@@ -90,7 +90,7 @@ def test_only_binary_triangle_ply(tmp_path):
     with pytest.raises(SlscanError, match=r"bad\.ply: faces 0\.\.0 refer to vertices outside 0\.\.2"):
         simplify_bricks(tmp_path / "bad.ply", tmp_path / "out.ply", 4)
     assert not (tmp_path / "out.ply").exists()
-    with pytest.raises(SlscanError, match="expected a size like 4GiB"):
+    with pytest.raises(SlscanError, match="--max-memory 'lots': expected a size such as 4GiB or 512MiB"):
         parse_memory("lots")
 
 

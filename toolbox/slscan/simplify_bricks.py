@@ -39,6 +39,7 @@ import numpy as np
 from typing import TYPE_CHECKING
 
 from slscan.errors import SlscanError
+from slscan.units import MEMORY_HELP, parse_memory
 
 if TYPE_CHECKING:
     from slscan.fuse import Mesh
@@ -254,21 +255,6 @@ def _boundary_vertex_count(faces: np.ndarray) -> int:
     return len(np.unique(e[count[inverse.ravel()] == 1]))
 
 
-def parse_memory(text: str) -> int:
-    """``"4GiB"`` / ``"512MiB"`` / ``"2G"`` / ``"1e9"`` → bytes; SlscanError otherwise."""
-    units = {"": 1, "B": 1, "K": 2**10, "KIB": 2**10, "KB": 10**3, "M": 2**20, "MIB": 2**20, "MB": 10**6,
-             "G": 2**30, "GIB": 2**30, "GB": 10**9, "T": 2**40, "TIB": 2**40, "TB": 10**12}
-    s = str(text).strip().upper()
-    num = s.rstrip("KMGTIB")
-    try:
-        value = float(num) * units[s[len(num):].strip()]
-    except (ValueError, KeyError):
-        raise SlscanError(f"--max-memory {text!r}: expected a size like 4GiB, 512MiB or 2e9") from None
-    if not 0 < value < float("inf"):  # NaN and inf too: int() of them would raise
-        raise SlscanError(f"--max-memory {text!r}: must be positive")
-    return int(value)
-
-
 def _grid(lo: np.ndarray, hi: np.ndarray, brick_mm: float | None, bricks: int | None) -> tuple[np.ndarray, float]:
     extent = np.maximum(hi - lo, 1e-9)
     if brick_mm is None:
@@ -394,7 +380,7 @@ def simplify_bricks(
                                    scratch / f"brick{k:04d}.npz", share, aggressiveness))
         log.info("%s: %d faces in %d bricks of %g mm (grid %s)", layout.path, layout.n_faces, len(tasks),
                  edge, "x".join(map(str, dims)))
-        results = tuple(executor.map(_simplify_brick, tasks))
+        results = _run_bricks(executor, tasks)
         # 4. stitch on global ids
         parts_v, parts_f, parts_g, offset = [], [], [], 0
         for task in tasks:
@@ -426,6 +412,28 @@ def simplify_bricks(
         shutil.rmtree(scratch, ignore_errors=True)
     return BrickReport("bricks", layout.n_faces, stitched, len(f), tuple(int(d) for d in dims), results,
                        _peak_rss(), time.perf_counter() - t0)
+
+
+def _run_bricks(executor, tasks: list[BrickTask]) -> tuple[BrickResult, ...]:
+    """The brick tasks on ``executor``, results in brick order. A local helper process that dies
+    (killed, out of memory) loses only the bricks not yet back: they run once more, on fresh
+    helpers (each writes its file under a temporary name, so a half-written one is never read).
+    A second death is the executor's one line ("a worker process died ...")."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    done: dict[int, BrickResult] = {}
+    for attempt in (1, 2):
+        pending = [t for t in tasks if t.index not in done]
+        try:
+            for result in executor.map(_simplify_brick, pending):
+                done[result.index] = result
+        except SlscanError as exc:
+            if attempt == 2 or not isinstance(exc.__context__, BrokenProcessPool):
+                raise
+            log.warning("a worker process died; running its %d brick(s) again", len(tasks) - len(done))
+            continue
+        break
+    return tuple(done[t.index] for t in tasks)
 
 
 def incore_memory(mesh_path: str | os.PathLike) -> int:
@@ -483,8 +491,8 @@ def extend_simplify_parser(p) -> None:
     g = p.add_argument_group("out of core", "simplify in bricks (binary PLY input, --method fast)")
     g.add_argument("--brick", type=float, metavar="MM", help="simplify in bricks of this edge (mm)")
     g.add_argument("--bricks", type=int, metavar="N", help="simplify in about N bricks")
-    g.add_argument("--max-memory", metavar="SIZE", help="memory one process may use, e.g. 4GiB: in-core when "
-                   "the estimate fits, else bricks; a brick over it is refused")
+    g.add_argument("--max-memory", metavar="SIZE", help="memory one process may use: in-core when "
+                   f"the estimate fits, else bricks; a brick over it is refused; {MEMORY_HELP}")
     g.add_argument("--against", type=Path, metavar="MESH", help="also report the surface distance (both ways) "
                    "to this mesh, e.g. the in-core result")
     add_executor_arguments(p)
