@@ -466,7 +466,8 @@ def boundary_edges(faces: np.ndarray) -> int:
     return int((c == 1).sum())
 
 
-__all__: Sequence[str] = ("simplify_bricks", "BrickReport", "BrickResult", "ply_layout", "parse_memory",
+__all__: Sequence[str] = ("simplify_bricks", "choose_path", "BrickReport", "BrickResult", "ply_layout",
+                          "parse_memory",
                           "incore_memory", "surface_distance", "boundary_edges")
 
 
@@ -508,16 +509,8 @@ def _cmd_simplify(incore, args) -> int:
     if args.out.exists() and not args.overwrite:
         raise SlscanError(f"{args.out}: exists (pass --overwrite to replace it)")
     cap = parse_memory(args.max_memory) if args.max_memory else None
-    forced = args.brick is not None or args.bricks is not None
-    n_faces = None
-    if not forced and args.mesh.suffix.lower() == ".ply" and _binary_ply(args.mesh):
-        n_faces = ply_layout(args.mesh).n_faces
-    estimate = INCORE_BASE_BYTES + (n_faces or 0) * INCORE_BYTES_PER_FACE
-    if not forced and (n_faces is None or (estimate <= cap if cap
-                                           else n_faces <= INCORE_FACE_LIMIT)):
-        why = ("not a binary PLY" if n_faces is None else
-               f"estimate {human_size(estimate)} within --max-memory" if cap
-               else f"{n_faces:,} faces, at most {INCORE_FACE_LIMIT:,}")
+    in_bricks, why = choose_path(args.mesh, brick_mm=args.brick, bricks=args.bricks, max_memory=cap)
+    if not in_bricks:
         console().print(f"simplify: in-core ({why})", highlight=False, soft_wrap=True)
         rc = incore(args)
     else:
@@ -541,6 +534,32 @@ def _cmd_simplify(incore, args) -> int:
         console().print(f"distance to {args.against}: mean {d['mean']:.4f} mm, p95 {d['p95']:.4f} mm, "
                         f"max {d['max']:.4f} mm (both ways)", highlight=False, soft_wrap=True)
     return rc
+
+
+def choose_path(mesh_path: str | os.PathLike, *, brick_mm: float | None = None, bricks: int | None = None,
+                max_memory: int | None = None) -> tuple[bool, str]:
+    """Whether ``slscan simplify`` (and a recipe's simplify stage) works in bricks, and why.
+
+    In bricks when ``brick_mm`` or ``bricks`` is given; else in-core when the mesh is not a binary
+    PLY, or when its in-core estimate fits ``max_memory`` (bytes), or, without a cap, when it has
+    at most :data:`INCORE_FACE_LIMIT` faces; in bricks otherwise. Reads only the PLY header.
+    """
+    from slscan.fsio import human_size
+
+    if brick_mm is not None or bricks is not None:
+        return True, "--brick" if brick_mm is not None else "--bricks"
+    path = Path(mesh_path)
+    if path.suffix.lower() != ".ply" or not _binary_ply(path):
+        return False, "not a binary PLY"
+    n_faces = ply_layout(path).n_faces
+    estimate = INCORE_BASE_BYTES + n_faces * INCORE_BYTES_PER_FACE
+    if max_memory is not None:
+        if estimate <= max_memory:
+            return False, f"estimate {human_size(estimate)} within --max-memory"
+        return True, f"in-core estimate {human_size(estimate)} > --max-memory {human_size(max_memory)}"
+    if n_faces <= INCORE_FACE_LIMIT:
+        return False, f"{n_faces:,} faces, at most {INCORE_FACE_LIMIT:,}"
+    return True, f"{n_faces:,} faces, more than {INCORE_FACE_LIMIT:,}"
 
 
 def _binary_ply(path: Path) -> bool:
