@@ -31,7 +31,7 @@ psutil = pytest.importorskip("psutil")
 
 TOOLBOX = Path(__file__).parents[2] / "toolbox"
 DIRECTIONS = [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]]
-FUSE = ["--voxel", "0.5", "--brick", "12"]  # about 70 bricks of 3 blocks a side
+FUSE = ["--voxel", "0.6", "--brick", "9.6"]  # about 60 bricks of 2 blocks a side
 SIMPLIFY = ["--faces", "10000", "--bricks", "64"]  # 56 non-empty bricks of a 250k-face sphere
 DIED = "a worker process died (out of memory?)"
 RETRIED = "a worker process died; running its"
@@ -40,7 +40,7 @@ TIMEOUT = 240  # s, for a run on a loaded machine
 
 @pytest.fixture(scope="module")
 def aligned(tmp_path_factory) -> Path:
-    """Six orthographic range scans (96 x 96 px of 0.5 mm) of a 20 mm sphere, an aligned set."""
+    """Six orthographic range scans (80 x 80 px of 0.6 mm) of a 20 mm sphere, an aligned set."""
     from slscan.register.meshlab import write_scan_project
     from slscan.register.rangescan import render_range_scan
 
@@ -49,9 +49,18 @@ def aligned(tmp_path_factory) -> Path:
     scans, poses = [], {}
     for k, d in enumerate(DIRECTIONS):
         poses[f"view{k}"] = looking_from(d)
-        scans.append(render_range_scan(v, f, poses[f"view{k}"], shape=(96, 96), pixel=0.5, name=f"view{k}",
+        scans.append(render_range_scan(v, f, poses[f"view{k}"], shape=(80, 80), pixel=0.6, name=f"view{k}",
                                        noise=0.05, rng=np.random.default_rng(k)))
     return write_scan_project(tmp_path_factory.mktemp("aligned") / "aligned", scans, poses).parent
+
+
+@pytest.fixture(scope="module")
+def fused(aligned, tmp_path_factory) -> Path:
+    """The aligned set fused in bricks on two local processes, nothing killed."""
+    folder = tmp_path_factory.mktemp("clean")
+    rc, err, _ = Run(["fuse", str(aligned), *FUSE, "--workers", "2", "--out", "clean.ply"], folder).wait()
+    assert rc == 0, err
+    return folder / "clean.ply"
 
 
 @pytest.fixture(scope="module")
@@ -139,15 +148,13 @@ def _left(folder: Path) -> list[str]:
     return sorted(p.name for p in folder.iterdir())
 
 
-def test_fuse_a_helper_killed_mid_brick_its_bricks_run_again(aligned, tmp_path):
-    rc, err, _ = Run(["fuse", str(aligned), *FUSE, "--workers", "2", "--out", "clean.ply"], tmp_path).wait()
-    assert rc == 0, err
+def test_fuse_a_helper_killed_mid_brick_its_bricks_run_again(aligned, fused, tmp_path):
     run = Run(["fuse", str(aligned), *FUSE, "--workers", "2", "--out", "killed.ply"], tmp_path)
     run.kill_helper(lambda: run.bricks_done() >= 1)  # bricks are flowing: the helper is on its next one
     rc, err, _ = run.wait()
     assert rc == 0, err
     assert RETRIED in err and "Traceback" not in err
-    _same(tmp_path / "killed.ply", tmp_path / "clean.ply")
+    _same(tmp_path / "killed.ply", fused)
 
 
 def test_fuse_a_helper_killed_twice_is_one_line_and_no_output(aligned, tmp_path):
@@ -190,10 +197,8 @@ def test_simplify_a_helper_killed_twice_is_one_line_and_no_output(big_mesh, tmp_
     assert _left(tmp_path) == []  # no mesh, no .mlp, no .bricks-* scratch
 
 
-def test_dask_reschedules_a_killed_workers_brick(aligned, tmp_path):
+def test_dask_reschedules_a_killed_workers_brick(aligned, fused, tmp_path):
     distributed = pytest.importorskip("distributed")
-    rc, err, _ = Run(["fuse", str(aligned), *FUSE, "--workers", "2", "--out", "local.ply"], tmp_path).wait()
-    assert rc == 0, err
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                                   dashboard_address=None) as cluster, \
             distributed.Client(cluster.scheduler_address) as client:
@@ -215,5 +220,5 @@ def test_dask_reschedules_a_killed_workers_brick(aligned, tmp_path):
         rc, err, killed_s = run.wait()
         assert rc == 0, err
     _same(tmp_path / "killed.ply", tmp_path / "clean.ply")
-    _same(tmp_path / "clean.ply", tmp_path / "local.ply")
+    _same(tmp_path / "clean.ply", fused)
     print(f"\nDask fuse, {FUSE}: clean {clean_s:.1f} s, a worker killed mid-brick {killed_s:.1f} s")
