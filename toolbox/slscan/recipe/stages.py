@@ -246,13 +246,15 @@ class SimplifyConfig:
         if (self.brick is not None or self.bricks is not None) and (self.method != "fast"
                                                                      or not self.preserve_boundary):
             raise SlscanError(f"{'brick' if self.brick is not None else 'bricks'}: simplifying in bricks "
-                              "needs method = \"fast\" and preserve_boundary = true (the borders stay locked)")
+                              'needs method = "fast" and preserve_boundary = true (the borders stay locked)')
 
     def max_memory_bytes(self) -> int | None:
         """``max_memory`` in bytes (None: no cap)."""
         from slscan.units import parse_memory
 
-        return None if self.max_memory is None else parse_memory(self.max_memory, option="[simplify].max_memory")
+        if self.max_memory is None:
+            return None
+        return parse_memory(self.max_memory, option="[simplify].max_memory")
 
 
 def _run_register(ctx: StageContext, config: RegisterConfig) -> dict[str, Any]:
