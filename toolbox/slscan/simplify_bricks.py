@@ -217,6 +217,13 @@ def _simplify_brick(task: BrickTask) -> BrickResult:
 
     t0 = time.perf_counter()
     _reset_peak()
+    for path, what in ((task.layout.path, "the mesh"), (task.faces_file, "brick files in the scratch folder"),
+                       (task.shared_file, "brick files in the scratch folder")):
+        if not Path(path).is_file():
+            import socket
+
+            raise SlscanError(f"{path}: not found on worker {socket.gethostname()} (brick {task.index}); the "
+                              f"workers need {what} at the same path (the scratch folder is made next to --out)")
     faces = np.fromfile(task.faces_file, np.int32).reshape(-1, 3)
     used, local = np.unique(faces, return_inverse=True)
     local = local.reshape(-1, 3).astype(np.int32)
