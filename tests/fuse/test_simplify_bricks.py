@@ -90,7 +90,7 @@ def test_only_binary_triangle_ply(tmp_path):
     with pytest.raises(SlscanError, match=r"bad\.ply: faces 0\.\.0 refer to vertices outside 0\.\.2"):
         simplify_bricks(tmp_path / "bad.ply", tmp_path / "out.ply", 4)
     assert not (tmp_path / "out.ply").exists()
-    with pytest.raises(SlscanError, match="expected a size like 4GiB"):
+    with pytest.raises(SlscanError, match="--max-memory 'lots': expected a size such as 4GiB or 512MiB"):
         parse_memory("lots")
 
 
@@ -110,3 +110,15 @@ def test_cli_says_which_path_it_took(tmp_path, capsys):
     said = capsys.readouterr()
     assert "simplify: bricks (" in said.out + said.err
     assert read_mesh(tmp_path / "c.ply").n_faces <= 500
+
+
+def test_a_brick_whose_files_a_worker_cannot_see_is_one_line(tmp_path):
+    """A Dask worker without the caller's paths: the brick task names the file it misses."""
+    from slscan.simplify_bricks import BrickTask, _simplify_brick
+
+    path = write_mesh(_sphere(20), tmp_path / "in.ply")
+    task = BrickTask(3, ply_layout(path), tmp_path / "gone" / "brick0003.faces", tmp_path / "gone" / "shared.bool",
+                     tmp_path / "gone" / "brick0003.npz", 100, 6.0)
+    with pytest.raises(SlscanError, match=r"gone/brick0003\.faces: not found on worker .* \(brick 3\); the workers "
+                                          r"need brick files in the scratch folder at the same path"):
+        _simplify_brick(task)

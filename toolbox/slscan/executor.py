@@ -277,7 +277,9 @@ LOCAL = Executor()
 def add_executor_arguments(parser) -> None:
     """Add ``--workers N`` and ``--scheduler tcp://HOST:PORT`` to an argparse parser."""
     group = parser.add_argument_group(
-        "scale-out", "independent tasks (views; registration's pairs; simplification's bricks) run in parallel")
+        "scale-out",
+        "independent tasks (views; registration's pairs; fusion's and simplification's bricks) "
+        "run in parallel")
     group.add_argument("--workers", type=int, metavar="N",
                        help="processes working on tasks, this one included (default: one per core); "
                             "the others start once per run and are reused by every stage")

@@ -1044,18 +1044,12 @@ def _stitch(meshes: Sequence[Mesh], *, plane_spacing: float, voxel: float) -> Me
 
 
 def parse_memory(text: str) -> float:
-    """GiB in a memory size such as "4GiB", "512MiB", "2.5G", "800M" or "4" (GiB)."""
-    units = {"gib": 1.0, "gb": 1.0, "g": 1.0, "mib": 2**-10, "mb": 2**-10, "m": 2**-10, "": 1.0}
-    t = text.strip().lower()
-    number = t.rstrip("abcdefghijklmnopqrstuvwxyz ")
-    unit = t[len(number):].strip()
-    try:
-        value = float(number) * units[unit]
-    except (KeyError, ValueError):
-        raise SlscanError(f"memory size {text!r}: expected a size such as 4GiB or 512MiB") from None
-    if not (math.isfinite(value) and value > 0):
-        raise SlscanError(f"memory size {text!r}: expected a positive size such as 4GiB")
-    return value
+    """GiB in a memory size such as "4GiB", "512MiB" or "4" (GiB), for ``FuseConfig.max_memory_gib``:
+    :func:`slscan.units.parse_memory` (Dask's units: "4GB" is 4e9 bytes), in GiB."""
+    from slscan.units import GIB
+    from slscan.units import parse_memory as parse_bytes
+
+    return parse_bytes(text) / GIB
 
 
 def fuse_bricks(

@@ -39,6 +39,7 @@ import numpy as np
 from typing import TYPE_CHECKING
 
 from slscan.errors import SlscanError
+from slscan.units import MEMORY_HELP, parse_memory
 
 if TYPE_CHECKING:
     from slscan.fuse import Mesh
@@ -216,6 +217,13 @@ def _simplify_brick(task: BrickTask) -> BrickResult:
 
     t0 = time.perf_counter()
     _reset_peak()
+    for path, what in ((task.layout.path, "the mesh"), (task.faces_file, "brick files in the scratch folder"),
+                       (task.shared_file, "brick files in the scratch folder")):
+        if not Path(path).is_file():
+            import socket
+
+            raise SlscanError(f"{path}: not found on worker {socket.gethostname()} (brick {task.index}); the "
+                              f"workers need {what} at the same path (the scratch folder is made next to --out)")
     faces = np.fromfile(task.faces_file, np.int32).reshape(-1, 3)
     used, local = np.unique(faces, return_inverse=True)
     local = local.reshape(-1, 3).astype(np.int32)
@@ -252,21 +260,6 @@ def _boundary_vertex_count(faces: np.ndarray) -> int:
     _, inverse, count = np.unique(e[:, 0] * (int(e.max(initial=0)) + 1) + e[:, 1], return_inverse=True,
                                   return_counts=True)
     return len(np.unique(e[count[inverse.ravel()] == 1]))
-
-
-def parse_memory(text: str) -> int:
-    """``"4GiB"`` / ``"512MiB"`` / ``"2G"`` / ``"1e9"`` → bytes; SlscanError otherwise."""
-    units = {"": 1, "B": 1, "K": 2**10, "KIB": 2**10, "KB": 10**3, "M": 2**20, "MIB": 2**20, "MB": 10**6,
-             "G": 2**30, "GIB": 2**30, "GB": 10**9, "T": 2**40, "TIB": 2**40, "TB": 10**12}
-    s = str(text).strip().upper()
-    num = s.rstrip("KMGTIB")
-    try:
-        value = float(num) * units[s[len(num):].strip()]
-    except (ValueError, KeyError):
-        raise SlscanError(f"--max-memory {text!r}: expected a size like 4GiB, 512MiB or 2e9") from None
-    if not 0 < value < float("inf"):  # NaN and inf too: int() of them would raise
-        raise SlscanError(f"--max-memory {text!r}: must be positive")
-    return int(value)
 
 
 def _grid(lo: np.ndarray, hi: np.ndarray, brick_mm: float | None, bricks: int | None) -> tuple[np.ndarray, float]:
@@ -394,7 +387,7 @@ def simplify_bricks(
                                    scratch / f"brick{k:04d}.npz", share, aggressiveness))
         log.info("%s: %d faces in %d bricks of %g mm (grid %s)", layout.path, layout.n_faces, len(tasks),
                  edge, "x".join(map(str, dims)))
-        results = tuple(executor.map(_simplify_brick, tasks))
+        results = _run_bricks(executor, tasks)
         # 4. stitch on global ids
         parts_v, parts_f, parts_g, offset = [], [], [], 0
         for task in tasks:
@@ -428,6 +421,28 @@ def simplify_bricks(
                        _peak_rss(), time.perf_counter() - t0)
 
 
+def _run_bricks(executor, tasks: list[BrickTask]) -> tuple[BrickResult, ...]:
+    """The brick tasks on ``executor``, results in brick order. A local helper process that dies
+    (killed, out of memory) loses only the bricks not yet back: they run once more, on fresh
+    helpers (each writes its file under a temporary name, so a half-written one is never read).
+    A second death is the executor's one line ("a worker process died ...")."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    done: dict[int, BrickResult] = {}
+    for attempt in (1, 2):
+        pending = [t for t in tasks if t.index not in done]
+        try:
+            for result in executor.map(_simplify_brick, pending):
+                done[result.index] = result
+        except SlscanError as exc:
+            if attempt == 2 or not isinstance(exc.__context__, BrokenProcessPool):
+                raise
+            log.warning("a worker process died; running its %d brick(s) again", len(tasks) - len(done))
+            continue
+        break
+    return tuple(done[t.index] for t in tasks)
+
+
 def incore_memory(mesh_path: str | os.PathLike) -> int:
     """Estimated peak bytes of simplifying ``mesh_path`` in one process (from its header)."""
     return INCORE_BASE_BYTES + ply_layout(mesh_path).n_faces * INCORE_BYTES_PER_FACE
@@ -458,7 +473,8 @@ def boundary_edges(faces: np.ndarray) -> int:
     return int((c == 1).sum())
 
 
-__all__: Sequence[str] = ("simplify_bricks", "BrickReport", "BrickResult", "ply_layout", "parse_memory",
+__all__: Sequence[str] = ("simplify_bricks", "choose_path", "BrickReport", "BrickResult", "ply_layout",
+                          "parse_memory",
                           "incore_memory", "surface_distance", "boundary_edges")
 
 
@@ -483,8 +499,8 @@ def extend_simplify_parser(p) -> None:
     g = p.add_argument_group("out of core", "simplify in bricks (binary PLY input, --method fast)")
     g.add_argument("--brick", type=float, metavar="MM", help="simplify in bricks of this edge (mm)")
     g.add_argument("--bricks", type=int, metavar="N", help="simplify in about N bricks")
-    g.add_argument("--max-memory", metavar="SIZE", help="memory one process may use, e.g. 4GiB: in-core when "
-                   "the estimate fits, else bricks; a brick over it is refused")
+    g.add_argument("--max-memory", metavar="SIZE", help="memory one process may use: in-core when "
+                   f"the estimate fits, else bricks; a brick over it is refused; {MEMORY_HELP}")
     g.add_argument("--against", type=Path, metavar="MESH", help="also report the surface distance (both ways) "
                    "to this mesh, e.g. the in-core result")
     add_executor_arguments(p)
@@ -500,16 +516,8 @@ def _cmd_simplify(incore, args) -> int:
     if args.out.exists() and not args.overwrite:
         raise SlscanError(f"{args.out}: exists (pass --overwrite to replace it)")
     cap = parse_memory(args.max_memory) if args.max_memory else None
-    forced = args.brick is not None or args.bricks is not None
-    n_faces = None
-    if not forced and args.mesh.suffix.lower() == ".ply" and _binary_ply(args.mesh):
-        n_faces = ply_layout(args.mesh).n_faces
-    estimate = INCORE_BASE_BYTES + (n_faces or 0) * INCORE_BYTES_PER_FACE
-    if not forced and (n_faces is None or (estimate <= cap if cap
-                                           else n_faces <= INCORE_FACE_LIMIT)):
-        why = ("not a binary PLY" if n_faces is None else
-               f"estimate {human_size(estimate)} within --max-memory" if cap
-               else f"{n_faces:,} faces, at most {INCORE_FACE_LIMIT:,}")
+    in_bricks, why = choose_path(args.mesh, brick_mm=args.brick, bricks=args.bricks, max_memory=cap)
+    if not in_bricks:
         console().print(f"simplify: in-core ({why})", highlight=False, soft_wrap=True)
         rc = incore(args)
     else:
@@ -533,6 +541,32 @@ def _cmd_simplify(incore, args) -> int:
         console().print(f"distance to {args.against}: mean {d['mean']:.4f} mm, p95 {d['p95']:.4f} mm, "
                         f"max {d['max']:.4f} mm (both ways)", highlight=False, soft_wrap=True)
     return rc
+
+
+def choose_path(mesh_path: str | os.PathLike, *, brick_mm: float | None = None, bricks: int | None = None,
+                max_memory: int | None = None) -> tuple[bool, str]:
+    """Whether ``slscan simplify`` (and a recipe's simplify stage) works in bricks, and why.
+
+    In bricks when ``brick_mm`` or ``bricks`` is given; else in-core when the mesh is not a binary
+    PLY, or when its in-core estimate fits ``max_memory`` (bytes), or, without a cap, when it has
+    at most :data:`INCORE_FACE_LIMIT` faces; in bricks otherwise. Reads only the PLY header.
+    """
+    from slscan.fsio import human_size
+
+    if brick_mm is not None or bricks is not None:
+        return True, "--brick" if brick_mm is not None else "--bricks"
+    path = Path(mesh_path)
+    if path.suffix.lower() != ".ply" or not _binary_ply(path):
+        return False, "not a binary PLY"
+    n_faces = ply_layout(path).n_faces
+    estimate = INCORE_BASE_BYTES + n_faces * INCORE_BYTES_PER_FACE
+    if max_memory is not None:
+        if estimate <= max_memory:
+            return False, f"estimate {human_size(estimate)} within --max-memory"
+        return True, f"in-core estimate {human_size(estimate)} > --max-memory {human_size(max_memory)}"
+    if n_faces <= INCORE_FACE_LIMIT:
+        return False, f"{n_faces:,} faces, at most {INCORE_FACE_LIMIT:,}"
+    return True, f"{n_faces:,} faces, more than {INCORE_FACE_LIMIT:,}"
 
 
 def _binary_ply(path: Path) -> bool:

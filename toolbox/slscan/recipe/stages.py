@@ -7,6 +7,7 @@ that provide what it needs. Each stage writes its whole output folder ``ctx.out`
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -212,12 +213,48 @@ class SimplifyConfig:
     method: str = "fast"
     """{"fast", "quadric"}: fast-simplification, or pymeshlab's quadric edge collapse."""
     preserve_boundary: bool = True
+    brick: float | None = None
+    """Simplify out of core in bricks of this edge (mm), each a task on the run's executor
+    (``--workers``, ``--scheduler``), as ``slscan simplify --brick``; needs method "fast" and
+    preserve_boundary (the brick borders stay locked). Unset: see ``max_memory``."""
+    bricks: int | None = None
+    """Or in about this many bricks (``--bricks``)."""
+    max_memory: str | float | None = None
+    """Memory one task may use, e.g. "4GiB" (GiB, MiB: powers of 1024; GB, MB: of 1000; a bare
+    number: GiB), as ``--max-memory``: without brick/bricks, in-core when the estimate fits,
+    else in bricks; a brick over it is refused. Unset: in-core up to 10M faces, else bricks
+    (with method "fast" and preserve_boundary; otherwise always in-core)."""
 
     def __post_init__(self) -> None:  # checked when the recipe is read, not after fusing
         if self.faces < 4:
             raise SlscanError(f"faces: expected at least 4, got {self.faces}")
         if self.method not in ("fast", "quadric"):  # slscan.simplify.METHODS, without importing open3d
             raise SlscanError(f"method: expected one of fast, quadric, got {self.method!r}")
+        if self.brick is not None and not (math.isfinite(self.brick) and self.brick > 0):
+            raise SlscanError(f"brick: expected a positive brick edge in mm, got {self.brick}")
+        if self.bricks is not None and self.bricks < 1:
+            raise SlscanError(f"bricks: expected at least 1, got {self.bricks}")
+        if self.brick is not None and self.bricks is not None:
+            raise SlscanError("brick: set brick (mm) or bricks (a count), not both")
+        if self.max_memory is not None:
+            from slscan.units import parse_memory
+
+            try:
+                parse_memory(self.max_memory, option="")
+            except SlscanError as exc:
+                raise SlscanError(f"max_memory: {exc}") from None
+        if (self.brick is not None or self.bricks is not None) and (self.method != "fast"
+                                                                     or not self.preserve_boundary):
+            raise SlscanError(f"{'brick' if self.brick is not None else 'bricks'}: simplifying in bricks "
+                              'needs method = "fast" and preserve_boundary = true (the borders stay locked)')
+
+    def max_memory_bytes(self) -> int | None:
+        """``max_memory`` in bytes (None: no cap)."""
+        from slscan.units import parse_memory
+
+        if self.max_memory is None:
+            return None
+        return parse_memory(self.max_memory, option="[simplify].max_memory")
 
 
 def _run_register(ctx: StageContext, config: RegisterConfig) -> dict[str, Any]:
@@ -289,16 +326,34 @@ def _run_simplify(ctx: StageContext, config: SimplifyConfig) -> dict[str, Any]:
     from slscan.fsio import atomic_output_dir
     from slscan.register.meshlab import write_mesh_project
     from slscan.simplify import simplify_file
+    from slscan.simplify_bricks import choose_path
 
+    source = ctx.inputs["mesh"] / "mesh.ply"
+    cap = config.max_memory_bytes()
+    in_bricks = config.method == "fast" and config.preserve_boundary
+    if in_bricks:  # as `slscan simplify` chooses; a quadric or free-boundary recipe stays in-core
+        in_bricks, _ = choose_path(source, brick_mm=config.brick, bricks=config.bricks, max_memory=cap)
+    summary: dict[str, Any] = {}
     with atomic_output_dir(ctx.out, overwrite=True) as tmp:
-        mesh = simplify_file(ctx.inputs["mesh"] / "mesh.ply", tmp / "mesh.ply", config.faces,
-                             method=config.method, preserve_boundary=config.preserve_boundary,
-                             option="[simplify] faces")
+        if in_bricks:
+            from slscan.executor import LOCAL
+            from slscan.fuse import read_mesh
+            from slscan.simplify_bricks import simplify_bricks
+
+            # each brick is a task on the run's executor (--workers, --scheduler)
+            report = simplify_bricks(source, tmp / "mesh.ply", config.faces, brick_mm=config.brick,
+                                     bricks=config.bricks, executor=ctx.executor or LOCAL, max_memory=cap)
+            mesh = read_mesh(tmp / "mesh.ply")
+            summary = {"bricks": len(report.bricks), "task_peak_mib": round(max(
+                (b.peak_rss for b in report.bricks), default=0) / 2**20, 1)}
+        else:
+            mesh = simplify_file(source, tmp / "mesh.ply", config.faces, method=config.method,
+                                 preserve_boundary=config.preserve_boundary, option="[simplify] faces")
         write_mesh_project(tmp / "mesh.ply")  # mesh.mlp: MeshLab opens the model upright
     from slscan.viewer.log_register import log_simplified_mesh
 
     log_simplified_mesh(ctx.rec, mesh)
-    return {"faces": len(mesh.faces)}
+    return {"faces": len(mesh.faces), **summary}
 
 
 def _run_texture(ctx: StageContext, config) -> dict[str, Any]:

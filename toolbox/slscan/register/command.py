@@ -11,6 +11,7 @@ import numpy as np
 
 from slscan.errors import SlscanError, about_file
 from slscan.progress import ProgressBar, console
+from slscan.units import MEMORY_HELP
 
 SHOWN_REJECTED = 5
 """Rejected pairs listed in ``slscan register``'s summary (registration.json has them all)."""
@@ -423,8 +424,8 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
                    help="fuse in cubic bricks of about MM mm a side (whole 8-voxel blocks), each a task "
                         "for --workers or --scheduler; the same mesh as one volume (default: one volume)")
     p.add_argument("--max-memory", metavar="SIZE",
-                   help="memory cap of the voxel grid, e.g. 4GiB; with --brick, per brick (per worker); "
-                        "a brick that cannot fit is named before anything runs (default 10GiB)")
+                   help="memory cap of the voxel grid; with --brick, per brick (per worker); "
+                        "a brick that cannot fit is named before anything runs (default 10GiB); " + MEMORY_HELP)
     p.add_argument("--allow-outside", action="store_true",
                    help="read mesh files the .mlp names outside its folder (each is named in a warning)")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
