@@ -100,3 +100,51 @@ def test_fuse_command_in_bricks(sphere_views, tmp_path, capsys):
     assert not small.exists() and not small.with_suffix(".mlp").exists()
     assert main(["fuse", str(aligned), "--brick", "12.8", "--max-memory", "lots", "--out", str(small)]) == 2
     assert "memory size 'lots': expected a size such as 4GiB" in capsys.readouterr().err
+
+
+def test_streamed_bricks_write_the_same_mesh(sphere_views, single, tmp_path):
+    """fuse_bricks(out=...) writes the in-memory bricks' mesh, which is the single volume's
+    (test above), up to order, with no vertex twice,
+    closed, the same bytes on two runs (one on 2 local workers), and leaves no scratch behind."""
+    from slscan.fuse import canonical_order, read_mesh
+    from slscan.simplify_bricks import ply_layout
+
+    scans, poses = sphere_views
+    config = FuseConfig(voxel_size=VOXEL, brick_size=12.8)
+    a, b = tmp_path / "a.ply", tmp_path / "b.ply"
+    result = fuse_bricks(scans, poses, config=config, out=a)
+    assert result.mesh is None and result.written.path == a and result.n_bricks > 8
+    assert result.written.merged > 0  # vertices on brick planes were found twice and merged
+    back = read_mesh(a)
+    assert (back.n_vertices, back.n_faces) == (result.written.n_vertices, result.written.n_faces)
+    _same_mesh(canonical_order(back), single)
+    assert len(np.unique(back.vertices.astype(np.float32), axis=0)) == back.n_vertices
+    assert len(boundary_vertices(back.faces)) == 0
+    layout = ply_layout(a)  # the out-of-core simplification reads it by memory map
+    assert (layout.n_vertices, layout.n_faces) == (back.n_vertices, back.n_faces)
+    fuse_bricks(scans, poses, config=config, out=b, executor=Executor(workers=2))
+    assert a.read_bytes() == b.read_bytes()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.ply", "b.ply"]
+
+
+def test_a_failing_brick_leaves_no_output_and_no_scratch(sphere_views, tmp_path, monkeypatch):
+    """A fake failure of the fourth brick, after three wrote their pieces: nothing is written
+    at --out and the scratch folder is gone."""
+    from slscan import fuse
+
+    scans, poses = sphere_views
+    out = tmp_path / "fused.ply"
+    real, written = fuse._fuse_brick, []
+
+    def fails_fourth(task):
+        if len(written) == 3:
+            raise SlscanError(f"brick {task.index}: fake failure")
+        result = real(task)
+        written.append(result.piece)
+        return result
+
+    monkeypatch.setattr(fuse, "_fuse_brick", fails_fourth)
+    with pytest.raises(SlscanError, match="fake failure"):
+        fuse_bricks(scans, poses, config=FuseConfig(voxel_size=VOXEL, brick_size=12.8), out=out)
+    assert len(written) == 3 and all(p.parent.parent == tmp_path for p in written)
+    assert list(tmp_path.iterdir()) == []
