@@ -77,21 +77,33 @@ def test_a_cap_too_small_for_a_brick_names_it(sphere_views):
         fuse_bricks(scans, poses, config=config)
 
 
-def test_fuse_command_in_bricks(sphere_views, tmp_path, capsys):
-    """`slscan fuse --brick MM --workers 1` writes the single-volume mesh; a --max-memory too
+def test_fuse_command_in_bricks(sphere_views, tmp_path, capsys, monkeypatch):
+    """`slscan fuse --brick MM --workers 1` streams the single-volume mesh (up to order) to the PLY
+    and logs it; a mesh over the log's limit is not logged, and says so; a --max-memory too
     small for a brick is one line naming it, exit 2, nothing written."""
+    from rerun.chunk import RrdReader
+
+    from slscan import fuse_stream
     from slscan.cli import main
-    from slscan.fuse import read_mesh
+    from slscan.fuse import canonical_order, read_mesh
     from slscan.register.meshlab import write_scan_project
 
     scans, poses = sphere_views
     aligned = write_scan_project(tmp_path / "aligned", scans, poses)
-    out, one = tmp_path / "fused.ply", tmp_path / "one.ply"
+    out, one, rrd = tmp_path / "fused.ply", tmp_path / "one.ply", tmp_path / "fuse.rrd"
     assert main(["fuse", str(aligned), "--voxel", str(VOXEL), "--brick", "12.8", "--workers", "1",
-                 "--out", str(out), "--quiet"]) == 0
+                 "--out", str(out), "--quiet", "--save", str(rrd)]) == 0
     assert main(["fuse", str(aligned), "--voxel", str(VOXEL), "--out", str(one), "--quiet"]) == 0
-    _same_mesh(read_mesh(out), read_mesh(one))
-    capsys.readouterr()
+    _same_mesh(canonical_order(read_mesh(out)), read_mesh(one))
+    assert out.with_suffix(".mlp").is_file() and "in bricks, streamed" in capsys.readouterr().err
+    assert "/object/model/fused" in {c.entity_path for c in RrdReader(rrd).stream().to_chunks()}
+    monkeypatch.setattr(fuse_stream, "LOG_MAX_FACES", 10)
+    big = tmp_path / "big.ply"
+    assert main(["fuse", str(aligned), "--voxel", str(VOXEL), "--brick", "12.8", "--out", str(big), "--quiet",
+                 "--save", str(tmp_path / "big.rrd")]) == 0
+    said = " ".join(capsys.readouterr().err.split())
+    assert "is too large to log to Rerun (more than 10); the simplified model is logged" in said
+    assert "/object/model/fused" not in {c.entity_path for c in RrdReader(tmp_path / "big.rrd").stream().to_chunks()}
     small = tmp_path / "small.ply"
     assert main(["fuse", str(aligned), "--voxel", str(VOXEL), "--brick", "12.8", "--max-memory", "0.01MiB",
                  "--out", str(small), "--quiet"]) == 2

@@ -52,6 +52,11 @@ FACE_DTYPE = np.dtype([("n", "u1"), ("i", "<u4", (3,))])
 """One face record: the count 3, then three vertex ids."""
 
 
+LOG_MAX_FACES = 5_000_000
+"""A streamed mesh up to this many faces is read back to be logged to Rerun (about 0.3 GiB); a
+larger one is not logged (the simplified model is)."""
+
+
 @dataclass(frozen=True)
 class StreamedMesh:
     """The fused mesh as written by :func:`write_streamed` (nothing of it held in memory).
@@ -72,6 +77,16 @@ class StreamedMesh:
     @property
     def size_bytes(self) -> int:
         return self.path.stat().st_size
+
+
+def mesh_to_log(written: StreamedMesh, *, max_faces: int | None = None) -> Mesh | None:
+    """The written mesh read back, for the viewer, when it has at most ``max_faces`` faces
+    (default :data:`LOG_MAX_FACES`); else None."""
+    from slscan.fuse import read_mesh
+
+    if written.n_faces > (LOG_MAX_FACES if max_faces is None else max_faces) or written.n_faces == 0:
+        return None
+    return read_mesh(written.path)
 
 
 def make_scratch(out: str | os.PathLike) -> Path:
