@@ -160,3 +160,35 @@ def test_a_failing_brick_leaves_no_output_and_no_scratch(sphere_views, tmp_path,
         fuse_bricks(scans, poses, config=FuseConfig(voxel_size=VOXEL, brick_size=12.8), out=out)
     assert len(written) == 3 and all(p.parent.parent == tmp_path for p in written)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_recipe_fuse_stage_in_bricks_streams_mesh_ply(sphere_views, tmp_path, monkeypatch, caplog):
+    """The recipe's fuse stage with fuse.brick_size writes mesh.ply (the single-volume mesh up to
+    order) and mesh.mlp through the streamed path, and logs the mesh unless it is over the limit."""
+    import rerun as rr
+    from rerun.chunk import RrdReader
+
+    from slscan import fuse_stream
+    from slscan.fuse import canonical_order, read_mesh
+    from slscan.recipe.stages import StageContext, _run_fuse
+    from slscan.register.meshlab import load_scan_project, write_scan_project
+
+    scans, poses = sphere_views
+    aligned = write_scan_project(tmp_path / "aligned", scans, poses)
+    config = FuseConfig(voxel_size=VOXEL, brick_size=12.8)
+    rec = rr.RecordingStream("slscan-test")
+    rec.save(tmp_path / "stage.rrd")
+    ctx = StageContext(out=tmp_path / "fuse", inputs={"aligned": aligned.parent}, rec=rec,
+                       executor=Executor(workers=1))
+    summary = _run_fuse(ctx, config)
+    back = read_mesh(ctx.out / "mesh.ply")
+    one = fuse_scans(*load_scan_project(aligned), config=FuseConfig(voxel_size=VOXEL)).mesh  # as read back
+    assert summary == {"faces": one.n_faces, "vertices": one.n_vertices}
+    _same_mesh(canonical_order(back), one)
+    assert sorted(p.name for p in ctx.out.iterdir()) == ["mesh.mlp", "mesh.ply"]
+    rec.disconnect()  # closes the file (with its footer)
+    assert "/object/model/fused" in {c.entity_path for c in RrdReader(tmp_path / "stage.rrd").stream().to_chunks()}
+    monkeypatch.setattr(fuse_stream, "LOG_MAX_FACES", 10)
+    with caplog.at_level("WARNING"):
+        _run_fuse(ctx, config)
+    assert "is too large to log to Rerun (more than 10); the simplified model is logged" in caplog.text
