@@ -192,3 +192,19 @@ def test_recipe_fuse_stage_in_bricks_streams_mesh_ply(sphere_views, tmp_path, mo
     with caplog.at_level("WARNING"):
         _run_fuse(ctx, config)
     assert "is too large to log to Rerun (more than 10); the simplified model is logged" in caplog.text
+
+
+def test_streamed_bricks_refuse_a_missing_scratch_and_a_non_ply(sphere_views, tmp_path):
+    """A worker that does not see the scratch folder, and an --out that is not a PLY: one line each."""
+    from slscan.fuse import Mesh
+    from slscan.fuse_stream import write_piece
+
+    mesh = Mesh(np.eye(3), np.array([[0, 1, 2]]))
+    with pytest.raises(SlscanError, match=r"nowhere: the bricks' scratch folder is not there on this worker "
+                                          r"\(brick \(1, 2, 3\)\); every worker must see"):
+        write_piece(tmp_path / "nowhere", (1, 2, 3), mesh)
+    assert not (tmp_path / "nowhere").exists()
+    scans, poses = sphere_views
+    with pytest.raises(SlscanError, match=r"fused.obj: fusion in bricks streams a binary PLY"):
+        fuse_bricks(scans, poses, config=FuseConfig(voxel_size=VOXEL, brick_size=12.8), out=tmp_path / "fused.obj")
+    assert list(tmp_path.iterdir()) == []

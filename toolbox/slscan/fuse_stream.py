@@ -89,10 +89,22 @@ def mesh_to_log(written: StreamedMesh, *, max_faces: int | None = None) -> Mesh 
     return read_mesh(written.path)
 
 
+def _load_piece(path: Path, *names: str) -> tuple[np.ndarray, ...]:
+    """Arrays ``names`` of a brick's piece; one line naming it when it is missing or damaged."""
+    try:
+        with np.load(path) as z:
+            return tuple(z[n] for n in names)
+    except (OSError, KeyError, ValueError) as exc:
+        raise SlscanError(f"{path}: a brick's piece could not be read back ({exc}); did its worker write "
+                          "it to another disk? Workers must see the scratch folder at the same path") from None
+
+
 def make_scratch(out: str | os.PathLike) -> Path:
     """A fresh scratch folder beside ``out`` for the bricks' pieces (stale ones of killed runs
     removed first). Dask workers on other machines must see it at the same path."""
     out = Path(out)
+    if out.suffix.lower() != ".ply" or out.is_dir():
+        raise SlscanError(f"{out}: fusion in bricks streams a binary PLY; expected a .ply file path")
     out.parent.mkdir(parents=True, exist_ok=True)
     name = Path(out.name + SCRATCH_SUFFIX)
     remove_stale_leftovers(out.parent, name=name.name)
@@ -119,6 +131,9 @@ def write_piece(scratch: str | os.PathLike, index: tuple[int, int, int], mesh: M
     mesh.vertices : (n, 3) float64 holding float32 values (marching cubes), mm
     """
     path = piece_path(scratch, index)
+    if not path.parent.is_dir():  # a worker elsewhere that does not see the caller's folder
+        raise SlscanError(f"{path.parent}: the bricks' scratch folder is not there on this worker "
+                          f"(brick {index}); every worker must see the folder beside --out at the same path")
     vertices = np.ascontiguousarray(mesh.vertices, np.float32)
     if mesh.n_vertices and not np.array_equal(vertices, mesh.vertices):
         raise SlscanError(f"brick {index}: vertices are not float32 values; cannot write the piece exactly")
@@ -156,8 +171,7 @@ def _global_ids(pieces: Sequence[tuple[tuple[int, int, int], Path]], scratch: Pa
         # sorted order is index + (1, 1, 1): past it, the brick's table is not needed any more
         for old in [k for k in tables if (k[0] + 1, k[1] + 1, k[2] + 1) < index]:
             held -= len(tables.pop(old)[0])
-        with np.load(path) as z:
-            vertices = z["vertices"]
+        (vertices,) = _load_piece(path, "vertices")
         gid = np.full(len(vertices), -1, np.int64)
         plane = np.flatnonzero(on_planes(vertices, plane_spacing=plane_spacing, voxel=voxel))
         keys = _keys(vertices[plane])
@@ -215,8 +229,7 @@ def write_streamed(pieces: Sequence[tuple[tuple[int, int, int], Path, int]], out
     with atomic_output_file(out, size=size) as tmp, open(tmp, "wb") as fh:
         fh.write(header)
         for (_, path), gid_file, first in zip(located, gid_files, firsts):
-            with np.load(path) as z:
-                vertices, normals = z["vertices"], z["normals"]
+            vertices, normals = _load_piece(path, "vertices", "normals")
             new = np.load(gid_file) >= first
             records = np.empty(int(new.sum()), VERTEX_DTYPE)
             for a, name in enumerate("xyz"):
@@ -224,8 +237,7 @@ def write_streamed(pieces: Sequence[tuple[tuple[int, int, int], Path, int]], out
                 records["n" + name] = normals[new, a]
             fh.write(records.tobytes())
         for (_, path), gid_file in zip(located, gid_files):
-            with np.load(path) as z:
-                faces = z["faces"]
+            (faces,) = _load_piece(path, "faces")
             records = np.empty(len(faces), FACE_DTYPE)
             records["n"] = 3
             records["i"] = np.load(gid_file)[faces]
