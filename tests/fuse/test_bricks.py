@@ -118,6 +118,8 @@ def test_streamed_bricks_write_the_same_mesh(sphere_views, single, tmp_path):
     """fuse_bricks(out=...) writes the in-memory bricks' mesh, which is the single volume's
     (test above), up to order, with no vertex twice,
     closed, the same bytes on two runs (one on 2 local workers), and leaves no scratch behind."""
+    import pymeshlab
+
     from slscan.fuse import canonical_order, read_mesh
     from slscan.simplify_bricks import ply_layout
 
@@ -134,6 +136,9 @@ def test_streamed_bricks_write_the_same_mesh(sphere_views, single, tmp_path):
     assert len(boundary_vertices(back.faces)) == 0
     layout = ply_layout(a)  # the out-of-core simplification reads it by memory map
     assert (layout.n_vertices, layout.n_faces) == (back.n_vertices, back.n_faces)
+    ms = pymeshlab.MeshSet()  # MeshLab's reader
+    ms.load_new_mesh(str(a))
+    assert (ms.current_mesh().vertex_number(), ms.current_mesh().face_number()) == (back.n_vertices, back.n_faces)
     fuse_bricks(scans, poses, config=config, out=b, executor=Executor(workers=2))
     assert a.read_bytes() == b.read_bytes()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.ply", "b.ply"]
