@@ -332,7 +332,8 @@ def _fuse_streamed(args: argparse.Namespace, config, scans, poses, t0: float) ->
     from slscan.viewer.layouts import register_blueprint
     from slscan.viewer.recording import recording_from_args
 
-    with recording_from_args(args, recording_name=f"fuse {args.aligned.name}", blueprint=register_blueprint()) as rec:
+    name = f"fuse {args.aligned.name}"
+    with recording_from_args(args, recording_name=name, blueprint=register_blueprint()) as rec:
         with ProgressBar(len(scans), "fusing (tsdf, bricks)", args.quiet) as bar:
             written = fuse_bricks(scans, poses, config=config, progress=bar.step, progress_total=bar.set_total,
                                   executor=executor_from_args(args), out=args.out).written
@@ -343,7 +344,8 @@ def _fuse_streamed(args: argparse.Namespace, config, scans, poses, t0: float) ->
             else:
                 console().print(f"fuse: the fused mesh ({written.n_faces:,} faces) is too large to log to Rerun "
                                 f"(more than {fuse_stream.LOG_MAX_FACES:,}); the simplified model is logged "
-                                "(slscan simplify with --save, --spawn or --connect)", highlight=False, soft_wrap=True)
+                                "(slscan simplify with --save, --spawn or --connect)",
+                                highlight=False, soft_wrap=True)
     project = write_mesh_project(args.out)
     console().print(f"[green]fused[/] {len(scans)} scans at {args.voxel} mm in bricks, streamed: "
                     f"{written.n_faces:,} faces in {time.perf_counter() - t0:.1f} s -> {args.out} "
