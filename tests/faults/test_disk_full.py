@@ -240,6 +240,18 @@ def test_fuse_on_a_full_disk_leaves_nothing(full_disk, aligned, capsys):
     assert not out.exists() and leftovers(disk) == []
 
 
+def test_fuse_in_bricks_on_a_full_disk_leaves_nothing(full_disk, aligned, capsys, tmp_path):
+    """Streamed fusion: the bricks' pieces fit, the PLY written beside them does not."""
+    probe = tmp_path / "probe.ply"
+    assert main(["fuse", str(aligned), "--voxel", "1.0", "--brick", "16", "--out", str(probe), "--quiet"]) == 0
+    disk = full_disk(probe.stat().st_size)
+    out = disk / "fused.ply"
+    rc = main(["fuse", str(aligned), "--voxel", "1.0", "--brick", "16", "--out", str(out), "--quiet"])
+    assert rc == 2
+    only_error_line(capsys, str(out))
+    assert not out.exists() and list(disk.iterdir()) == []
+
+
 def test_a_recipe_stage_on_a_full_disk_leaves_the_stages_before_it(full_disk, captured, capsys):
     capture_size = sum(p.stat().st_size for p in (captured / "run").rglob("*") if p.is_file())
     disk = full_disk(capture_size + 200_000)  # the capture fits, the range map (~500 KB) does not

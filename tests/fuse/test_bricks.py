@@ -77,21 +77,34 @@ def test_a_cap_too_small_for_a_brick_names_it(sphere_views):
         fuse_bricks(scans, poses, config=config)
 
 
-def test_fuse_command_in_bricks(sphere_views, tmp_path, capsys):
-    """`slscan fuse --brick MM --workers 1` writes the single-volume mesh; a --max-memory too
+def test_fuse_command_in_bricks(sphere_views, tmp_path, capsys, monkeypatch):
+    """`slscan fuse --brick MM --workers 1` streams the single-volume mesh (up to order) to the PLY
+    and logs it; a mesh over the log's limit is not logged, and says so; a --max-memory too
     small for a brick is one line naming it, exit 2, nothing written."""
+    from rerun.chunk import RrdReader
+
+    from slscan import fuse_stream
     from slscan.cli import main
-    from slscan.fuse import read_mesh
+    from slscan.fuse import canonical_order, read_mesh
     from slscan.register.meshlab import write_scan_project
 
     scans, poses = sphere_views
     aligned = write_scan_project(tmp_path / "aligned", scans, poses)
-    out, one = tmp_path / "fused.ply", tmp_path / "one.ply"
+    out, one, rrd = tmp_path / "fused.ply", tmp_path / "one.ply", tmp_path / "fuse.rrd"
     assert main(["fuse", str(aligned), "--voxel", str(VOXEL), "--brick", "12.8", "--workers", "1",
-                 "--out", str(out), "--quiet"]) == 0
+                 "--out", str(out), "--quiet", "--save", str(rrd)]) == 0
     assert main(["fuse", str(aligned), "--voxel", str(VOXEL), "--out", str(one), "--quiet"]) == 0
-    _same_mesh(read_mesh(out), read_mesh(one))
-    capsys.readouterr()
+    _same_mesh(canonical_order(read_mesh(out)), read_mesh(one))
+    assert out.with_suffix(".mlp").is_file() and "in bricks, streamed" in capsys.readouterr().err
+    assert "/object/model/fused" in {c.entity_path for c in RrdReader(rrd).stream().to_chunks()}
+    monkeypatch.setattr(fuse_stream, "LOG_MAX_FACES", 10)
+    big = tmp_path / "big.ply"
+    assert main(["fuse", str(aligned), "--voxel", str(VOXEL), "--brick", "12.8", "--out", str(big), "--quiet",
+                 "--save", str(tmp_path / "big.rrd")]) == 0
+    said = " ".join(capsys.readouterr().err.split())
+    assert "is too large to log to Rerun (more than 10); the simplified model is logged" in said
+    logged = {c.entity_path for c in RrdReader(tmp_path / "big.rrd").stream().to_chunks()}
+    assert "/object/model/fused" not in logged
     small = tmp_path / "small.ply"
     assert main(["fuse", str(aligned), "--voxel", str(VOXEL), "--brick", "12.8", "--max-memory", "0.01MiB",
                  "--out", str(small), "--quiet"]) == 2
@@ -100,3 +113,104 @@ def test_fuse_command_in_bricks(sphere_views, tmp_path, capsys):
     assert not small.exists() and not small.with_suffix(".mlp").exists()
     assert main(["fuse", str(aligned), "--brick", "12.8", "--max-memory", "lots", "--out", str(small)]) == 2
     assert "--max-memory 'lots': expected a size such as 4GiB or 512MiB" in capsys.readouterr().err
+
+
+def test_streamed_bricks_write_the_same_mesh(sphere_views, single, tmp_path):
+    """fuse_bricks(out=...) writes the in-memory bricks' mesh, which is the single volume's
+    (test above), up to order, with no vertex twice,
+    closed, the same bytes on two runs (one on 2 local workers), and leaves no scratch behind."""
+    import pymeshlab
+
+    from slscan.fuse import canonical_order, read_mesh
+    from slscan.simplify_bricks import ply_layout
+
+    scans, poses = sphere_views
+    config = FuseConfig(voxel_size=VOXEL, brick_size=12.8)
+    a, b = tmp_path / "a.ply", tmp_path / "b.ply"
+    result = fuse_bricks(scans, poses, config=config, out=a)
+    assert result.mesh is None and result.written.path == a and result.n_bricks > 8
+    assert result.written.merged > 0  # vertices on brick planes were found twice and merged
+    back = read_mesh(a)
+    assert (back.n_vertices, back.n_faces) == (result.written.n_vertices, result.written.n_faces)
+    _same_mesh(canonical_order(back), single)
+    assert len(np.unique(back.vertices.astype(np.float32), axis=0)) == back.n_vertices
+    assert len(boundary_vertices(back.faces)) == 0
+    layout = ply_layout(a)  # the out-of-core simplification reads it by memory map
+    assert (layout.n_vertices, layout.n_faces) == (back.n_vertices, back.n_faces)
+    ms = pymeshlab.MeshSet()  # MeshLab's reader
+    ms.load_new_mesh(str(a))
+    assert (ms.current_mesh().vertex_number(), ms.current_mesh().face_number()) == (back.n_vertices, back.n_faces)
+    fuse_bricks(scans, poses, config=config, out=b, executor=Executor(workers=2))
+    assert a.read_bytes() == b.read_bytes()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.ply", "b.ply"]
+
+
+def test_a_failing_brick_leaves_no_output_and_no_scratch(sphere_views, tmp_path, monkeypatch):
+    """A fake failure of the fourth brick, after three wrote their pieces: nothing is written
+    at --out and the scratch folder is gone."""
+    from slscan import fuse
+
+    scans, poses = sphere_views
+    out = tmp_path / "fused.ply"
+    real, written = fuse._fuse_brick, []
+
+    def fails_fourth(task):
+        if len(written) == 3:
+            raise SlscanError(f"brick {task.index}: fake failure")
+        result = real(task)
+        written.append(result.piece)
+        return result
+
+    monkeypatch.setattr(fuse, "_fuse_brick", fails_fourth)
+    with pytest.raises(SlscanError, match="fake failure"):
+        fuse_bricks(scans, poses, config=FuseConfig(voxel_size=VOXEL, brick_size=12.8), out=out)
+    assert len(written) == 3 and all(p.parent.parent == tmp_path for p in written)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_recipe_fuse_stage_in_bricks_streams_mesh_ply(sphere_views, tmp_path, monkeypatch, caplog):
+    """The recipe's fuse stage with fuse.brick_size writes mesh.ply (the single-volume mesh up to
+    order) and mesh.mlp through the streamed path, and logs the mesh unless it is over the limit."""
+    import rerun as rr
+    from rerun.chunk import RrdReader
+
+    from slscan import fuse_stream
+    from slscan.fuse import canonical_order, read_mesh
+    from slscan.recipe.stages import StageContext, _run_fuse
+    from slscan.register.meshlab import load_scan_project, write_scan_project
+
+    scans, poses = sphere_views
+    aligned = write_scan_project(tmp_path / "aligned", scans, poses)
+    config = FuseConfig(voxel_size=VOXEL, brick_size=12.8)
+    rec = rr.RecordingStream("slscan-test")
+    rec.save(tmp_path / "stage.rrd")
+    ctx = StageContext(out=tmp_path / "fuse", inputs={"aligned": aligned.parent}, rec=rec,
+                       executor=Executor(workers=1))
+    summary = _run_fuse(ctx, config)
+    back = read_mesh(ctx.out / "mesh.ply")
+    one = fuse_scans(*load_scan_project(aligned), config=FuseConfig(voxel_size=VOXEL)).mesh  # as read back
+    assert summary == {"faces": one.n_faces, "vertices": one.n_vertices}
+    _same_mesh(canonical_order(back), one)
+    assert sorted(p.name for p in ctx.out.iterdir()) == ["mesh.mlp", "mesh.ply"]
+    rec.disconnect()  # closes the file (with its footer)
+    assert "/object/model/fused" in {c.entity_path for c in RrdReader(tmp_path / "stage.rrd").stream().to_chunks()}
+    monkeypatch.setattr(fuse_stream, "LOG_MAX_FACES", 10)
+    with caplog.at_level("WARNING"):
+        _run_fuse(ctx, config)
+    assert "is too large to log to Rerun (more than 10); the simplified model is logged" in caplog.text
+
+
+def test_streamed_bricks_refuse_a_missing_scratch_and_a_non_ply(sphere_views, tmp_path):
+    """A worker that does not see the scratch folder, and an --out that is not a PLY: one line each."""
+    from slscan.fuse import Mesh
+    from slscan.fuse_stream import write_piece
+
+    mesh = Mesh(np.eye(3), np.array([[0, 1, 2]]))
+    with pytest.raises(SlscanError, match=r"nowhere: the bricks' scratch folder is not there on this worker "
+                                          r"\(brick \(1, 2, 3\)\); every worker must see"):
+        write_piece(tmp_path / "nowhere", (1, 2, 3), mesh)
+    assert not (tmp_path / "nowhere").exists()
+    scans, poses = sphere_views
+    with pytest.raises(SlscanError, match=r"fused.obj: fusion in bricks streams a binary PLY"):
+        fuse_bricks(scans, poses, config=FuseConfig(voxel_size=VOXEL, brick_size=12.8), out=tmp_path / "fused.obj")
+    assert list(tmp_path.iterdir()) == []

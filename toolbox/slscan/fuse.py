@@ -49,8 +49,9 @@ import os
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -59,6 +60,9 @@ from slscan.executor import Executor
 from slscan.fsio import atomic_output_file, native_stderr_silenced
 from slscan.meshes import MESH_SUFFIXES, check_face_indices, check_finite_vertices, read_ply_mesh
 from slscan.register.rangescan import RangeScan
+
+if TYPE_CHECKING:
+    from slscan.fuse_stream import StreamedMesh
 
 log = logging.getLogger(__name__)
 
@@ -125,7 +129,7 @@ class FuseConfig:
 class FusionResult:
     """Outcome of :func:`fuse_scans`.
 
-    mesh : the extracted surface
+    mesh : the extracted surface; None when :func:`fuse_bricks` streamed it to a file (``written``)
     n_blocks : voxel blocks allocated (each 8³ voxels)
     grid_bytes : memory of the voxel grid (tsdf + weight + hash map estimate)
     n_scans : scans integrated
@@ -134,7 +138,7 @@ class FusionResult:
         scans is in none of them
     """
 
-    mesh: Mesh
+    mesh: Mesh | None
     n_blocks: int
     grid_bytes: int
     n_scans: int
@@ -142,6 +146,8 @@ class FusionResult:
     n_bricks: int = 1
     """Bricks fused (:func:`fuse_bricks`; n_blocks and grid_bytes are then summed over
     them, halo blocks included, and n_scans counts a scan once per brick it reaches)."""
+    written: StreamedMesh | None = None
+    """:func:`fuse_bricks` with ``out``: the PLY it wrote (path, counts); ``mesh`` is then None."""
 
 
 # --- height maps ----------------------------------------------------------------------------------
@@ -917,17 +923,23 @@ class _BrickTask:
     poses: dict[str, np.ndarray]
     config: FuseConfig
     expected_blocks: int
+    scratch: str | None = None
+    """Folder where the brick writes its mesh piece (:mod:`slscan.fuse_stream`); None: the
+    piece is returned in the result."""
 
 
 @dataclass(frozen=True, eq=False)
 class _BrickResult:
-    """A brick's triangles (those of the marching cubes in its core) and its grid's size."""
+    """A brick's triangles (those of the marching cubes in its core) and its grid's size;
+    with a scratch folder, the piece's file and counts instead of the mesh."""
 
     index: tuple[int, int, int]
-    mesh: Mesh
+    mesh: Mesh | None
     n_blocks: int
     n_scans: int
     seconds: dict[str, float]
+    piece: Path | None = None
+    n_faces: int = 0
 
 
 def _size(n_bytes: float) -> str:
@@ -1012,6 +1024,11 @@ def _fuse_brick(task: _BrickTask) -> _BrickResult:
         mesh = Mesh(mesh.vertices[used], faces.reshape(-1, 3),
                     None if mesh.normals is None else mesh.normals[used])
     seconds["extract"] = time.perf_counter() - t0
+    if task.scratch is not None:  # streamed: the piece goes to disk, only its path comes back
+        from slscan.fuse_stream import write_piece
+
+        piece = write_piece(task.scratch, task.index, canonical_order(mesh))
+        return _BrickResult(task.index, None, n_blocks, len(task.scans), seconds, piece, mesh.n_faces)
     return _BrickResult(task.index, mesh, n_blocks, len(task.scans), seconds)
 
 
@@ -1060,6 +1077,8 @@ def fuse_bricks(
     executor: Executor | None = None,
     progress: Callable[[str], None] | None = None,
     progress_total: Callable[[int], None] | None = None,
+    out: str | os.PathLike | None = None,
+    _scratch: Path | None = None,
 ) -> FusionResult:
     """:func:`fuse_scans` in spatial bricks, each a task on ``executor``, under a memory cap.
 
@@ -1087,12 +1106,30 @@ def fuse_bricks(
         in this process
     progress : called with the brick's name, e.g. "brick (2, 0, 1)", as each is done
     progress_total : called with the number of bricks before the first runs
+    out : None: the mesh is returned (``FusionResult.mesh``). A path: the mesh is streamed to
+        this binary PLY (:mod:`slscan.fuse_stream`) and never held whole: each brick writes its
+        piece to a scratch folder beside ``out`` (Dask workers must see it at the same path),
+        the caller merges the vertices on brick planes and writes piece after piece
+        (``FusionResult.written``; ``mesh`` is None). The same mesh up to the order of its
+        vertices and faces (bricks in sorted order, each in canonical order), the same bytes
+        from run to run; written atomically, the scratch folder removed after success and
+        failure.
+    _scratch : internal: the scratch folder made for ``out`` (by the call that made it)
 
     Raises
     ------
     SlscanError
         A scan without a pose, bad options, or a brick that cannot fit under the cap.
     """
+    if out is not None and _scratch is None:
+        from slscan.fuse_stream import make_scratch, remove_scratch
+
+        scratch = make_scratch(out)
+        try:
+            return fuse_bricks(scans, poses, config=config, executor=executor, progress=progress,
+                               progress_total=progress_total, out=out, _scratch=scratch)
+        finally:
+            remove_scratch(scratch)
     if config.weighting not in ("quality", "uniform"):
         raise SlscanError(f"weighting {config.weighting!r}: expected 'quality' or 'uniform'")
     voxel = float(config.voxel_size)
@@ -1131,6 +1168,8 @@ def fuse_bricks(
         mine = tuple(s for s, bricks in zip(scans, reached) if b in bricks)
         tasks.append(_BrickTask(b, lo, hi, mine, {s.name: np.asarray(poses[s.name], np.float64) for s in mine},
                                 config, needs.get(b, 0)))
+    if _scratch is not None:  # streamed: each brick writes its piece there
+        tasks = [replace(t, scratch=str(_scratch)) for t in tasks]
     log.info("fusing in %d bricks of %d blocks (%.3g mm) a side", len(tasks), edge, edge * block)
     if progress_total is not None:
         progress_total(len(tasks))
@@ -1152,11 +1191,19 @@ def fuse_bricks(
     results = [done[t.index] for t in tasks]
     seconds = {k: sum(r.seconds[k] for r in results) for k in ("height_maps", "integrate", "extract")}
     t0 = time.perf_counter()
-    mesh = canonical_order(_stitch([r.mesh for r in results], plane_spacing=edge * block, voxel=voxel))
+    written = None
+    if _scratch is not None:
+        from slscan.fuse_stream import write_streamed
+
+        mesh = None
+        written = write_streamed([(r.index, r.piece, r.n_faces) for r in results], out, _scratch,
+                                 plane_spacing=edge * block, voxel=voxel)
+    else:
+        mesh = canonical_order(_stitch([r.mesh for r in results], plane_spacing=edge * block, voxel=voxel))
     seconds["stitch"] = time.perf_counter() - t0
     n_blocks = sum(r.n_blocks for r in results)
     return FusionResult(mesh, n_blocks, grid_memory_bytes(n_blocks), sum(r.n_scans for r in results),
-                        seconds, n_bricks=len(results))
+                        seconds, n_bricks=len(results), written=written)
 
 
 # --- screened Poisson (pymeshlab) -----------------------------------------------------------------

@@ -7,16 +7,19 @@ that provide what it needs. Each stage writes its whole output folder ``ctx.out`
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from slscan.errors import SlscanError
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -314,12 +317,38 @@ def _run_fuse(ctx: StageContext, config) -> dict[str, Any]:
     from slscan.executor import LOCAL
 
     # with fuse.brick_size the bricks run on the run's executor (--workers, --scheduler)
+    if config.brick_size is not None:
+        return _run_fuse_streamed(ctx, config, scans, poses)
     result = fuse_scans(scans, poses, config=config, progress=ctx.progress, executor=ctx.executor or LOCAL)
     with atomic_output_dir(ctx.out, overwrite=True) as tmp:
         write_mesh(result.mesh, tmp / "mesh.ply")
         write_mesh_project(tmp / "mesh.ply")  # mesh.mlp: MeshLab opens the model upright
     log_fused_mesh(ctx.rec, result.mesh)
     return {"faces": len(result.mesh.faces), "vertices": len(result.mesh.vertices)}
+
+
+def _run_fuse_streamed(ctx: StageContext, config, scans, poses) -> dict[str, Any]:
+    """The fuse stage in bricks: the mesh streams to ``mesh.ply`` in the stage's temporary folder
+    (the caller never holds it whole); logged when small enough to read back."""
+    from slscan.executor import LOCAL
+    from slscan.fsio import atomic_output_dir
+    from slscan.fuse import fuse_bricks
+    from slscan import fuse_stream
+    from slscan.register.meshlab import write_mesh_project
+    from slscan.viewer.log_register import log_fused_mesh
+
+    with atomic_output_dir(ctx.out, overwrite=True) as tmp:
+        written = fuse_bricks(scans, poses, config=config, progress=ctx.progress, executor=ctx.executor or LOCAL,
+                              out=tmp / "mesh.ply").written
+        write_mesh_project(tmp / "mesh.ply")  # mesh.mlp: MeshLab opens the model upright
+    if ctx.rec is not None:
+        mesh = fuse_stream.mesh_to_log(replace(written, path=ctx.out / "mesh.ply"))
+        if mesh is not None:
+            log_fused_mesh(ctx.rec, mesh)
+        else:
+            log.warning("fuse: the fused mesh (%d faces) is too large to log to Rerun (more than %d); the "
+                        "simplified model is logged", written.n_faces, fuse_stream.LOG_MAX_FACES)
+    return {"faces": written.n_faces, "vertices": written.n_vertices}
 
 
 def _run_simplify(ctx: StageContext, config: SimplifyConfig) -> dict[str, Any]:

@@ -289,7 +289,7 @@ def load_into(into: Path, new_scans: list, *, allow_outside: bool = False):
 
 def _cmd_fuse(args: argparse.Namespace) -> int:
     from slscan.executor import executor_from_args
-    from slscan.fuse import FuseConfig, fuse_scans, parse_memory, poisson_reconstruct, write_mesh
+    from slscan.fuse import FuseConfig, fuse_bricks, fuse_scans, parse_memory, poisson_reconstruct, write_mesh
     from slscan.register.meshlab import write_mesh_project
     from slscan.viewer import log_register as rlog
     from slscan.viewer.layouts import register_blueprint
@@ -304,6 +304,8 @@ def _cmd_fuse(args: argparse.Namespace) -> int:
     if poses is None:
         raise SlscanError(f"{args.aligned}: the scans have no poses; run `slscan register` first")
     t0 = time.perf_counter()
+    if args.method == "tsdf" and args.brick is not None and args.out.suffix.lower() == ".ply":
+        return _fuse_streamed(args, config, scans, poses, t0)
     with recording_from_args(args, recording_name=f"fuse {args.aligned.name}", blueprint=register_blueprint()) as rec:
         with ProgressBar(len(scans), f"fusing ({args.method})", args.quiet) as bar:
             if args.method == "tsdf":
@@ -316,6 +318,39 @@ def _cmd_fuse(args: argparse.Namespace) -> int:
     project = write_mesh_project(args.out)
     console().print(f"[green]fused[/] {len(scans)} scans at {args.voxel} mm: {len(mesh.faces):,} faces in "
                     f"{time.perf_counter() - t0:.1f} s -> {args.out} (MeshLab: {project})", highlight=False)
+    return 0
+
+
+def _fuse_streamed(args: argparse.Namespace, config, scans, poses, t0: float) -> int:
+    """``slscan fuse --brick MM --out X.ply``: the bricks' mesh streams to the PLY (the caller never
+    holds it whole); logged to Rerun only when small enough to read back."""
+    from slscan.executor import executor_from_args
+    from slscan.fuse import fuse_bricks
+    from slscan import fuse_stream
+    from slscan.fuse_stream import mesh_to_log
+    from slscan.register.meshlab import write_mesh_project
+    from slscan.viewer import log_register as rlog
+    from slscan.viewer.layouts import register_blueprint
+    from slscan.viewer.recording import recording_from_args
+
+    name = f"fuse {args.aligned.name}"
+    with recording_from_args(args, recording_name=name, blueprint=register_blueprint()) as rec:
+        with ProgressBar(len(scans), "fusing (tsdf, bricks)", args.quiet) as bar:
+            written = fuse_bricks(scans, poses, config=config, progress=bar.step, progress_total=bar.set_total,
+                                  executor=executor_from_args(args), out=args.out).written
+        if rec is not None:
+            mesh = mesh_to_log(written)
+            if mesh is not None:
+                rlog.log_fused_mesh(rec, mesh)
+            else:
+                console().print(f"fuse: the fused mesh ({written.n_faces:,} faces) is too large to log to Rerun "
+                                f"(more than {fuse_stream.LOG_MAX_FACES:,}); the simplified model is logged "
+                                "(slscan simplify with --save, --spawn or --connect)",
+                                highlight=False, soft_wrap=True)
+    project = write_mesh_project(args.out)
+    console().print(f"[green]fused[/] {len(scans)} scans at {args.voxel} mm in bricks, streamed: "
+                    f"{written.n_faces:,} faces in {time.perf_counter() - t0:.1f} s -> {args.out} "
+                    f"(MeshLab: {project})", highlight=False)
     return 0
 
 
@@ -422,7 +457,9 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--method", choices=("tsdf", "poisson"), default="tsdf", help="default: tsdf")
     p.add_argument("--brick", type=float, metavar="MM",
                    help="fuse in cubic bricks of about MM mm a side (whole 8-voxel blocks), each a task "
-                        "for --workers or --scheduler; the same mesh as one volume (default: one volume)")
+                        "for --workers or --scheduler; the same mesh as one volume (default: one volume). "
+                        "A PLY --out is streamed: each brick writes its piece to a scratch folder beside "
+                        "--out (Dask workers must see it at the same path), the PLY is written brick by brick")
     p.add_argument("--max-memory", metavar="SIZE",
                    help="memory cap of the voxel grid; with --brick, per brick (per worker); "
                         "a brick that cannot fit is named before anything runs (default 10GiB); " + MEMORY_HELP)
