@@ -4,7 +4,7 @@ one stage per process, on the local executor and on a local Dask cluster.
     .venv/bin/python benchmarks/paper_scale.py --work /tmp/paper146           # 146 views
     .venv/bin/python benchmarks/paper_scale.py --views 12 --scale 0.5 --work /tmp/ps12
     .venv/bin/python benchmarks/paper_scale.py --work /tmp/paper146 --scheduler local --dask-only
-    .venv/bin/python benchmarks/paper_scale.py --views 4 --scale 0.25 --quick   # a smoke run
+    .venv/bin/python benchmarks/paper_scale.py --views 26 --scale 0.25 --quick   # a smoke run (fewer views do not overlap: registration refuses them)
 
 **The object** is the 1.7 m statue of ``benchmarks/scale.py`` (body, head, arms, legs,
 displaced by 1-8 mm bumps), painted with smooth colour variations (vertex colours, matte),
