@@ -226,9 +226,17 @@ def print_capped(c: dict) -> None:
         print()
 
 
-def extrapolate(store: dict, work: Path) -> None:
+def extrapolate(store: dict, work: Path, facade_area: float, facade_coverage: float) -> None:
     """Costs per view and per m2 of surface from the measured runs, scaled to larger
-    campaigns. An extrapolation: nothing below was run at that size."""
+    campaigns. An extrapolation: nothing below was run at that size.
+
+    The model: the per-view stages (decode, albedo, register's pairs, texture's views) cost
+    CPU per view, measured on the 146-view run; fusion costs CPU per view and per voxel a
+    view's rays cross, so it scales as views x (measured voxel / voxel)^2; the fused faces,
+    the fused PLY and simplification scale as surface / voxel^2. The caller of decode and
+    register holds every view's range map (decode) or its downsampled cloud (register),
+    measured per view on the 146-view run.
+    """
     table = work / "table.json"
     if not table.is_file() or not store.get("capped"):
         return
@@ -238,41 +246,42 @@ def extrapolate(store: dict, work: Path) -> None:
     for r in ps["rows"]:  # the latest local-executor figure per stage
         if not r["mode"].startswith("dask"):
             stage[r["stage"]] = r
-    area_m2 = 3.33  # the statue's surface (statue.ply)
-    fine = store["capped"]
-    print("\nEXTRAPOLATION (not measured at these sizes): per-view costs (decode, albedo, register, texture) "
-          "from the 146-view run,\nper-m2 costs of fusion and simplification from the capped runs; CPU-hours "
-          "and wall on W single-threaded workers")
-    cases = [("statue, 1,000 views", 1000, area_m2, None), ("10 m facade x 5 m (60 m2), 0.5 mm", None, 60.0, 0.5)]
-    density = views / area_m2
-    head = (f"{'campaign':36s} {'views':>6s} {'voxel':>6s} {'per-view CPU h':>14s} {'fuse CPU h':>10s} "
-            f"{'simplify CPU h':>14s} {'fused faces':>12s} {'fused PLY GiB':>13s} {'wall on 16 workers h':>20s}")
+    statue_m2 = 3.33  # the statue's surface (statue.ply)
+    cases = [("statue, 1,000 views", 1000, statue_m2, 0.57), ("statue, 1,000 views", 1000, statue_m2, 0.25),
+             (f"facade 10 m, {facade_area:g} m2, 0.5 mm", None, facade_area, 0.5)]
+    # the statue's views each see about this much surface: the rig's 1.0 x 0.67 m field,
+    # about 70 % of it on the statue (the rest background)
+    seen_per_view = 0.67 * 0.7
+    print(f"\nEXTRAPOLATION, not measured at these sizes: per-view costs from the {views}-view run, fusion per view "
+          "and per voxel^2, simplification and the fused mesh per m2 and per voxel^2 (from the capped run at the "
+          f"nearest voxel); the facade has {facade_coverage:g}x coverage ({seen_per_view:.2f} m2 seen per view)")
+    head = (f"{'campaign':28s} {'views':>6s} {'voxel':>5s} {'per-view CPU h':>14s} {'fuse CPU h':>10s} "
+            f"{'simplify CPU h':>14s} {'fused faces':>13s} {'fused PLY GiB':>13s} {'caller decode GiB':>17s} "
+            f"{'caller register GiB':>19s} {'wall, 16 workers h':>18s}")
     print(head)
     print("-" * len(head))
     for name, n_views, area, voxel in cases:
-        n = n_views or round(density * area)
-        for key, res in sorted(fine.items()):
-            v = voxel or float(key)
-            if voxel and abs(float(key) - 0.57) > 0.01 and len(fine) > 1 and abs(float(key) - voxel) > abs(0.57 - voxel):
-                continue
-            fuse = next((r for r in res["rows"] if r["stage"] == "fuse"), None)
-            simp = next((r for r in res["rows"] if r["stage"] == "simplify"), None)
-            if fuse is None or "fused_faces" not in res:
-                continue
-            scale_area = (area / area_m2) * (float(key) / v) ** 2  # surface voxels grow as 1/voxel^2
-            # fusion: each view's rays and each surface voxel are touched once per view that sees them
-            fuse_h = fuse["cpu_s"] * scale_area * (n / views) / (area / area_m2) / 3600
-            simp_h = (simp["cpu_s"] if simp else 0.0) * scale_area / 3600
-            per_view_h = sum(stage[s]["cpu_s"] for s in ("decode", "albedo", "register", "texture") if s in stage) \
-                * n / views / 3600
-            faces = res["fused_faces"] * scale_area
-            ply = res["fused_bytes"] * scale_area / GIB
-            wall = (per_view_h + fuse_h + simp_h) / 16
-            print(f"{name:36s} {n:6d} {v:6.2f} {per_view_h:14.1f} {fuse_h:10.1f} {simp_h:14.1f} {faces:12,.0f} "
-                  f"{ply:13.1f} {wall:20.1f}   (from the {key} mm run)")
-            break
-    print("per worker: the memory of one brick (the cap) and of one view (decode about 1 GiB at full size); the "
-          "caller streams the fused mesh to disk")
+        n = n_views or round(area * facade_coverage / seen_per_view)
+        key = min(store["capped"], key=lambda k: abs(float(k) - voxel))
+        res = store["capped"][key]
+        fuse = next((r for r in res["rows"] if r["stage"] == "fuse"), None)
+        simp = next((r for r in res["rows"] if r["stage"] == "simplify"), None)
+        if fuse is None or "fused_faces" not in res:
+            continue
+        v_m = float(key)
+        per_view_h = sum(stage[s]["cpu_s"] for s in ("decode", "albedo", "register", "texture") if s in stage) \
+            * n / views / 3600
+        fuse_h = fuse["cpu_s"] * (n / views) * (v_m / voxel) ** 2 / 3600
+        surface = (area / statue_m2) * (v_m / voxel) ** 2
+        simp_h = (simp["cpu_s"] if simp else 0.0) * surface / 3600
+        decode_gib = stage["decode"]["peak_gib"] * n / views if "decode" in stage else float("nan")
+        register_gib = stage["register"]["peak_gib"] * n / views if "register" in stage else float("nan")
+        wall = (per_view_h + fuse_h + simp_h) / 16
+        print(f"{name:28s} {n:6d} {voxel:5.2f} {per_view_h:14.1f} {fuse_h:10.1f} {simp_h:14.1f} "
+              f"{res['fused_faces'] * surface:13,.0f} {res['fused_bytes'] * surface / GIB:13.1f} {decode_gib:17.1f} "
+              f"{register_gib:19.1f} {wall:18.1f}")
+    print("per worker (any size): fusion one brick's grid under --max-memory plus about 0.5 GiB; simplification one "
+          "brick; decode about 1 GiB per full-size view. The callers of decode and register grow with the views.")
 
 
 def main() -> None:
@@ -288,6 +297,10 @@ def main() -> None:
     p.add_argument("--faces", type=int, default=1_000_000)
     p.add_argument("--texture-size", type=int, default=4096)
     p.add_argument("--texture-on-dask", action="store_true", help="capped: texture with --scheduler too")
+    p.add_argument("--facade-area", type=float, default=60.0,
+                   help="extrapolation: the facade's surface, m2 (10 m x 5 m with relief: 60)")
+    p.add_argument("--facade-coverage", type=float, default=4.0,
+                   help="extrapolation: how many views see each point of the facade")
     args = p.parse_args()
     os.environ["PYTHONPATH"] = os.pathsep.join([str(TOOLBOX), *filter(None, [os.environ.get("PYTHONPATH")])])
     if not args.brick:
@@ -308,7 +321,7 @@ def main() -> None:
         print_compare(store["compare"])
     for _, c in sorted(store.get("capped", {}).items()):
         print_capped(c)
-    extrapolate(store, args.work)
+    extrapolate(store, args.work, args.facade_area, args.facade_coverage)
 
 
 if __name__ == "__main__":
