@@ -117,7 +117,7 @@ def texture_model(
         Dask workers need both at the caller's paths.
     """
     from slscan.colour import srgb8
-    from slscan.fsio import atomic_output_dir, write_json, write_png
+    from slscan.fsio import _partial_prefix, atomic_output_dir, write_json, write_png
     from slscan.fuse import read_mesh
     from slscan.meshes import vertex_normals
     from slscan.register.meshlab import Raster, write_mlp
@@ -150,7 +150,7 @@ def texture_model(
     progress(f"atlas: {atlas.n_charts} charts")
     normals = vertex_normals(mesh.vertices, mesh.faces).astype(np.float32)
     baked = bake(mesh.vertices, mesh.faces, atlas, views, config.bake, normals=normals, progress=progress,
-                 executor=executor, scratch=out.resolve().parent)
+                 executor=executor, scratch=_scratch_folder(out), scratch_prefix=_partial_prefix(out))
     check_seen(baked, model, albedo_dir)
     texture = srgb8(baked.linear)
     seams = seam_error(texture, mesh.faces, atlas)
@@ -226,6 +226,15 @@ def texture_model(
     log_textured_model(rec, atlas, texture, atlas_normals, baked.view_count, metrics,
                        covered=baked.covered, max_views=len(views))
     return TextureResult(out, len(mesh.faces), atlas.n_charts, atlas.size, metrics, seconds, light)
+
+
+def _scratch_folder(out: Path) -> Path:
+    """Where the bake's tasks share their arrays: beside ``out`` (on the campaign's disk,
+    which Dask workers see at the same path), named as a temporary of ``out`` (so one left by
+    a killed run is removed by the next)."""
+    parent = out.resolve().parent
+    parent.mkdir(parents=True, exist_ok=True)
+    return parent
 
 
 def albedo_light(albedo_dir: str | os.PathLike) -> str:
