@@ -21,6 +21,9 @@ each one's resident size), and of everything together (sampled every 0.1 s), and
 atlas (``model_albedo.png``, 8-bit sRGB) against the first row's over the texels some view
 saw: largest and mean difference in levels.
 
+Each row's numbers are kept in ``WORK/VIEWS-ROW.json`` and not measured again by a later
+run into the same ``--work`` (delete them to measure again).
+
 ``--profile`` adds, for the first view count, the calling process's peak resident memory
 per phase of an in-process run (``--workers 1``) of each code: the peak between one
 progress step and the next, named by the step that ends it.
@@ -180,7 +183,8 @@ def main() -> None:
     if "2 dask" in rows_wanted:
         from paper_scale import DaskCluster
 
-        os.environ["PYTHONPATH"] = str(TOOLBOX)  # the Dask workers import this tree
+        os.environ["PYTHONPATH"] = str(TOOLBOX)  # the Dask workers import this tree,
+        sys.path.insert(0, str(TOOLBOX))  # and so does the scheduler (in this process: it unpickles the tasks)
         cluster = DaskCluster(2)
     table = []
     profiles = {}
@@ -190,12 +194,17 @@ def main() -> None:
             pose_file.write_text(json.dumps({"poses": {k: poses[k] for k in names[:n]}}))
             if args.profile and not profiles:
                 for label, toolbox, new in (("before", args.before, False), ("after", TOOLBOX, True)):
+                    cached = work / f"profile-{label}.json"
+                    if cached.is_file():
+                        profiles[label] = json.loads(cached.read_text())
+                        continue
                     spec = {"model": str(model), "albedo": str(args.run / "albedo"), "out": str(work / f"p-{label}"),
                             "poses": str(pose_file), "session": str(args.session), "size": args.size, "new": new}
                     out = subprocess.run([sys.executable, __file__, "--child", json.dumps(spec)], check=True,
                                          env=dict(os.environ, PYTHONPATH=str(toolbox)), capture_output=True,
                                          text=True)
                     profiles[label] = json.loads(out.stdout.strip().splitlines()[-1])
+                    cached.write_text(json.dumps(profiles[label]))
                     print(f"profiled {label}", file=sys.stderr, flush=True)
             first = None
             for row in rows_wanted:
@@ -213,6 +222,12 @@ def main() -> None:
                     cmd += ["--scheduler", cluster.address]
                     workers = cluster.pids()
                 cpu0 = children_cpu()
+                cached = work / f"{n}-{row.replace(' ', '_')}.json"
+                if cached.is_file():  # measured by an earlier run into the same --work
+                    r = json.loads(cached.read_text())
+                    table.append(r)
+                    first = first or out
+                    continue
                 m = run_row(cmd, toolbox, workers)
                 cpu = children_cpu() - cpu0 + m["cpu_workers"]
                 caller = m["peaks"].get(m["caller"], 0)
@@ -224,6 +239,7 @@ def main() -> None:
                 r = {"views": n, "row": row, "wall": m["wall"], "cpu": cpu, "caller": caller / 2**30,
                      "worker": worker_peak / 2**30, "total": m["total"] / 2**30, "max_diff": diff[0],
                      "mean_diff": diff[1]}
+                cached.write_text(json.dumps(r))
                 table.append(r)
                 print(f"  {n} views {row:8s} {m['wall']:7.1f} s", file=sys.stderr, flush=True)
     finally:
