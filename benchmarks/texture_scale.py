@@ -75,7 +75,6 @@ def run_row(command: list[str], toolbox: Path, workers: list[int]) -> dict:
     proc = subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     peaks: dict[int, int] = {}
     total = [0]
-    cpu_seen: dict[int, float] = {}
     done = threading.Event()
 
     def sample() -> None:
@@ -86,11 +85,6 @@ def run_row(command: list[str], toolbox: Path, workers: list[int]) -> dict:
                 r = _rss(pid)
                 now += r
                 peaks[pid] = max(peaks.get(pid, 0), r)
-                if pid not in workers and pid != proc.pid:
-                    try:
-                        cpu_seen[pid] = sum(psutil.Process(pid).cpu_times()[:2])
-                    except psutil.Error:
-                        pass
             total[0] = max(total[0], now)
             done.wait(0.1)
 

@@ -633,7 +633,8 @@ class _Shared:
         for name, k in zip(("vertex", "texel"), counts):
             blocks = None
             if (path / f"{name}_centre.npy").is_file():
-                blocks = Blocks(np.zeros((0, 0), np.int64), *(np.asarray(load(f"{name}_{a}")) for a in cls._BOUNDS))
+                bounds = (np.asarray(load(f"{name}_{a}")) for a in cls._BOUNDS)
+                blocks = Blocks(np.zeros((0, 0), np.int64), *bounds)
             targets.append(Targets(*(load(f"{name}_{a}") for a in cls._ARRAYS), blocks, k))
         return cls(np.asarray(load("vertices")), np.asarray(load("faces")), *targets)
 
