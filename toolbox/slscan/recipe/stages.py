@@ -386,12 +386,13 @@ def _run_simplify(ctx: StageContext, config: SimplifyConfig) -> dict[str, Any]:
 
 
 def _run_texture(ctx: StageContext, config) -> dict[str, Any]:
+    from slscan.executor import LOCAL
     from slscan.texture.pipeline import texture_model
 
     poses = ctx.inputs.get("aligned")
     result = texture_model(ctx.inputs["mesh"] / "mesh.ply", ctx.inputs["albedo"], ctx.out, poses=poses,
                            session=ctx.inputs.get("session"), config=config, overwrite=True, rec=ctx.rec,
-                           progress=ctx.progress)
+                           progress=ctx.progress, executor=ctx.executor or LOCAL)
     return {"faces": result.faces, "charts": result.charts, "size": result.size,
             "observed_share": result.metrics["observed_share"],
             "seam_error_mean": result.metrics["seam_error_mean"]}
