@@ -843,6 +843,7 @@ def fuse_scans(
     progress: Callable[[str], None] | None = None,
     executor: Executor | None = None,
     progress_total: Callable[[int], None] | None = None,
+    scratch_beside: str | os.PathLike | None = None,
 ) -> FusionResult:
     """Fuse aligned range scans into one mesh with a weighted TSDF (Curless & Levoy [1]_).
 
@@ -858,6 +859,8 @@ def fuse_scans(
         ``config.brick_size``: with the brick's name after each brick)
     executor : where the bricks run when ``config.brick_size`` is set (None: this process)
     progress_total : called with the number of bricks before the first runs (progress bars)
+    scratch_beside : with ``config.brick_size``, the output file beside which the bricks'
+        scratch folder is made (:func:`fuse_bricks`)
 
     Returns
     -------
@@ -871,7 +874,7 @@ def fuse_scans(
     """
     if config.brick_size is not None:
         return fuse_bricks(scans, poses, config=config, executor=executor, progress=progress,
-                           progress_total=progress_total)
+                           progress_total=progress_total, scratch_beside=scratch_beside)
     if config.weighting not in ("quality", "uniform"):
         raise SlscanError(f"weighting {config.weighting!r}: expected 'quality' or 'uniform'")
     voxel = float(config.voxel_size)

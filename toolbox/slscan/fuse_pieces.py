@@ -205,7 +205,9 @@ def cut_pieces(
     core: set[tuple[int, int, int]] = set()
     pieces: dict[tuple[int, int, int], list[Path]] = {}
     names: set[str] = set()
-    for order, scan in enumerate(scans):
+    order = -1
+    for scan in scans:  # not enumerate(): its reused result tuple holds the last scan during the next read
+        order += 1
         if scan.name not in poses:
             raise SlscanError(f"no pose for scan {scan.name!r}")
         if scan.name in names:
