@@ -14,9 +14,12 @@ way in its own process:
 - **dask2**: ``fuse_bricks`` on a Dask ``LocalCluster`` of 2 single-threaded worker
   processes (started before the clock).
 
-Printed per way: wall seconds (fusion only, scans already loaded), CPU seconds and peak
-resident memory of every process of the way (sampled every 0.1 s with psutil: the
-largest process, and the largest sum over processes at one time), bricks, faces, and
+Printed per way: wall seconds (fusion only, scans already loaded, except "scans lazy": the
+bricks' ways read the scans one at a time inside the clock, as ``slscan fuse --brick``
+does, where the toolbox has ``iter_scans``), CPU seconds and peak resident memory of every
+process of the way (sampled every 0.1 s with psutil: the largest process, the largest sum
+over processes at one time, the caller, and the largest helper process: a local helper or
+a Dask worker, where a brick task runs; in-process ways run the tasks in the caller), bricks, faces, and
 the mesh's distance to the single-volume mesh: vertices equal (same count and largest
 coordinate difference after canonical order) and the symmetric Hausdorff and mean
 distances between the vertex sets (mm).
@@ -42,7 +45,7 @@ def _watch(stop: threading.Event, out: dict) -> None:
 
     me = psutil.Process()
     cpu: dict[int, float] = {}
-    peak_one, peak_sum = 0, 0
+    peak_one, peak_sum, peak_caller, peak_helper = 0, 0, 0, 0
     while not stop.is_set():
         total = 0
         for p in [me, *me.children(recursive=True)]:
@@ -54,9 +57,14 @@ def _watch(stop: threading.Event, out: dict) -> None:
             cpu[p.pid] = t.user + t.system
             total += rss
             peak_one = max(peak_one, rss)
+            if p.pid == me.pid:
+                peak_caller = max(peak_caller, rss)
+            else:
+                peak_helper = max(peak_helper, rss)
         peak_sum = max(peak_sum, total)
         stop.wait(0.1)
-    out.update(peak_one=peak_one, peak_sum=peak_sum, cpu=sum(cpu.values()))
+    out.update(peak_one=peak_one, peak_sum=peak_sum, peak_caller=peak_caller, peak_helper=peak_helper,
+               cpu=sum(cpu.values()))
 
 
 def run_way(way: str, aligned: str, voxel: float, brick: float, mesh_out: str) -> dict:
@@ -65,7 +73,13 @@ def run_way(way: str, aligned: str, voxel: float, brick: float, mesh_out: str) -
     from slscan.fuse import FuseConfig, fuse_scans, write_mesh
     from slscan.register.meshlab import load_scan_project
 
-    scans, poses = load_scan_project(Path(aligned))
+    try:  # since the bricks take pieces: the scans read one at a time, as `slscan fuse --brick` does
+        from slscan.register.command import iter_scans
+    except ImportError:
+        iter_scans = None
+    lazy = way != "single" and iter_scans is not None
+    if not lazy:
+        scans, poses = load_scan_project(Path(aligned))
     cluster = None
     executor = None
     if way == "local2":
@@ -83,6 +97,8 @@ def run_way(way: str, aligned: str, voxel: float, brick: float, mesh_out: str) -
     cpu0 = _tree_cpu()
     watcher.start()
     t0 = time.perf_counter()
+    if lazy:  # reading the scans is then inside the clock
+        _, scans, poses = iter_scans(Path(aligned))
     result = fuse_scans(scans, poses, config=config, executor=executor)
     wall = time.perf_counter() - t0
     stop.set()
@@ -92,7 +108,8 @@ def run_way(way: str, aligned: str, voxel: float, brick: float, mesh_out: str) -
     if cluster is not None:
         cluster.close()
     return {"wall": wall, "cpu": cpu, "peak_one": watched["peak_one"], "peak_sum": watched["peak_sum"],
-            "bricks": result.n_bricks, "faces": result.mesh.n_faces}
+            "bricks": result.n_bricks, "faces": result.mesh.n_faces, "peak_caller": watched["peak_caller"],
+            "peak_helper": watched["peak_helper"], "scans": "lazy" if lazy else "list"}
 
 
 def _tree_cpu() -> float:
@@ -148,12 +165,15 @@ def main() -> None:
                 rows[way].update(distances(f"{tmp}/single.ply", mesh))
     print(f"\n{args.aligned}: voxel {args.voxel} mm, bricks of about {args.brick} mm")
     print(f"{'way':8} {'wall s':>7} {'CPU s':>7} {'peak RSS 1 proc':>16} {'peak RSS all':>13} "
+          f"{'caller':>9} {'helper':>9} {'scans':>5} "
           f"{'bricks':>6} {'faces':>10} {'same mesh':>9} {'max |dv| mm':>11} {'Hausdorff mm':>12} {'mean mm':>8}")
     for way, r in rows.items():
         dist = (f"{str(r['same']):>9} {r['max_diff']:>11.2g} {r['hausdorff']:>12.2g} {r['mean']:>8.2g}"
                 if "hausdorff" in r else f"{'-':>9} {'-':>11} {'-':>12} {'-':>8}")
+        helper = f"{r['peak_helper'] / 2**30:>5.2f} GiB" if r["peak_helper"] else f"{'-':>9}"
         print(f"{way:8} {r['wall']:>7.1f} {r['cpu']:>7.1f} {r['peak_one'] / 2**30:>12.2f} GiB "
-              f"{r['peak_sum'] / 2**30:>9.2f} GiB {r['bricks']:>6} {r['faces']:>10,} {dist}")
+              f"{r['peak_sum'] / 2**30:>9.2f} GiB {r['peak_caller'] / 2**30:>5.2f} GiB {helper} {r['scans']:>5} "
+              f"{r['bricks']:>6} {r['faces']:>10,} {dist}")
 
 
 if __name__ == "__main__":
