@@ -208,3 +208,22 @@ def test_fuse_command_in_bricks_with_a_broken_scan_file(sphere_views, tmp_path, 
     err = " ".join(capsys.readouterr().err.split())
     assert str(victim) in err and "do not exist" in err, err
     assert not out.exists() and _scratch_left(tmp_path) == []
+
+
+def test_the_fuse_stage_in_bricks_gives_the_command_mesh(sphere_views, tmp_path):
+    """`slscan run`'s fuse stage with fuse.brick_size: the scans read one at a time, the
+    single-volume mesh, no scratch folder left beside the stage's."""
+    from slscan.executor import Executor
+    from slscan.fuse import read_mesh
+    from slscan.recipe.stages import StageContext, _run_fuse
+    from slscan.register.meshlab import load_scan_project, write_scan_project
+
+    scans, poses = sphere_views
+    aligned = write_scan_project(tmp_path / "aligned", scans, poses)
+    ctx = StageContext(out=tmp_path / "run" / "fuse", inputs={"aligned": aligned.parent},
+                       executor=Executor(workers=1))
+    summary = _run_fuse(ctx, FuseConfig(voxel_size=VOXEL, brick_size=12.8))
+    one = fuse_scans(*load_scan_project(aligned), config=FuseConfig(voxel_size=VOXEL)).mesh
+    _same_mesh(read_mesh(ctx.out / "mesh.ply"), one)
+    assert summary["faces"] == one.n_faces
+    assert _scratch_left(tmp_path / "run") == []

@@ -133,7 +133,8 @@ class FusionResult:
     n_scans : scans integrated
     seconds : wall time per phase: "height_maps" (ray casting the scans), "integrate"
         (TSDF updates), "extract" (marching cubes); time spent making lazily supplied
-        scans is in none of them
+        scans is in none of them (in bricks, summed over the bricks, plus "stitch", and
+        "pieces": the caller reading (when lazy), ray casting and cutting the scans)
     """
 
     mesh: Mesh
@@ -1161,15 +1162,19 @@ def fuse_bricks(
     edge = max(1, round(brick / block))
     from slscan.fuse_pieces import cut_pieces
 
+    if scratch_beside:
+        Path(scratch_beside).parent.mkdir(parents=True, exist_ok=True)
     scratch = Path(tempfile.mkdtemp(prefix=f"{Path(scratch_beside).name}.bricks-scratch-" if scratch_beside
                                     else "slscan-bricks-scratch-",
                                     dir=Path(scratch_beside).parent if scratch_beside else None))
     try:
         # one pass over the scans (one in memory at a time): each scan's blocks, the bricks it
         # reaches and its piece for each of them
+        t0 = time.perf_counter()
         keys, core, pieces = cut_pieces(scans, poses, voxel=voxel, pixel=config.pixel_size or voxel,
                                         truncation=config.truncation, weighting=config.weighting, edge=edge,
                                         folder=scratch)
+        cut_seconds = time.perf_counter() - t0
         needs = _bricks_of_blocks(keys, edge)
         del keys
         limit = config.max_memory_gib * 2**30
@@ -1184,8 +1189,10 @@ def fuse_bricks(
             lo, hi = np.array(b, np.int64) * edge, (np.array(b, np.int64) + 1) * edge
             tasks.append(_BrickTask(b, lo, hi, (), {}, config, needs.get(b, 0),
                                     tuple(str(p) for p in pieces.get(b, ()))))
-        return _run_bricks(tasks, edge=edge, block=block, voxel=voxel, config=config, executor=executor,
-                           progress=progress, progress_total=progress_total)
+        result = _run_bricks(tasks, edge=edge, block=block, voxel=voxel, config=config, executor=executor,
+                             progress=progress, progress_total=progress_total)
+        result.seconds["pieces"] = cut_seconds
+        return result
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
 
