@@ -113,13 +113,18 @@ def write_scan_pieces(
     out = {}
     for index, window in bricks:
         r_lo, r_hi, c_lo, c_hi = pixel_window(grid, window)
-        height = depth.height[r_lo:r_hi, c_lo:c_hi]
-        if not np.isfinite(height).any():
+        seen = np.isfinite(depth.height[r_lo:r_hi, c_lo:c_hi])
+        rows, cols = np.flatnonzero(seen.any(axis=1)), np.flatnonzero(seen.any(axis=0))
+        if not len(rows):
             continue
+        # only the pixels that see the surface, and one around them (a map's border pixels
+        # count as empty, and those outside it are): the same samples for every voxel
+        r_lo, r_hi = r_lo + max(rows[0] - 1, 0), min(r_lo + rows[-1] + 2, r_hi)
+        c_lo, c_hi = c_lo + max(cols[0] - 1, 0), min(c_lo + cols[-1] + 2, c_hi)
         path = folder / f"b{index[0]}_{index[1]}_{index[2]}-s{order}.npz"
         _save(path, format=np.int64(PIECE_FORMAT), name=np.str_(scan.name), frame=depth.frame,
               origin=depth.origin, pixel=np.float64(depth.pixel), offset=np.array([r_lo, c_lo], np.int64),
-              height=height, weight=depth.weight[r_lo:r_hi, c_lo:c_hi])
+              height=depth.height[r_lo:r_hi, c_lo:c_hi], weight=depth.weight[r_lo:r_hi, c_lo:c_hi])
         out[index] = path
     return out
 
