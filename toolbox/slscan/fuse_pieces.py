@@ -26,13 +26,18 @@ import os
 import socket
 import time
 import zipfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from slscan.errors import SlscanError
+
+if TYPE_CHECKING:
+    from slscan.fuse import HeightMap, _BrickTask
+    from slscan.register.rangescan import RangeScan
 
 PIECE_FORMAT = 1
 """Version of the piece files (a scratch folder is only ever read by the run that wrote it)."""
@@ -91,7 +96,7 @@ def brick_window(lo: np.ndarray, hi: np.ndarray, *, voxel: float, pixel: float, 
 
 
 def write_scan_pieces(
-    scan, pose: np.ndarray, bricks: list[tuple[tuple[int, int, int], tuple[np.ndarray, np.ndarray]]],
+    scan: RangeScan, pose: np.ndarray, bricks: list[tuple[tuple[int, int, int], tuple[np.ndarray, np.ndarray]]],
     folder: Path, *, pixel: float, weighting: str, order: int,
 ) -> dict[tuple[int, int, int], Path]:
     """Cast ``scan`` (a RangeScan placed by ``pose``, world_from_scan) into its whole height
@@ -145,7 +150,7 @@ def _save(path: Path, **arrays) -> None:
         raise SlscanError(f"{path}: cannot write a fusion piece here ({exc.strerror})") from None
 
 
-def read_piece(path: str | os.PathLike, brick: tuple[int, int, int]):
+def read_piece(path: str | os.PathLike, brick: tuple[int, int, int]) -> HeightMap:
     """The :class:`slscan.fuse.HeightMap` window of a piece written by :func:`write_scan_pieces`
     for ``brick`` (a brick task on a worker); a missing or broken file is one line naming
     it, the brick and the worker's host."""
@@ -170,7 +175,8 @@ def read_piece(path: str | os.PathLike, brick: tuple[int, int, int]):
                           f"{socket.gethostname()} ({exc}); {hint}") from None
 
 
-def brick_height_maps(task, *, pixel: float, weighting: str, window, seconds: dict[str, float]) -> Iterator:
+def brick_height_maps(task: _BrickTask, *, pixel: float, weighting: str, window: tuple[np.ndarray, np.ndarray],
+                      seconds: dict[str, float]) -> Iterator[HeightMap]:
     """The height maps a brick task integrates, in the caller's scan order: from its piece
     files when it has them, else ray cast from the task's whole scans (windowed); the time
     spent making each is added to ``seconds["height_maps"]``."""
@@ -191,7 +197,7 @@ def brick_height_maps(task, *, pixel: float, weighting: str, window, seconds: di
 
 
 def cut_pieces(
-    scans, poses, *, voxel: float, pixel: float, truncation: float, weighting: str, edge: int, folder: Path,
+    scans: Iterable[RangeScan], poses: Mapping[str, np.ndarray], *, voxel: float, pixel: float, truncation: float, weighting: str, edge: int, folder: Path,
 ) -> tuple[np.ndarray, set[tuple[int, int, int]], dict[tuple[int, int, int], list[Path]]]:
     """One pass over ``scans`` (any iterable of RangeScan, consumed lazily; ``poses`` looked up
     as each comes) for :func:`slscan.fuse.fuse_bricks` with bricks of ``edge`` blocks a side.
