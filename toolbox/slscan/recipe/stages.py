@@ -311,12 +311,18 @@ def _run_fuse(ctx: StageContext, config) -> dict[str, Any]:
     from slscan.fuse import fuse_scans, write_mesh
     from slscan.register.meshlab import load_scan_project, write_mesh_project
 
-    scans, poses = load_scan_project(ctx.inputs["aligned"] / "aligned.mlp")
+    if config.brick_size is not None:  # in bricks: the scans are read one at a time
+        from slscan.register.command import iter_scans
+
+        _, scans, poses = iter_scans(ctx.inputs["aligned"] / "aligned.mlp")
+    else:
+        scans, poses = load_scan_project(ctx.inputs["aligned"] / "aligned.mlp")
     from slscan.viewer.log_register import log_fused_mesh
 
     from slscan.executor import LOCAL
 
-    # with fuse.brick_size the bricks run on the run's executor (--workers, --scheduler)
+    # with fuse.brick_size the bricks run on the run's executor (--workers, --scheduler), their
+    # pieces and meshes in a scratch folder inside the stage's (Dask workers must see the run's folder)
     if config.brick_size is not None:
         return _run_fuse_streamed(ctx, config, scans, poses)
     result = fuse_scans(scans, poses, config=config, progress=ctx.progress, executor=ctx.executor or LOCAL)
