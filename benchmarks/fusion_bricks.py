@@ -79,7 +79,13 @@ def run_way(way: str, aligned: str, voxel: float, brick: float, mesh_out: str) -
     from slscan.fuse import FuseConfig, fuse_bricks, fuse_scans, write_mesh
     from slscan.register.meshlab import load_scan_project
 
-    scans, poses = load_scan_project(Path(aligned))
+    try:  # since the bricks take pieces: the scans read one at a time, as `slscan fuse --brick` does
+        from slscan.register.command import iter_scans
+    except ImportError:  # an older toolbox (--against)
+        iter_scans = None
+    lazy = way != "single" and iter_scans is not None
+    if not lazy:
+        scans, poses = load_scan_project(Path(aligned))
     cluster = None
     executor = None
     streamed = way.endswith("-stream") or way == "stream"
@@ -99,6 +105,8 @@ def run_way(way: str, aligned: str, voxel: float, brick: float, mesh_out: str) -
     cpu0 = _tree_cpu()
     watcher.start()
     t0 = time.perf_counter()
+    if lazy:  # reading the scans is then inside the clock
+        _, scans, poses = iter_scans(Path(aligned))
     if streamed:
         result = fuse_bricks(scans, poses, config=config, executor=executor, out=mesh_out)
     else:

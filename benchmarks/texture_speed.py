@@ -35,7 +35,10 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-PHASES = ("atlas", "depth_maps", "vertices", "rasterise", "blend", "fill_pad", "export")
+PHASES = ("atlas", "depth_maps", "vertices", "rasterise", "blend", "targets", "views", "fill_pad", "export")
+"""The bake's phases before and after views were baked in groups (depth maps, vertex and texel
+blending are one phase, "views", since; "targets" lays the texels out for it): a code shows
+nan for the phases it does not have."""
 
 
 # --- one row, in its own process -----------------------------------------------------------------

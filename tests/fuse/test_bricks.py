@@ -214,3 +214,112 @@ def test_streamed_bricks_refuse_a_missing_scratch_and_a_non_ply(sphere_views, tm
     with pytest.raises(SlscanError, match=r"fused.obj: fusion in bricks streams a binary PLY"):
         fuse_bricks(scans, poses, config=FuseConfig(voxel_size=VOXEL, brick_size=12.8), out=tmp_path / "fused.obj")
     assert list(tmp_path.iterdir()) == []
+
+
+def _scratch_left(folder) -> list:
+    return sorted(p.name for p in folder.iterdir() if "bricks-scratch" in p.name)
+
+
+def test_tasks_carry_pieces_and_the_scratch_folder_goes(sphere_views, single, tmp_path, monkeypatch):
+    """A brick task carries piece paths (no scan); the scratch folder beside the output is
+    there while bricks run and gone after success and after a failure."""
+    import slscan.fuse as fuse
+
+    scans, poses = sphere_views
+    seen = []
+    real = fuse._fuse_brick
+
+    def spy(task):
+        assert task.scans == () and task.poses == {} and task.pieces
+        assert all(p.endswith(".npz") and "/out.ply.bricks-scratch-" in p for p in task.pieces)
+        seen.append(len(task.pieces))
+        return real(task)
+
+    monkeypatch.setattr(fuse, "_fuse_brick", spy)
+    config = FuseConfig(voxel_size=VOXEL, brick_size=12.8)
+    result = fuse_bricks(scans, poses, config=config, scratch_beside=tmp_path / "out.ply")
+    _same_mesh(result.mesh, single)
+    assert len(seen) == result.n_bricks and max(seen) <= len(scans)
+    assert _scratch_left(tmp_path) == []
+
+    def broken(task):
+        raise SlscanError(f"brick {task.index}: failed on purpose")
+
+    monkeypatch.setattr(fuse, "_fuse_brick", broken)
+    with pytest.raises(SlscanError, match="failed on purpose"):
+        fuse_bricks(scans, poses, config=config, scratch_beside=tmp_path / "out.ply")
+    assert _scratch_left(tmp_path) == []
+
+
+def test_a_missing_piece_is_one_line_naming_brick_file_and_host(sphere_views, tmp_path):
+    import socket
+
+    from slscan.fuse import _BrickTask, _fuse_brick
+
+    scans, poses = sphere_views
+    gone = tmp_path / "b0_0_0-s0.npz"
+    task = _BrickTask((0, 0, 0), np.zeros(3, np.int64), np.full(3, 2, np.int64), (), {},
+                      FuseConfig(voxel_size=VOXEL, brick_size=12.8), 100, pieces=(str(gone),))
+    with pytest.raises(SlscanError) as info:
+        _fuse_brick(task)
+    assert str(info.value) == (f"brick (0, 0, 0): {gone}: not found on worker {socket.gethostname()}; "
+                               "Dask workers need the fusion scratch folder at the same path")
+    gone.write_bytes(b"PK\x03\x04 not a piece")
+    with pytest.raises(SlscanError, match=r"^brick \(0, 0, 0\): .*b0_0_0-s0.npz: not a readable fusion piece"):
+        _fuse_brick(task)
+
+
+def test_bricks_read_a_project_one_scan_at_a_time(sphere_views, tmp_path):
+    """From a MeshLab project, fusion in bricks holds one loaded scan at a time (the loader
+    yields each after the previous one is gone), and gives the single-volume mesh."""
+    import gc
+    import weakref
+
+    from slscan.register.command import iter_scans
+    from slscan.register.meshlab import load_scan_project, write_scan_project
+
+    scans, poses = sphere_views
+    aligned = write_scan_project(tmp_path / "aligned", scans, poses)
+    count, lazy, lazy_poses = iter_scans(aligned)
+    assert count == len(scans) and lazy_poses == {}
+    alive = weakref.WeakSet()
+    most = []
+
+    def watched():
+        for scan in lazy:
+            gc.collect()
+            most.append(len(alive))  # loaded scans still alive when the next one comes
+            alive.add(scan)
+            yield scan
+            del scan
+
+    result = fuse_bricks(watched(), lazy_poses, config=FuseConfig(voxel_size=VOXEL, brick_size=12.8))
+    assert most == [0] * len(scans)
+    assert set(lazy_poses) == {s.name for s in scans}
+    # the project's PLYs hold the scans to float32: the single volume of the same files
+    _same_mesh(result.mesh, fuse_scans(*load_scan_project(aligned), config=FuseConfig(voxel_size=VOXEL)).mesh)
+
+
+def test_fuse_command_in_bricks_with_a_broken_scan_file(sphere_views, tmp_path, capsys):
+    """A scan file of the project that is missing or broken: one line naming it, exit 2,
+    nothing written, no scratch folder left."""
+    from slscan.cli import main
+    from slscan.register.meshlab import write_scan_project
+
+    scans, poses = sphere_views
+    aligned = write_scan_project(tmp_path / "aligned", scans, poses)
+    out = tmp_path / "fused.ply"
+    victim = tmp_path / "aligned" / "view3.ply"
+    victim.write_bytes(victim.read_bytes()[:200])
+    assert main(["fuse", str(aligned), "--voxel", str(VOXEL), "--brick", "12.8", "--workers", "1",
+                 "--out", str(out), "--quiet"]) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert str(victim) in err, err
+    assert not out.exists() and not out.with_suffix(".mlp").exists() and _scratch_left(tmp_path) == []
+    victim.unlink()
+    assert main(["fuse", str(aligned), "--voxel", str(VOXEL), "--brick", "12.8", "--workers", "1",
+                 "--out", str(out), "--quiet"]) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert str(victim) in err and "do not exist" in err, err
+    assert not out.exists() and _scratch_left(tmp_path) == []
+

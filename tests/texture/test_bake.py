@@ -284,3 +284,98 @@ def test_model_share_is_the_share_of_the_views_object_the_model_covers():
             assert bool(warned) == (expected < 0.75), warned
     empty = DepthMap(np.full(view.albedo.shape[:2], np.inf, np.float32), np.zeros(view.albedo.shape[:2], np.float32))
     assert model_share(empty, view) == 0.0
+
+
+def _view_files(views, folder):
+    """The views as the albedo stage writes them (16-bit linear PNG + validity mask), on disk."""
+    from slscan.fsio import write_png
+    from slscan.texture.views import ViewFile
+
+    files = []
+    for v in views:
+        valid = np.all(np.isfinite(v.albedo), axis=2)
+        image = np.rint(np.clip(np.nan_to_num(v.albedo), 0, 1) * 65535).astype(np.uint16)
+        write_png(folder / f"{v.name}_albedo.png", image)
+        write_png(folder / f"{v.name}_valid.png", (valid * 255).astype(np.uint8))
+        files.append(ViewFile(v.name, v.camera, v.world_from_camera, str(folder / f"{v.name}_albedo.png"),
+                              str(folder / f"{v.name}_valid.png")))
+    return files
+
+
+def _four_views(vertices, faces):
+    eyes = ([-150, -40, -600], [170, 60, -650], [0, 200, -500], [-90, -160, -550])
+    return [render_view(f"v{k}", look_at(eye, [0, 0, 0]), vertices, faces, lambda p, i: pattern(p))
+            for k, eye in enumerate(eyes)]
+
+
+def test_views_baked_in_groups_on_two_workers_give_the_atlas_of_one_process(tmp_path):
+    """Groups of views in 2 local processes (reading the views' PNGs there, the texels'
+    points from shared files): the same atlas, counts and vertex colours, bit for bit, as
+    the same groups in this process; the files are gone afterwards."""
+    from slscan.executor import Executor
+
+    vertices, faces = grid_plane(41, 200.0, 0.0, bump=4.0)
+    atlas = planar_atlas(vertices, faces, 256)
+    files = _view_files(_four_views(vertices, faces), tmp_path)
+    options = BakeOptions(views_per_task=1, chunk=5000)
+    one = bake(vertices, faces, atlas, files, options, executor=Executor(workers=1))
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    two = bake(vertices, faces, atlas, files, options, executor=Executor(workers=2), scratch=scratch)
+    assert one.observed.sum() > 0.9 * one.covered.sum() and one.view_count.max() == 4
+    for name in ("linear", "covered", "observed", "view_count", "vertex_colors", "vertex_observed"):
+        assert np.array_equal(getattr(one, name), getattr(two, name)), name
+    assert one.view_model_share == two.view_model_share
+    assert list(scratch.iterdir()) == []
+    # other groupings round the float32 sums differently, nothing more
+    whole = bake(vertices, faces, atlas, files, BakeOptions(views_per_task=4, chunk=5000))
+    assert np.array_equal(whole.view_count, one.view_count)
+    assert np.abs(whole.linear - one.linear).max() < 1e-5
+
+
+def test_streaming_the_views_leaves_the_bake_as_blending_them_all_at_once():
+    """One group of every view: texel colours exactly those of :func:`blend_views` over
+    every view's depth map held at once (the bake before views were streamed), with the
+    per-vertex prior and fill applied as documented."""
+    from slscan.meshes import vertex_normals
+    from slscan.texture.bake import _fill_vertices, _raycasting_scene, blend_views, depth_map
+
+    vertices, faces = grid_plane(41, 200.0, 0.0, bump=4.0)
+    atlas = planar_atlas(vertices, faces, 256)
+    views = _four_views(vertices, faces)
+    options = BakeOptions(chunk=5000)
+    baked = bake(vertices, faces, atlas, views, options)
+
+    normals = vertex_normals(vertices, faces).astype(np.float32)
+    scene = _raycasting_scene(vertices, faces)
+    depths = [depth_map(scene, v, options) for v in views]
+    vblend = blend_views(vertices.astype(np.float32), normals, views, depths, options)
+    vertex_colors, _ = _fill_vertices(vertices, vblend.color)
+    texel, face, bary = rasterise_uv(np.asarray(atlas.uvs, np.float64) * 256 - 0.5, faces, 256)
+    corner = faces[face]
+    points = np.einsum("kj,kjc->kc", bary, vertices[corner].astype(np.float32))
+    tn = np.einsum("kj,kjc->kc", bary, normals[corner])
+    tn /= np.maximum(np.linalg.norm(tn, axis=1, keepdims=True), 1e-12)
+    tblend = blend_views(points, tn, views, depths, options)
+    fill = np.einsum("kj,kjc->kc", bary, vertex_colors[corner])
+    seen = np.all(np.isfinite(tblend.color), axis=1)
+    w = tblend.weight[seen, None]
+    expected = ((tblend.color[seen] * w + fill[seen] * options.prior_weight) / (w + options.prior_weight))
+    assert np.array_equal(baked.vertex_colors, vertex_colors)
+    assert np.array_equal(baked.linear.reshape(-1, 3)[texel[seen]], expected.astype(np.float32))
+    assert np.array_equal(baked.view_count.ravel()[texel], tblend.views)
+
+
+def test_a_view_image_missing_where_a_worker_reads_it_is_named(tmp_path):
+    from slscan.executor import Executor
+
+    vertices, faces = grid_plane(21, 200.0, 0.0)
+    atlas = planar_atlas(vertices, faces, 64)
+    files = _view_files(_four_views(vertices, faces)[:2], tmp_path)
+    (tmp_path / "v1_albedo.png").unlink()
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    with pytest.raises(SlscanError, match=r"v1_albedo\.png: un-shaded image of view v1 not found"):
+        bake(vertices, faces, atlas, files, BakeOptions(views_per_task=1), executor=Executor(workers=2),
+             scratch=scratch)
+    assert list(scratch.iterdir()) == []

@@ -33,7 +33,7 @@ def jit(function):
 
 
 def _update(tsdf, weight, rows, base, lattice, height, weight_px, cols, x_max, y_max,
-            neg_trunc, inv_trunc):  # pragma: no cover - runs compiled
+            neg_trunc, inv_trunc, c_off, r_off):  # pragma: no cover - runs compiled
     """Update blocks ``rows`` of ``tsdf``/``weight`` (n, 512) float32 with one height map.
 
     base : (k, 3) float32 each block's first voxel in map coordinates (x, y in pixels,
@@ -41,12 +41,15 @@ def _update(tsdf, weight, rows, base, lattice, height, weight_px, cols, x_max, y
         offsets from it; height, weight_px : the map's flat bordered pixels
         (:meth:`slscan.fuse.HeightMap.bordered`), ``cols`` per row; x_max, y_max : the
         largest top-left pixel of a bilinear cell; neg_trunc, inv_trunc : float32
-        -truncation (mm) and 1 / truncation.
+        -truncation (mm) and 1 / truncation; c_off, r_off : int32 the grid pixel of the
+        map's first (a window of a larger grid; x, y and x_max, y_max are on that grid).
 
     Mirrors the numpy update in :meth:`slscan.fuse.TsdfVolume.integrate` step by step.
     """
     one = np.float32(1.0)
     zero = np.float32(0.0)
+    x_min = np.float32(c_off)
+    y_min = np.float32(r_off)
     n_voxels = lattice.shape[1]
     for k in range(len(rows)):
         row = rows[k]
@@ -54,13 +57,13 @@ def _update(tsdf, weight, rows, base, lattice, height, weight_px, cols, x_max, y
         by = base[k, 1]
         bz = base[k, 2]
         for v in range(n_voxels):
-            x = min(max(bx + lattice[0, v], zero), x_max)
-            y = min(max(by + lattice[1, v], zero), y_max)
+            x = min(max(bx + lattice[0, v], x_min), x_max)
+            y = min(max(by + lattice[1, v], y_min), y_max)
             c0 = np.int32(x)
             r0 = np.int32(y)
             fx = np.float32(x - c0)
             fy = np.float32(y - r0)
-            i = np.int64(r0) * cols + c0
+            i = np.int64(r0 - r_off) * cols + (c0 - c_off)
             left = height[i]
             top = (height[i + 1] - left) * fx + left
             left = height[i + cols]

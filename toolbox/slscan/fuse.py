@@ -46,6 +46,8 @@ import itertools
 import logging
 import math
 import os
+import shutil
+import tempfile
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from concurrent.futures.process import BrokenProcessPool
@@ -135,7 +137,8 @@ class FusionResult:
     n_scans : scans integrated
     seconds : wall time per phase: "height_maps" (ray casting the scans), "integrate"
         (TSDF updates), "extract" (marching cubes); time spent making lazily supplied
-        scans is in none of them
+        scans is in none of them (in bricks, summed over the bricks, plus "stitch", and
+        "pieces": the caller reading (when lazy), ray casting and cutting the scans)
     """
 
     mesh: Mesh | None
@@ -173,6 +176,10 @@ class HeightMap:
     pixel : mm
     height : (rows, cols) float32 height along d (mm), NaN where the scan has no surface
     weight : (rows, cols) float32 observation weight, 0 where no surface
+    offset : (row, col) of ``height[0, 0]`` on the grid whose pixel (0, 0) is at ``origin``
+        (a window of a scan's whole map, :mod:`slscan.fuse_pieces`; the voxels' pixel
+        coordinates are computed on the whole grid, so a window updates them bit for bit
+        as the whole map does)
     """
 
     frame: np.ndarray
@@ -180,11 +187,15 @@ class HeightMap:
     pixel: float
     height: np.ndarray
     weight: np.ndarray
+    offset: tuple[int, int] = (0, 0)
 
     def surface_points(self) -> np.ndarray:
         """(k, 3) float64 world points of the pixels that see the surface."""
         r, c = np.nonzero(np.isfinite(self.height))
-        local = np.stack([c * self.pixel, r * self.pixel, self.height[r, c].astype(np.float64)], 1)
+        h = self.height[r, c].astype(np.float64)
+        r += self.offset[0]
+        c += self.offset[1]
+        local = np.stack([c * self.pixel, r * self.pixel, h], 1)
         # einsum, not matmul: BLAS takes 5x longer for (k, 3) @ (3, 3) (same to rounding)
         return np.einsum("ij,jk->ik", local, self.frame) + self.origin
 
@@ -212,6 +223,8 @@ class HeightMap:
         self, x: np.ndarray, y: np.ndarray, z: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`sample` at map coordinates: x, y in pixels, z heights (mm), float32 (k,)."""
+        if self.offset != (0, 0):
+            x, y = x - np.float32(self.offset[1]), y - np.float32(self.offset[0])
         rows, cols = self.height.shape
         inside = (x >= 0) & (y >= 0) & (x < cols - 1) & (y < rows - 1)
         c0 = x.astype(np.int32)
@@ -531,8 +544,10 @@ class TsdfVolume:
         h00, h01, h10, h11 = (height[k:] for k in (0, 1, cols_px, cols_px + 1))
         w00, w01, w10, w11 = (weight_px[k:] for k in (0, 1, cols_px, cols_px + 1))
         cols = np.int32(cols_px)
-        x_max = np.float32(cols_px - 2)
-        y_max = np.float32(rows_px - 2)
+        r_off, c_off = (np.int32(o) for o in depth.offset)
+        x_min, y_min = np.float32(c_off), np.float32(r_off)
+        x_max = np.float32(c_off + cols_px - 2)
+        y_max = np.float32(r_off + rows_px - 2)
         lattice = lattice.T.astype(np.float32)
         tsdf = self.grid.attribute("tsdf").numpy().reshape(-1, res3)
         weight = self.grid.attribute("weight").numpy().reshape(-1, res3)
@@ -547,7 +562,7 @@ class TsdfVolume:
         self.blocks_updated += len(buf)
         if kernel is not None:
             kernel(tsdf, weight, buf, base.astype(np.float32), np.ascontiguousarray(lattice),
-                   height, weight_px, cols_px, x_max, y_max, np.float32(-trunc), inv_trunc)
+                   height, weight_px, cols_px, x_max, y_max, np.float32(-trunc), inv_trunc, c_off, r_off)
             self.n_scans += 1
             return
         for start in range(0, len(buf), chunk_blocks):
@@ -557,12 +572,15 @@ class TsdfVolume:
             y = b[:, 1:2] + lattice[1]
             sdf = b[:, 2:3] + lattice[2]
             # outside the map: clipped onto its border, whose pixels see no surface (NaN)
-            np.clip(x, 0, x_max, out=x)
-            np.clip(y, 0, y_max, out=y)
+            np.clip(x, x_min, x_max, out=x)
+            np.clip(y, y_min, y_max, out=y)
             i = x.astype(np.int32)
             r0 = y.astype(np.int32)
             x -= i
             y -= r0
+            if c_off or r_off:  # a window: its pixels from the whole grid's
+                i -= c_off
+                r0 -= r_off
             r0 *= cols
             i += r0
             del r0
@@ -832,6 +850,7 @@ def fuse_scans(
     progress: Callable[[str], None] | None = None,
     executor: Executor | None = None,
     progress_total: Callable[[int], None] | None = None,
+    scratch_beside: str | os.PathLike | None = None,
 ) -> FusionResult:
     """Fuse aligned range scans into one mesh with a weighted TSDF (Curless & Levoy [1]_).
 
@@ -847,6 +866,8 @@ def fuse_scans(
         ``config.brick_size``: with the brick's name after each brick)
     executor : where the bricks run when ``config.brick_size`` is set (None: this process)
     progress_total : called with the number of bricks before the first runs (progress bars)
+    scratch_beside : with ``config.brick_size``, the output file beside which the bricks'
+        scratch folder is made (:func:`fuse_bricks`)
 
     Returns
     -------
@@ -859,10 +880,8 @@ def fuse_scans(
         A scan without a pose, bad options, or a grid larger than ``max_memory_gib``.
     """
     if config.brick_size is not None:
-        if not isinstance(scans, Sequence):
-            scans = list(scans)
         return fuse_bricks(scans, poses, config=config, executor=executor, progress=progress,
-                           progress_total=progress_total)
+                           progress_total=progress_total, scratch_beside=scratch_beside)
     if config.weighting not in ("quality", "uniform"):
         raise SlscanError(f"weighting {config.weighting!r}: expected 'quality' or 'uniform'")
     voxel = float(config.voxel_size)
@@ -926,6 +945,9 @@ class _BrickTask:
     scratch: str | None = None
     """Folder where the brick writes its mesh piece (:mod:`slscan.fuse_stream`); None: the
     piece is returned in the result."""
+    pieces: tuple[str, ...] = ()
+    """Paths of the brick's piece files (:mod:`slscan.fuse_pieces`), in the caller's scan
+    order; when given, ``scans`` and ``poses`` are empty."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -963,6 +985,12 @@ def _brick_blocks(
     for scan in scans:
         keys = np.union1d(keys, _block_keys(scan.transformed_vertices(poses[scan.name]), block,
                                             truncation * voxel))
+    return _bricks_of_blocks(keys, edge)
+
+
+def _bricks_of_blocks(keys: np.ndarray, edge: int) -> dict[tuple[int, int, int], int]:
+    """{brick coordinates: blocks} of bricks of ``edge`` blocks a side, their one-block halo
+    included, given the blocks' keys (:func:`_block_keys`)."""
     coords = _key_coords(keys).astype(np.int64)
     # a block is in the halo of the bricks of its neighbours one block away
     pairs = []
@@ -979,7 +1007,16 @@ def _brick_blocks(
 
 def _bricks_over(first: np.ndarray, last: np.ndarray) -> set[tuple[int, int, int]]:
     """Bricks ``first <= b <= last`` of any row of (k, 3) brick coordinates (floats)."""
-    ranges = np.unique(np.concatenate([first, last], axis=1).astype(np.int64), axis=0)
+    rows = np.concatenate([first, last], axis=1).astype(np.int64)
+    if len(rows) == 0:
+        return set()
+    lo = rows.min(axis=0)
+    span = rows.max(axis=0) - lo + 1
+    if float(np.prod(span.astype(np.float64))) < 2.0**62:  # rows as one int64 each: 30x faster than axis=0
+        _, first_of = np.unique(np.ravel_multi_index(tuple((rows - lo).T), tuple(span)), return_index=True)
+        ranges = rows[first_of]
+    else:
+        ranges = np.unique(rows, axis=0)
     out: set[tuple[int, int, int]] = set()
     for row in ranges.tolist():
         out.update(itertools.product(*(range(row[a], row[a + 3] + 1) for a in range(3))))
@@ -1002,9 +1039,14 @@ def _fuse_brick(task: _BrickTask) -> _BrickResult:
     block = voxel * BLOCK_RESOLUTION
     window = (reach[0] * block - margin, reach[1] * block + margin)
     seconds = {"height_maps": 0.0, "integrate": 0.0, "extract": 0.0}
-    for scan in task.scans:
-        _integrate_scan(volume, scan, task.poses[scan.name], pixel, config, seconds, window=window,
-                        block_range=reach)
+    from slscan.fuse_pieces import brick_height_maps
+
+    for depth in brick_height_maps(task, pixel=pixel, weighting=config.weighting, window=window,
+                                   seconds=seconds):
+        t1 = time.perf_counter()
+        volume.integrate(depth, chunk_blocks=config.chunk_blocks, block_range=reach)
+        seconds["integrate"] += time.perf_counter() - t1
+        del depth
         if grid_memory_bytes(volume.n_blocks) > limit:
             raise SlscanError(
                 f"brick {task.index} grew to {_size(grid_memory_bytes(volume.n_blocks))}, the cap is "
@@ -1028,8 +1070,8 @@ def _fuse_brick(task: _BrickTask) -> _BrickResult:
         from slscan.fuse_stream import write_piece
 
         piece = write_piece(task.scratch, task.index, canonical_order(mesh))
-        return _BrickResult(task.index, None, n_blocks, len(task.scans), seconds, piece, mesh.n_faces)
-    return _BrickResult(task.index, mesh, n_blocks, len(task.scans), seconds)
+        return _BrickResult(task.index, None, n_blocks, len(task.pieces) or len(task.scans), seconds, piece, mesh.n_faces)
+    return _BrickResult(task.index, mesh, n_blocks, len(task.pieces) or len(task.scans), seconds)
 
 
 def _stitch(meshes: Sequence[Mesh], *, plane_spacing: float, voxel: float) -> Mesh:
@@ -1070,7 +1112,7 @@ def parse_memory(text: str) -> float:
 
 
 def fuse_bricks(
-    scans: Sequence[RangeScan],
+    scans: Iterable[RangeScan],
     poses: Mapping[str, np.ndarray],
     *,
     config: FuseConfig,
@@ -1079,6 +1121,7 @@ def fuse_bricks(
     progress_total: Callable[[int], None] | None = None,
     out: str | os.PathLike | None = None,
     _scratch: Path | None = None,
+    scratch_beside: str | os.PathLike | None = None,
 ) -> FusionResult:
     """:func:`fuse_scans` in spatial bricks, each a task on ``executor``, under a memory cap.
 
@@ -1092,15 +1135,25 @@ def fuse_bricks(
     vertices on brick faces (the same float32 positions, computed from the same voxels by
     both bricks). The result is the single-volume mesh, in :func:`canonical_order`.
 
-    Memory: before anything runs, each brick's blocks (halo included) are estimated from
+    Range maps reach the bricks in pieces (:mod:`slscan.fuse_pieces`): the caller goes
+    through ``scans`` once, one scan in memory at a time, and writes, for every brick a scan
+    reaches, the triangles whose rays can reach the brick, to a scratch folder (beside
+    ``scratch_beside`` when given, else in the system's temporary folder; workers of a Dask
+    cluster must see it at the same path); a task carries its pieces' paths. The folder is
+    removed when fusion ends, on success or error.
+
+    Memory: before any brick runs, each brick's blocks (halo included) are estimated from
     the scans' vertices; a brick whose grid (:func:`grid_memory_bytes`) would exceed
     ``config.max_memory_gib`` is refused, naming it. A worker process holds one brick's
-    grid, the height map of one scan and the brick's mesh at a time.
+    grid, the height map of one piece (its window only) and the brick's mesh at a time; the
+    caller one scan, the bricks' bookkeeping and the stitched mesh.
 
     Parameters
     ----------
-    scans : RangeScan, each in its own frame (mm); they travel to the workers with the task
-    poses : {name: (4, 4) world_from_scan}, mm
+    scans : RangeScan, each in its own frame (mm); any iterable, consumed once, lazily (e.g.
+        :func:`slscan.register.meshlab.iter_scan_project`)
+    poses : {name: (4, 4) world_from_scan}, mm; looked up as each scan comes (a mapping
+        filled by the scans' iterator will do)
     config : FuseConfig with ``brick_size`` (mm) set
     executor : :class:`slscan.executor.Executor` (local processes or a Dask cluster); None:
         in this process
@@ -1115,11 +1168,14 @@ def fuse_bricks(
         from run to run; written atomically, the scratch folder removed after success and
         failure.
     _scratch : internal: the scratch folder made for ``out`` (by the call that made it)
+    scratch_beside : without ``out``, a file (the output): the range maps' pieces go to a
+        folder ``NAME.bricks-scratch-*`` beside it (with ``out``: in its scratch folder)
 
     Raises
     ------
     SlscanError
-        A scan without a pose, bad options, or a brick that cannot fit under the cap.
+        A scan without a pose, bad options, a brick that cannot fit under the cap, or a
+        piece a worker cannot read (naming the brick, the file and the worker's host).
     """
     if out is not None and _scratch is None:
         from slscan.fuse_stream import make_scratch, remove_scratch
@@ -1138,38 +1194,60 @@ def fuse_bricks(
     brick = config.brick_size
     if brick is None or not (math.isfinite(brick) and brick > 0):
         raise SlscanError(f"brick size must be a positive number of mm, got {brick}")
-    missing = [s.name for s in scans if s.name not in poses]
-    if missing:
-        raise SlscanError(f"no pose for scans {missing}")
+    if isinstance(scans, Sequence):
+        missing = [s.name for s in scans if s.name not in poses]
+        if missing:
+            raise SlscanError(f"no pose for scans {missing}")
     block = voxel * BLOCK_RESOLUTION
     edge = max(1, round(brick / block))
-    needs = _brick_blocks(scans, poses, voxel=voxel, truncation=config.truncation, edge=edge)
-    limit = config.max_memory_gib * 2**30
-    for b, n in sorted(needs.items()):
-        if grid_memory_bytes(n) > limit:
-            raise SlscanError(
-                f"brick {b} needs {_size(grid_memory_bytes(n))}, the cap is "
-                f"{_size(limit)}: lower --brick (now {brick:g} mm)"
-            )
-    # the bricks and their scans from the scans' triangles, not their vertices: a long
-    # triangle's ray hits can reach blocks that none of its vertices does
-    reach = config.truncation * voxel
-    span = edge * block
-    core: set[tuple[int, int, int]] = set()
-    reached = []
-    for scan in scans:
-        tri = scan.transformed_vertices(poses[scan.name])[scan.faces]
-        lo_mm, hi_mm = tri.min(axis=1) - reach, tri.max(axis=1) + reach
-        core |= _bricks_over(np.floor(lo_mm / span), np.floor(hi_mm / span))
-        reached.append(_bricks_over(np.floor((lo_mm - block) / span), np.floor((hi_mm + block) / span)))
-    tasks = []
-    for b in sorted(core):
-        lo, hi = np.array(b, np.int64) * edge, (np.array(b, np.int64) + 1) * edge
-        mine = tuple(s for s, bricks in zip(scans, reached) if b in bricks)
-        tasks.append(_BrickTask(b, lo, hi, mine, {s.name: np.asarray(poses[s.name], np.float64) for s in mine},
-                                config, needs.get(b, 0)))
-    if _scratch is not None:  # streamed: each brick writes its piece there
-        tasks = [replace(t, scratch=str(_scratch)) for t in tasks]
+    from slscan.fuse_pieces import cut_pieces
+
+    if _scratch is not None:  # streamed: the pieces go into the output's scratch folder too
+        scratch = Path(_scratch) / "pieces"
+        scratch.mkdir()
+    else:
+        if scratch_beside:
+            Path(scratch_beside).parent.mkdir(parents=True, exist_ok=True)
+        scratch = Path(tempfile.mkdtemp(prefix=f"{Path(scratch_beside).name}.bricks-scratch-" if scratch_beside
+                                        else "slscan-bricks-scratch-",
+                                        dir=Path(scratch_beside).parent if scratch_beside else None))
+    try:
+        # one pass over the scans (one in memory at a time): each scan's blocks, the bricks it
+        # reaches and its piece for each of them
+        t0 = time.perf_counter()
+        keys, core, pieces = cut_pieces(scans, poses, voxel=voxel, pixel=config.pixel_size or voxel,
+                                        truncation=config.truncation, weighting=config.weighting, edge=edge,
+                                        folder=scratch)
+        cut_seconds = time.perf_counter() - t0
+        needs = _bricks_of_blocks(keys, edge)
+        del keys
+        limit = config.max_memory_gib * 2**30
+        for b, n in sorted(needs.items()):
+            if grid_memory_bytes(n) > limit:
+                raise SlscanError(
+                    f"brick {b} needs {_size(grid_memory_bytes(n))}, the cap is "
+                    f"{_size(limit)}: lower --brick (now {brick:g} mm)"
+                )
+        tasks = []
+        for b in sorted(core):
+            lo, hi = np.array(b, np.int64) * edge, (np.array(b, np.int64) + 1) * edge
+            tasks.append(_BrickTask(b, lo, hi, (), {}, config, needs.get(b, 0),
+                                    None if _scratch is None else str(_scratch),
+                                    tuple(str(p) for p in pieces.get(b, ()))))
+        result = _run_bricks(tasks, edge=edge, block=block, voxel=voxel, config=config, executor=executor,
+                             progress=progress, progress_total=progress_total, out=out, scratch=_scratch)
+        result.seconds["pieces"] = cut_seconds
+        return result
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+
+
+def _run_bricks(tasks: list[_BrickTask], *, edge: int, block: float, voxel: float, config: FuseConfig,
+                executor: Executor | None, progress: Callable[[str], None] | None,
+                progress_total: Callable[[int], None] | None, out: str | os.PathLike | None = None,
+                scratch: Path | None = None) -> FusionResult:
+    """Run the brick tasks on ``executor`` and stitch their meshes, or, with ``out`` and
+    ``scratch``, stream them to ``out`` (:func:`fuse_bricks`)."""
     log.info("fusing in %d bricks of %d blocks (%.3g mm) a side", len(tasks), edge, edge * block)
     if progress_total is not None:
         progress_total(len(tasks))
@@ -1192,11 +1270,11 @@ def fuse_bricks(
     seconds = {k: sum(r.seconds[k] for r in results) for k in ("height_maps", "integrate", "extract")}
     t0 = time.perf_counter()
     written = None
-    if _scratch is not None:
+    if scratch is not None:
         from slscan.fuse_stream import write_streamed
 
         mesh = None
-        written = write_streamed([(r.index, r.piece, r.n_faces) for r in results], out, _scratch,
+        written = write_streamed([(r.index, r.piece, r.n_faces) for r in results], out, scratch,
                                  plane_spacing=edge * block, voxel=voxel)
     else:
         mesh = canonical_order(_stitch([r.mesh for r in results], plane_spacing=edge * block, voxel=voxel))

@@ -311,12 +311,18 @@ def _run_fuse(ctx: StageContext, config) -> dict[str, Any]:
     from slscan.fuse import fuse_scans, write_mesh
     from slscan.register.meshlab import load_scan_project, write_mesh_project
 
-    scans, poses = load_scan_project(ctx.inputs["aligned"] / "aligned.mlp")
+    if config.brick_size is not None:  # in bricks: the scans are read one at a time
+        from slscan.register.command import iter_scans
+
+        _, scans, poses = iter_scans(ctx.inputs["aligned"] / "aligned.mlp")
+    else:
+        scans, poses = load_scan_project(ctx.inputs["aligned"] / "aligned.mlp")
     from slscan.viewer.log_register import log_fused_mesh
 
     from slscan.executor import LOCAL
 
-    # with fuse.brick_size the bricks run on the run's executor (--workers, --scheduler)
+    # with fuse.brick_size the bricks run on the run's executor (--workers, --scheduler), their
+    # pieces and meshes in a scratch folder inside the stage's (Dask workers must see the run's folder)
     if config.brick_size is not None:
         return _run_fuse_streamed(ctx, config, scans, poses)
     result = fuse_scans(scans, poses, config=config, progress=ctx.progress, executor=ctx.executor or LOCAL)
@@ -386,12 +392,13 @@ def _run_simplify(ctx: StageContext, config: SimplifyConfig) -> dict[str, Any]:
 
 
 def _run_texture(ctx: StageContext, config) -> dict[str, Any]:
+    from slscan.executor import LOCAL
     from slscan.texture.pipeline import texture_model
 
     poses = ctx.inputs.get("aligned")
     result = texture_model(ctx.inputs["mesh"] / "mesh.ply", ctx.inputs["albedo"], ctx.out, poses=poses,
                            session=ctx.inputs.get("session"), config=config, overwrite=True, rec=ctx.rec,
-                           progress=ctx.progress)
+                           progress=ctx.progress, executor=ctx.executor or LOCAL)
     return {"faces": result.faces, "charts": result.charts, "size": result.size,
             "observed_share": result.metrics["observed_share"],
             "seam_error_mean": result.metrics["seam_error_mean"]}

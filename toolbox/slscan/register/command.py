@@ -97,6 +97,59 @@ def _range_map_scans(summary: Path, *, allow_outside: bool) -> tuple[list, dict[
     return scans, (poses if len(poses) == len(scans) else None)
 
 
+def iter_scans(path: Path, *, allow_outside: bool = False):
+    """:func:`load_scans` one scan at a time, for an aligned set (a ``.mlp`` project, a folder
+    holding ``aligned.mlp``) or a range-maps folder whose views all have a pose: (number of
+    scans, iterator of RangeScan, poses) where ``poses`` (world_from_scan, mm, by scan name)
+    is filled as each scan is yielded; None for any other input (load it with
+    :func:`load_scans`). A mesh file is read only when its turn comes."""
+    from slscan.fsio import read_json
+    from slscan.register.meshlab import iter_scan_project, read_mlp
+    from slscan.register.rangescan import load_range_scan
+    from slscan.rig import _as_pose
+
+    poses: dict[str, np.ndarray] = {}
+    project = path if path.suffix == ".mlp" else path / "aligned.mlp" if (path / "aligned.mlp").is_file() else None
+    if project is not None:
+        count = len(read_mlp(project, allow_outside=allow_outside))
+
+        def from_project():
+            for scan, matrix in iter_scan_project(project, allow_outside=allow_outside):
+                poses[scan.name] = matrix
+                yield scan
+                del scan  # not held while the next one is read
+
+        return count, from_project(), poses
+    summary = path / "range_maps.json"
+    if not (path.is_dir() and summary.is_file()):
+        return None
+    with about_file(summary, "range-maps summary"):
+        views = read_json(summary, "range-maps summary")["views"]
+    if not isinstance(views, list) or not views:
+        raise SlscanError(f"{summary}: lists no views; expected the range maps slscan decode wrote")
+    if any(not isinstance(v, dict) or v.get("rig_from_object") is None for v in views):
+        return None  # some view without a pose: load_scans says so
+
+    def from_range_maps():
+        for i, entry in enumerate(views):
+            with about_file(summary, "range-maps summary"):  # as load_scans: errors name the summary
+                file = summary.parent / entry["file"]
+                if not allow_outside and not file.resolve().is_relative_to(summary.parent.resolve()):
+                    raise SlscanError(f"{summary}: range map {entry['file']!r} lies outside its folder "
+                                      "(pass --allow-outside to read it)")
+                try:
+                    pose = _as_pose(entry["rig_from_object"], "")
+                except (SlscanError, TypeError, ValueError):
+                    raise SlscanError(f"{summary}: views[{i}].rig_from_object: expected a finite, invertible "
+                                      f"4x4 pose, got {entry['rig_from_object']!r}") from None
+                scan = load_range_scan(file)
+            poses[scan.name] = np.linalg.inv(pose)
+            yield scan
+            del scan
+
+    return len(views), from_range_maps(), poses
+
+
 def load_poses(path: Path, names: list[str]) -> dict[str, np.ndarray]:
     """Start poses (world_from_scan, mm) by scan name, from a file, for the scans ``names``.
 
@@ -300,28 +353,35 @@ def _cmd_fuse(args: argparse.Namespace) -> int:
     _check_mesh_out(args.out, args.overwrite)
     config = FuseConfig(voxel_size=args.voxel, brick_size=args.brick,
                         **({"max_memory_gib": parse_memory(args.max_memory)} if args.max_memory else {}))
-    scans, poses = load_scans(args.aligned, allow_outside=args.allow_outside)
+    # in bricks, the scans are read one at a time as the bricks' pieces are cut
+    lazy = iter_scans(args.aligned, allow_outside=args.allow_outside) if (
+        args.brick is not None and args.method == "tsdf") else None
+    if lazy is not None:
+        n_scans, scans, poses = lazy
+    else:
+        scans, poses = load_scans(args.aligned, allow_outside=args.allow_outside)
+        n_scans = len(scans)
     if poses is None:
         raise SlscanError(f"{args.aligned}: the scans have no poses; run `slscan register` first")
     t0 = time.perf_counter()
     if args.method == "tsdf" and args.brick is not None and args.out.suffix.lower() == ".ply":
-        return _fuse_streamed(args, config, scans, poses, t0)
+        return _fuse_streamed(args, config, scans, poses, t0, n_scans)
     with recording_from_args(args, recording_name=f"fuse {args.aligned.name}", blueprint=register_blueprint()) as rec:
-        with ProgressBar(len(scans), f"fusing ({args.method})", args.quiet) as bar:
+        with ProgressBar(n_scans, f"fusing ({args.method})", args.quiet) as bar:
             if args.method == "tsdf":
                 mesh = fuse_scans(scans, poses, config=config, progress=bar.step, progress_total=bar.set_total,
-                                  executor=executor_from_args(args)).mesh
+                                  executor=executor_from_args(args), scratch_beside=args.out).mesh
             else:
                 mesh = poisson_reconstruct(scans, poses, voxel_size=args.voxel)
         rlog.log_fused_mesh(rec, mesh)
     write_mesh(mesh, args.out)
     project = write_mesh_project(args.out)
-    console().print(f"[green]fused[/] {len(scans)} scans at {args.voxel} mm: {len(mesh.faces):,} faces in "
+    console().print(f"[green]fused[/] {n_scans} scans at {args.voxel} mm: {len(mesh.faces):,} faces in "
                     f"{time.perf_counter() - t0:.1f} s -> {args.out} (MeshLab: {project})", highlight=False)
     return 0
 
 
-def _fuse_streamed(args: argparse.Namespace, config, scans, poses, t0: float) -> int:
+def _fuse_streamed(args: argparse.Namespace, config, scans, poses, t0: float, n_scans: int) -> int:
     """``slscan fuse --brick MM --out X.ply``: the bricks' mesh streams to the PLY (the caller never
     holds it whole); logged to Rerun only when small enough to read back."""
     from slscan.executor import executor_from_args
@@ -335,7 +395,7 @@ def _fuse_streamed(args: argparse.Namespace, config, scans, poses, t0: float) ->
 
     name = f"fuse {args.aligned.name}"
     with recording_from_args(args, recording_name=name, blueprint=register_blueprint()) as rec:
-        with ProgressBar(len(scans), "fusing (tsdf, bricks)", args.quiet) as bar:
+        with ProgressBar(n_scans, "fusing (tsdf, bricks)", args.quiet) as bar:
             written = fuse_bricks(scans, poses, config=config, progress=bar.step, progress_total=bar.set_total,
                                   executor=executor_from_args(args), out=args.out).written
         if rec is not None:
@@ -348,7 +408,7 @@ def _fuse_streamed(args: argparse.Namespace, config, scans, poses, t0: float) ->
                                 "(slscan simplify with --save, --spawn or --connect)",
                                 highlight=False, soft_wrap=True)
     project = write_mesh_project(args.out)
-    console().print(f"[green]fused[/] {len(scans)} scans at {args.voxel} mm in bricks, streamed: "
+    console().print(f"[green]fused[/] {n_scans} scans at {args.voxel} mm in bricks, streamed: "
                     f"{written.n_faces:,} faces in {time.perf_counter() - t0:.1f} s -> {args.out} "
                     f"(MeshLab: {project})", highlight=False)
     return 0

@@ -19,7 +19,7 @@ from __future__ import annotations
 import logging
 import os
 import xml.etree.ElementTree as ET
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -532,6 +532,27 @@ def load_scan_project(
     if not scans:
         raise SlscanError(f"{path}: the project lists no meshes")
     return scans, poses
+
+
+def iter_scan_project(
+    path: str | os.PathLike, *, allow_outside: bool = False
+) -> Iterator[tuple[RangeScan, np.ndarray]]:
+    """:func:`load_scan_project` one scan at a time: (scan, (4, 4) world_from_scan, mm) in the
+    project's order, each mesh file read only when its turn comes (the caller may drop a
+    scan before the next is read). The project itself is read, and its mesh files checked
+    to exist, before the first is yielded; a file that turns out broken is a
+    :class:`SlscanError` naming it when its turn comes."""
+    entries = read_mlp(path, allow_outside=allow_outside)
+    if not entries:
+        raise SlscanError(f"{path}: the project lists no meshes")
+    names: set[str] = set()
+    for file, matrix in entries:
+        scan = load_range_scan(file)
+        if scan.name in names:
+            raise SlscanError(f"{path}: two meshes are named {scan.name!r}")
+        names.add(scan.name)
+        yield scan, matrix
+        del scan  # not held while the next one is read
 
 
 def _xml_attr(text: str) -> str:

@@ -29,8 +29,10 @@ from __future__ import annotations
 import itertools
 import logging
 import math
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -66,6 +68,10 @@ class BakeOptions:
     """Texels the charts are extended into the gutter."""
     chunk: int = 2_000_000
     """Texels processed at once."""
+    views_per_task: int = 8
+    """Views baked by one task (one process at a time: its views' images and depth maps one
+    after the other, the texels' points shared); the tasks' sums are added in order, so a
+    change of this number changes the atlas by float32 rounding only."""
     cull: bool = True
     """Project a texel only into the views whose frustum holds it and that face it, tested
     on blocks of nearby texels with conservative bounds (:func:`point_blocks`); False:
@@ -372,6 +378,135 @@ def blocks_in_view(blocks: Blocks, view: TextureView, max_angle_deg: float) -> n
     return np.nonzero(keep)[0]
 
 
+@dataclass(frozen=True, eq=False)
+class Targets:
+    """Surface points laid out for blending (:func:`blend_targets`): coordinates and unit
+    normals in columns ``pts``, ``nms`` (3, rows, width) float32 (a row is a culling block,
+    or ``chunk`` points in their order without culling), ``target_of`` (rows, width) the
+    point each entry is (``k`` for padding), ``blocks`` the rows' culling bounds (their
+    ``members`` may be empty: ``target_of`` has them), ``k`` the number of points."""
+
+    pts: np.ndarray
+    nms: np.ndarray
+    target_of: np.ndarray
+    blocks: Blocks | None
+    k: int
+
+
+@dataclass(frozen=True, eq=False)
+class Sums:
+    """Weighted colour sums of the points some views saw, sparse: ``index`` (m,) int64 the
+    points (ascending), ``acc`` (m, 3) float32 the sum of colour x weight, ``weight`` (m,)
+    float32 the sum of weights, ``views`` (m,) uint8 the views that contributed."""
+
+    index: np.ndarray
+    acc: np.ndarray
+    weight: np.ndarray
+    views: np.ndarray
+
+
+def blend_targets(points: np.ndarray, normals: np.ndarray, options: BakeOptions) -> Targets:
+    """Lay ``points`` (k, 3) with unit ``normals`` out for :func:`accumulate_view`: in
+    culling blocks (:func:`point_blocks`) with ``options.cull``, else in rows of
+    ``options.chunk`` points."""
+    k = len(points)
+    blocks = point_blocks(points, normals) if options.cull and k else None
+    if blocks is None:  # rows of ``chunk`` points in their order
+        width = max(1, min(options.chunk, k))
+        members = np.full(-(-k // width) * width, -1, np.int64)
+        members[:k] = np.arange(k)
+        members = members.reshape(-1, width)
+    else:
+        members = blocks.members
+    # coordinates in columns (3, rows, width): a view gathers its blocks as contiguous runs
+    ordered = np.where(members >= 0, members, 0)
+    pts = np.asarray(points, np.float32)[ordered].transpose(2, 0, 1)
+    nms = np.asarray(normals, np.float32)[ordered].transpose(2, 0, 1)
+    del ordered
+    target_of = np.where(members >= 0, members, k).astype(np.int32 if k < 2**31 - 1 else np.int64)
+    if blocks is not None:
+        blocks = Blocks(np.zeros((0, 0), np.int64), blocks.centre, blocks.radius, blocks.axis, blocks.spread)
+    return Targets(np.ascontiguousarray(pts), np.ascontiguousarray(nms), target_of, blocks, k)
+
+
+def accumulate_view(
+    targets: Targets,
+    view: TextureView,
+    dm: DepthMap,
+    options: BakeOptions,
+    acc: np.ndarray,
+    wsum: np.ndarray,
+    count: np.ndarray,
+) -> None:
+    """Add ``view``'s weighted colour at the ``targets`` it sees to ``acc`` (k + 1, 3),
+    ``wsum`` (k + 1,) float32 and ``count`` (k + 1,) uint8 (the last row takes padding)."""
+    cam = view.camera
+    m = view.camera_from_world
+    centre = np.asarray(view.world_from_camera, float)[:3, 3]
+    axis = m[2, :3]  # the optical axis in the world frame
+    cos_min = math.cos(math.radians(options.max_angle_deg))
+    target_of = targets.target_of
+    chunk_rows = max(1, options.chunk // target_of.shape[1])
+    blocks = targets.blocks
+    rows = np.arange(len(target_of)) if blocks is None else blocks_in_view(blocks, view, options.max_angle_deg)
+    depth_flat = dm.depth.ravel()
+    edge_flat = dm.edge_distance.ravel()
+    for start in range(0, len(rows), chunk_rows):
+        sel = rows[start:start + chunk_rows]
+        p = targets.pts[:, sel].reshape(3, -1).astype(np.float64)
+        nrm = targets.nms[:, sel].reshape(3, -1)
+        # the tests in the world frame, column by column (no (k, 3) matrix products):
+        # the ray to the camera centre, its length and depth are those of the camera frame
+        ray = [centre[i] - p[i] for i in range(3)]
+        del p
+        dist = np.sqrt(ray[0] * ray[0] + ray[1] * ray[1] + ray[2] * ray[2])
+        cos = (nrm[0] * ray[0] + nrm[1] * ray[1] + nrm[2] * ray[2]) / np.maximum(dist, 1e-12)
+        depth = -(axis[0] * ray[0] + axis[1] * ray[1] + axis[2] * ray[2])
+        idx = np.nonzero((cos > cos_min) & (depth > 0))[0]
+        del dist, depth, nrm
+        if len(idx) == 0:
+            continue
+        sub = [ray[0][idx], ray[1][idx], ray[2][idx]]
+        del ray
+        pc = np.stack([-(r[0] * sub[0] + r[1] * sub[1] + r[2] * sub[2]) for r in m[:3, :3]], axis=1)
+        del sub
+        pix = cam.project_local(pc)
+        x, y = pix[:, 0], pix[:, 1]
+        inside = (x >= 0) & (y >= 0) & (x <= cam.width - 1) & (y <= cam.height - 1)
+        idx, x, y = idx[inside], x[inside], y[inside]
+        z = pc[inside, 2]
+        del pc, pix
+        xi, yi = np.rint(x).astype(np.int64), np.rint(y).astype(np.int64)
+        c = cos[idx]
+        del cos
+        tan = np.sqrt(np.maximum(1.0 - c * c, 0.0)) / c
+        slack = (z / cam.fx) * (options.depth_slack_px + tan)
+        pixel = yi * cam.width + xi
+        visible = z <= depth_flat.take(pixel) + slack
+        idx, x, y, pixel, c = idx[visible], x[visible], y[visible], pixel[visible], c[visible]
+        edge = np.clip(edge_flat.take(pixel) / options.edge_px, 0.0, 1.0)
+        border = np.minimum.reduce([x, y, cam.width - 1 - x, cam.height - 1 - y])
+        w = (c ** options.angle_power) * edge * np.clip(border / options.border_px, 0.0, 1.0)
+        color = _bilinear(view.albedo, x, y)
+        good = (w > 0) & np.all(np.isfinite(color), axis=1)
+        target = target_of[sel].ravel()[idx[good]]
+        acc[target] += (color[good] * w[good, None]).astype(np.float32)
+        wsum[target] += w[good].astype(np.float32)
+        count[target] += 1
+
+
+def _accumulators(k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Zeroed ``acc`` (k + 1, 3), ``wsum`` (k + 1,) float32 and ``count`` (k + 1,) uint8."""
+    return np.zeros((k + 1, 3), np.float32), np.zeros(k + 1, np.float32), np.zeros(k + 1, np.uint8)
+
+
+def _finish(acc: np.ndarray, wsum: np.ndarray, count: np.ndarray, k: int) -> Blend:
+    acc, wsum, count = acc[:k], wsum[:k], count[:k]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        color = np.where(wsum[:, None] > 0, acc / wsum[:, None], np.nan).astype(np.float32)
+    return Blend(color, wsum, count)
+
+
 def blend_views(
     points: np.ndarray,
     normals: np.ndarray,
@@ -387,72 +522,11 @@ def blend_views(
     views that can see a point rather than all views.
     """
     k = len(points)
-    acc = np.zeros((k + 1, 3), np.float32)  # the last row takes the blocks' padding
-    wsum = np.zeros(k + 1, np.float32)
-    count = np.zeros(k + 1, np.uint8)
-    cos_min = math.cos(math.radians(options.max_angle_deg))
-    blocks = point_blocks(points, normals) if options.cull and k else None
-    if blocks is None:  # rows of ``chunk`` points in their order
-        width = max(1, min(options.chunk, k))
-        members = np.full(-(-k // width) * width, -1, np.int64)
-        members[:k] = np.arange(k)
-        members = members.reshape(-1, width)
-    else:
-        members = blocks.members
-    chunk_rows = max(1, options.chunk // members.shape[1])
-    # coordinates in columns (3, rows, width): a view gathers its blocks as contiguous runs
-    ordered = np.where(members >= 0, members, 0)
-    pts = np.asarray(points, np.float32)[ordered].transpose(2, 0, 1)
-    nms = np.asarray(normals, np.float32)[ordered].transpose(2, 0, 1)
-    del ordered
-    target_of = np.where(members >= 0, members, k).astype(np.int32 if k < 2**31 - 1 else np.int64)
-    del members
+    targets = blend_targets(points, normals, options)
+    acc, wsum, count = _accumulators(k)
     for view, dm in zip(views, depths):
-        cam = view.camera
-        m = view.camera_from_world
-        centre = np.asarray(view.world_from_camera, float)[:3, 3]
-        axis = m[2, :3]  # the optical axis in the world frame
-        rows = np.arange(len(target_of)) if blocks is None else blocks_in_view(blocks, view, options.max_angle_deg)
-        for start in range(0, len(rows), chunk_rows):
-            sel = rows[start:start + chunk_rows]
-            p = pts[:, sel].reshape(3, -1).astype(np.float64)
-            nrm = nms[:, sel].reshape(3, -1)
-            # the tests in the world frame, column by column (no (k, 3) matrix products):
-            # the ray to the camera centre, its length and depth are those of the camera frame
-            ray = [centre[i] - p[i] for i in range(3)]
-            dist = np.sqrt(ray[0] * ray[0] + ray[1] * ray[1] + ray[2] * ray[2])
-            cos = (nrm[0] * ray[0] + nrm[1] * ray[1] + nrm[2] * ray[2]) / np.maximum(dist, 1e-12)
-            depth = -(axis[0] * ray[0] + axis[1] * ray[1] + axis[2] * ray[2])
-            idx = np.nonzero((cos > cos_min) & (depth > 0))[0]
-            if len(idx) == 0:
-                continue
-            sub = [ray[0][idx], ray[1][idx], ray[2][idx]]
-            pc = np.stack([-(r[0] * sub[0] + r[1] * sub[1] + r[2] * sub[2]) for r in m[:3, :3]], axis=1)
-            pix = cam.project_local(pc)
-            x, y = pix[:, 0], pix[:, 1]
-            inside = (x >= 0) & (y >= 0) & (x <= cam.width - 1) & (y <= cam.height - 1)
-            idx, x, y = idx[inside], x[inside], y[inside]
-            z = pc[inside, 2]
-            xi, yi = np.rint(x).astype(np.int64), np.rint(y).astype(np.int64)
-            c = cos[idx]
-            tan = np.sqrt(np.maximum(1.0 - c * c, 0.0)) / c
-            slack = (z / cam.fx) * (options.depth_slack_px + tan)
-            pixel = yi * cam.width + xi
-            visible = z <= dm.depth.ravel().take(pixel) + slack
-            idx, x, y, pixel, c = idx[visible], x[visible], y[visible], pixel[visible], c[visible]
-            edge = np.clip(dm.edge_distance.ravel().take(pixel) / options.edge_px, 0.0, 1.0)
-            border = np.minimum.reduce([x, y, cam.width - 1 - x, cam.height - 1 - y])
-            w = (c ** options.angle_power) * edge * np.clip(border / options.border_px, 0.0, 1.0)
-            color = _bilinear(view.albedo, x, y)
-            good = (w > 0) & np.all(np.isfinite(color), axis=1)
-            target = target_of[sel].ravel()[idx[good]]
-            acc[target] += (color[good] * w[good, None]).astype(np.float32)
-            wsum[target] += w[good].astype(np.float32)
-            count[target] += 1
-    acc, wsum, count = acc[:k], wsum[:k], count[:k]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        color = np.where(wsum[:, None] > 0, acc / wsum[:, None], np.nan).astype(np.float32)
-    return Blend(color, wsum, count)
+        accumulate_view(targets, view, dm, options, acc, wsum, count)
+    return _finish(acc, wsum, count, k)
 
 
 # --- the whole bake -----------------------------------------------------------------------------
@@ -516,20 +590,136 @@ def pad_charts(image: np.ndarray, covered: np.ndarray, iterations: int) -> tuple
     return image, mask > 0
 
 
+@dataclass(frozen=True, eq=False)
+class _Shared:
+    """What every bake task needs besides its views: the model (``vertices`` (n, 3)
+    float32 mm, ``faces`` (f, 3)) for ray casting, and the vertices' and texels'
+    :class:`Targets`."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    vertex_targets: Targets
+    texel_targets: Targets
+
+    _ARRAYS = ("pts", "nms", "target_of")
+    _BOUNDS = ("centre", "radius", "axis", "spread")
+
+    def save(self, folder: Path) -> None:
+        """Write the arrays as ``.npy`` files into ``folder`` (for tasks in other processes)."""
+        np.save(folder / "vertices.npy", self.vertices)
+        np.save(folder / "faces.npy", self.faces)
+        for name, t in (("vertex", self.vertex_targets), ("texel", self.texel_targets)):
+            for a in self._ARRAYS:
+                np.save(folder / f"{name}_{a}.npy", getattr(t, a))
+            if t.blocks is not None:
+                for a in self._BOUNDS:
+                    np.save(folder / f"{name}_{a}.npy", getattr(t.blocks, a))
+        (folder / "counts.txt").write_text(f"{self.vertex_targets.k} {self.texel_targets.k}\n")
+
+    @classmethod
+    def load(cls, folder: str) -> _Shared:
+        """The arrays :meth:`save` wrote, memory-mapped (the processes of one machine share
+        their pages)."""
+        path = Path(folder)
+        if not (path / "counts.txt").is_file():
+            raise SlscanError(f"{path}: the bake's shared arrays are not there (a worker needs the output's "
+                              "folder at the same path as the caller)")
+        counts = [int(c) for c in (path / "counts.txt").read_text().split()]
+
+        def load(name: str) -> np.ndarray:
+            return np.load(path / f"{name}.npy", mmap_mode="r")
+
+        targets = []
+        for name, k in zip(("vertex", "texel"), counts):
+            blocks = None
+            if (path / f"{name}_centre.npy").is_file():
+                bounds = (np.asarray(load(f"{name}_{a}")) for a in cls._BOUNDS)
+                blocks = Blocks(np.zeros((0, 0), np.int64), *bounds)
+            targets.append(Targets(*(load(f"{name}_{a}") for a in cls._ARRAYS), blocks, k))
+        return cls(np.asarray(load("vertices")), np.asarray(load("faces")), *targets)
+
+
+@dataclass(frozen=True, eq=False)
+class _BakeTask:
+    """A group of views to bake: ``shared`` in memory, or the folder it was saved in."""
+
+    shared: _Shared | str
+    views: tuple
+    options: BakeOptions
+
+
+@dataclass(frozen=True, eq=False)
+class _GroupSums:
+    """A task's result: its views' sums on the texels and on the vertices, and each
+    view's :func:`model_share`."""
+
+    texels: Sums
+    vertices: Sums
+    shares: dict
+
+
+def _sparse(acc: np.ndarray, wsum: np.ndarray, count: np.ndarray, k: int) -> Sums:
+    index = np.flatnonzero(count[:k])
+    return Sums(index, acc[index], wsum[index], count[index])
+
+
+def _bake_views(task: _BakeTask) -> _GroupSums:
+    """Bake a group of views (a task on the executor): each view is read, ray cast and
+    blended in turn, so the task holds one view's images at a time; it returns the sums of
+    the texels and vertices its views saw (sparse)."""
+    shared = _Shared.load(task.shared) if isinstance(task.shared, str) else task.shared
+    scene = _raycasting_scene(shared.vertices, shared.faces)
+    vt, tt = shared.vertex_targets, shared.texel_targets
+    vsum, tsum = _accumulators(vt.k), _accumulators(tt.k)
+    shares = {}
+    for item in task.views:
+        view = item.load()
+        dm = depth_map(scene, view, task.options)
+        shares[view.name] = model_share(dm, view)
+        accumulate_view(vt, view, dm, task.options, *vsum)
+        accumulate_view(tt, view, dm, task.options, *tsum)
+        del view, dm
+    return _GroupSums(_sparse(*tsum, tt.k), _sparse(*vsum, vt.k), shares)
+
+
+def _add(total: tuple[np.ndarray, np.ndarray, np.ndarray], sums: Sums) -> None:
+    acc, wsum, count = total
+    acc[sums.index] += sums.acc
+    wsum[sums.index] += sums.weight
+    count[sums.index] += sums.views
+
+
 def bake(
     vertices: np.ndarray,
     faces: np.ndarray,
     atlas,
-    views: Sequence[TextureView],
+    views: Sequence,
     options: BakeOptions | None = None,
     *,
     normals: np.ndarray | None = None,
     progress: Callable[[str], None] | None = None,
+    executor=None,
+    scratch: str | os.PathLike | None = None,
+    scratch_prefix: str = ".bake.partial-",
 ) -> BakedTexture:
     """Bake ``views`` into ``atlas`` (a :class:`slscan.texture.atlas.Atlas` of the mesh
     ``vertices``, ``faces``: same faces in the same order) and onto the vertices.
 
-    normals : (n, 3) unit vertex normals when the caller has them (default: computed)"""
+    views : :class:`TextureView` (albedo in memory) or :class:`~slscan.texture.views.ViewFile`
+        (read where its task runs); split into groups of ``options.views_per_task``, each a
+        task that reads, ray casts and blends its views one at a time and returns its sums
+        on the texels and vertices it saw. The sums are added in the groups' order, so the
+        result does not depend on where the tasks ran (the rounding of float32 sums does
+        depend on the group size).
+    normals : (n, 3) unit vertex normals when the caller has them (default: computed)
+    executor : :class:`slscan.executor.Executor` the tasks run on (default: this process)
+    scratch : folder in which the arrays the tasks share are written for other processes,
+        in a temporary folder named ``scratch_prefix`` + random letters and removed at the
+        end (default: the system's temporary folder; for Dask, one every worker sees at
+        the same path). At 4096 texels about 35 bytes per covered texel (0.4 GB).
+    """
+    import shutil
+    import tempfile
     import time
 
     from slscan.meshes import vertex_normals
@@ -544,57 +734,83 @@ def bake(
         raise SlscanError("bake: no views to take colour from")
     if len(atlas.faces) != len(faces):
         raise SlscanError(f"bake: the atlas has {len(atlas.faces)} faces, the model {len(faces)}")
+    if options.views_per_task < 1:
+        raise SlscanError(f"bake: views_per_task must be at least 1, got {options.views_per_task}")
     size = int(atlas.size)
     check_texture_memory(size)
     seconds = {}
     t0 = time.perf_counter()
     normals = (vertex_normals(vertices, faces) if normals is None else np.asarray(normals)).astype(np.float32)
-    scene = _raycasting_scene(vertices, faces)
-    depths = []
-    for view in views:
-        depths.append(depth_map(scene, view, options))
-        progress(f"depth {view.name}")
-    seconds["depth_maps"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    vblend = blend_views(vertices.astype(np.float32), normals, views, depths, options)
-    vertex_colors, vertex_seen = _fill_vertices(vertices, vblend.color)
-    seconds["vertices"] = time.perf_counter() - t0
-    progress("vertex colours")
-
-    t0 = time.perf_counter()
     uv_px = np.asarray(atlas.uvs, np.float64) * size - 0.5
     texel, face, bary = rasterise_uv(uv_px, atlas.faces, size)
+    del uv_px
     seconds["rasterise"] = time.perf_counter() - t0
     progress("rasterised")
 
     t0 = time.perf_counter()
-    corner = faces[face]  # the model's vertices of each texel's face
-    points = np.einsum("kj,kjc->kc", bary, vertices[corner].astype(np.float32))
-    tnormals = np.einsum("kj,kjc->kc", bary, normals[corner])
+    points = np.einsum("kj,kjc->kc", bary, vertices.astype(np.float32)[faces[face]])
+    tnormals = np.einsum("kj,kjc->kc", bary, normals[faces[face]])
     tnormals /= np.maximum(np.linalg.norm(tnormals, axis=1, keepdims=True), 1e-12)
-    tblend = blend_views(points, tnormals, views, depths, options)
+    texel_targets = blend_targets(points, tnormals, options)
     del points, tnormals
-    seconds["blend"] = time.perf_counter() - t0
+    vertex_targets = blend_targets(vertices.astype(np.float32), normals, options)
+    shared = _Shared(vertices.astype(np.float32), faces, vertex_targets, texel_targets)
+    del vertex_targets, texel_targets
+    step = options.views_per_task
+    groups = [tuple(views[i:i + step]) for i in range(0, len(views), step)]
+    folder = None
+    if executor is not None and executor.parallel(len(groups)):
+        folder = Path(tempfile.mkdtemp(prefix=scratch_prefix, dir=scratch))
+        shared.save(folder)
+        shared = str(folder)  # the caller no longer holds the texels' points
+    seconds["targets"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    tsum, vsum = _accumulators(len(texel)), _accumulators(len(vertices))
+    shares: dict = {}
+    tasks = [_BakeTask(shared, group, options) for group in groups]
+    try:
+        results = executor.map(_bake_views, tasks) if executor is not None else map(_bake_views, tasks)
+        done = 0
+        for result in results:  # in the groups' order, wherever they ran
+            _add(tsum, result.texels)
+            _add(vsum, result.vertices)
+            shares.update(result.shares)
+            done += len(result.shares)
+            del result
+            progress(f"views {done}/{len(views)}")
+    finally:
+        if folder is not None:
+            shutil.rmtree(folder, ignore_errors=True)
+    del shared, tasks
+    tblend = _finish(*tsum, len(texel))
+    vblend = _finish(*vsum, len(vertices))
+    del tsum, vsum
+    vertex_colors, vertex_seen = _fill_vertices(vertices, vblend.color)
+    seconds["views"] = time.perf_counter() - t0
     progress("blended")
 
     t0 = time.perf_counter()
     # texels no view sees take the per-vertex colours; weakly seen ones (grazing, near an
     # edge) are pulled towards them: a prior of weight ``prior_weight``
-    fill = np.einsum("kj,kjc->kc", bary, vertex_colors[corner])
+    fill = np.einsum("kj,kjc->kc", bary, vertex_colors[faces[face]])
+    del face, bary
     unseen = ~np.all(np.isfinite(tblend.color), axis=1)
     w = tblend.weight[:, None]
     seen_color = np.nan_to_num(tblend.color)
     color = ((seen_color * w + fill * options.prior_weight) / (w + options.prior_weight)).astype(np.float32)
     color[unseen] = fill[unseen]
+    del fill, seen_color, w
     image = np.zeros((size * size, 3), np.float32)
     image[texel] = color
+    del color
     covered = np.zeros(size * size, bool)
     covered[texel] = True
     observed = np.zeros(size * size, bool)
     observed[texel[~unseen]] = True
     view_count = np.zeros(size * size, np.uint8)
     view_count[texel] = tblend.views
+    del tblend, texel, unseen
     image = image.reshape(size, size, 3)
     covered = covered.reshape(size, size)
     padded, filled = pad_charts(image, covered, options.padding)
@@ -604,6 +820,5 @@ def bake(
     progress("padded")
     return BakedTexture(
         padded, covered, observed.reshape(size, size), view_count.reshape(size, size),
-        vertex_colors, vertex_seen, seconds,
-        {view.name: model_share(d, view) for view, d in zip(views, depths)},
+        vertex_colors, vertex_seen, seconds, {view.name: shares[view.name] for view in views},
     )

@@ -20,6 +20,11 @@ model_albedo.png (mm), model.ply (texture coordinates per face corner, as MeshLa
 them), model_vertex_colors.ply, model.mlp (MeshLab: model.ply and the views as registered
 rasters), views/VIEW.png, view_count.png (coloured; raw counts: view_count_raw.png), texture.json, and
 preview.png when Blender is found (bash .ci/setup installs it in .venv-blender).
+
+--workers N / --scheduler tcp://HOST:PORT bake groups of 8 views per task on local
+processes or a Dask cluster (the same atlas as in one process); each task reads its views'
+images from --views and shared arrays from a folder beside --out: Dask workers need both
+at the same paths.
 """
 
 
@@ -27,6 +32,7 @@ def _cmd_texture(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from slscan.errors import SlscanError
+    from slscan.executor import executor_from_args
     from slscan.texture.atlas import MAX_SIZE, MIN_SIZE
     from slscan.texture.pipeline import TextureConfig, texture_model
     from slscan.viewer.layouts import texture_blueprint
@@ -43,7 +49,8 @@ def _cmd_texture(args: argparse.Namespace) -> int:
     with (recording_from_args(args, recording_name=f"texture {args.model.name}", blueprint=texture_blueprint()) as rec,
           ProgressBar(16, "texturing", args.quiet) as bar):
         result = texture_model(args.model, args.views, args.out, poses=args.poses, session=args.session,
-                               config=config, overwrite=args.overwrite, rec=rec, progress=bar.step)
+                               config=config, overwrite=args.overwrite, rec=rec, progress=bar.step,
+                               executor=executor_from_args(args))
     m = result.metrics
     console().print(
         f"[green]textured[/] {result.faces:,} faces: atlas {result.size}x{result.size}, {result.charts:,} charts, "
@@ -57,6 +64,7 @@ def _cmd_texture(args: argparse.Namespace) -> int:
 
 def add_command(subparsers: argparse._SubParsersAction) -> None:
     """Add ``texture`` to the ``slscan`` subcommands."""
+    from slscan.executor import add_executor_arguments
     from slscan.viewer.recording import add_recording_arguments
 
     p = subparsers.add_parser(
@@ -81,5 +89,6 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--no-preview", action="store_true", help="do not render preview.png with Blender")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_executor_arguments(p)
     add_recording_arguments(p)
     p.set_defaults(func=_cmd_texture)

@@ -104,15 +104,20 @@ def texture_model(
     overwrite: bool = False,
     rec=None,
     progress: Callable[[str], None] | None = None,
+    executor=None,
 ) -> TextureResult:
     """Texture ``model`` (PLY/OBJ mesh, world frame) from the views of ``albedo_dir``.
 
     poses : the registration (``registration.json``, ``aligned.mlp``, their folder, or a
-        dict name → world_from_camera); see :func:`slscan.texture.views.load_views`
+        dict name → world_from_camera); see :func:`slscan.texture.views.view_files`
     session : the capture session, when not the one ``albedo.json`` names
+    executor : :class:`slscan.executor.Executor` on which groups of views are baked
+        (:func:`slscan.texture.bake.bake`; default: this process). Its processes read the
+        views' images from ``albedo_dir`` and shared arrays from a folder beside ``out``:
+        Dask workers need both at the caller's paths.
     """
     from slscan.colour import srgb8
-    from slscan.fsio import atomic_output_dir, write_json, write_png
+    from slscan.fsio import _partial_prefix, atomic_output_dir, write_json, write_png
     from slscan.fuse import read_mesh
     from slscan.meshes import vertex_normals
     from slscan.register.meshlab import Raster, write_mlp
@@ -120,7 +125,7 @@ def texture_model(
     from slscan.texture.atlas import AtlasOptions, build_atlas
     from slscan.texture.bake import bake, check_texture_memory
     from slscan.texture.metrics import seam_error
-    from slscan.texture.views import load_views
+    from slscan.texture.views import view_files
     from slscan.colour import view_count_image, view_count_legend
     from slscan.viewer.log_texture import log_texture_views, log_textured_model
 
@@ -135,7 +140,7 @@ def texture_model(
         raise SlscanError(f"{model}: the model has no faces")
     size = config.size or auto_size(len(mesh.faces), config.texels_per_face)
     check_texture_memory(size)
-    views = load_views(albedo_dir, poses, session=session)
+    views = view_files(albedo_dir, poses, session=session)
     light = albedo_light(albedo_dir)
     log.info("texturing from %d view(s) whose albedo came from %s", len(views),
              "the projector as the light" if light == "projector" else "the ring lights")
@@ -144,7 +149,8 @@ def texture_model(
     atlas = build_atlas(mesh.vertices, mesh.faces, AtlasOptions(size=size, padding=config.bake.padding))
     progress(f"atlas: {atlas.n_charts} charts")
     normals = vertex_normals(mesh.vertices, mesh.faces).astype(np.float32)
-    baked = bake(mesh.vertices, mesh.faces, atlas, views, config.bake, normals=normals, progress=progress)
+    baked = bake(mesh.vertices, mesh.faces, atlas, views, config.bake, normals=normals, progress=progress,
+                 executor=executor, scratch=_scratch_folder(out), scratch_prefix=_partial_prefix(out))
     check_seen(baked, model, albedo_dir)
     texture = srgb8(baked.linear)
     seams = seam_error(texture, mesh.faces, atlas)
@@ -176,12 +182,14 @@ def texture_model(
         # the counts (0-3 in a typical texel) as colours one can see, and as numbers
         write_png(tmp / "view_count.png", view_count_image(baked.view_count, baked.covered, len(views)))
         write_png(tmp / "view_count_raw.png", baked.view_count.astype(np.uint16))
-        images = []
+        images = []  # kept for the recording only: 4 MB a view at 1440 x 960
         (tmp / "views").mkdir()
         for view in views:
-            image = export.undistorted_view_image(view)
+            image = export.undistorted_view_image(view.load())
             write_png(tmp / "views" / f"{view.name}.png", image)
-            images.append(image)
+            if rec is not None:
+                images.append(image)
+            del image
         entries = export.view_entries(views)
         rasters = [Raster(e["name"], e["image"], e["width"], e["height"], e["fx"], e["fy"], e["cx"], e["cy"],
                           np.asarray(e["world_from_camera"])) for e in entries]
@@ -218,6 +226,15 @@ def texture_model(
     log_textured_model(rec, atlas, texture, atlas_normals, baked.view_count, metrics,
                        covered=baked.covered, max_views=len(views))
     return TextureResult(out, len(mesh.faces), atlas.n_charts, atlas.size, metrics, seconds, light)
+
+
+def _scratch_folder(out: Path) -> Path:
+    """Where the bake's tasks share their arrays: beside ``out`` (on the campaign's disk,
+    which Dask workers see at the same path), named as a temporary of ``out`` (so one left by
+    a killed run is removed by the next)."""
+    parent = out.resolve().parent
+    parent.mkdir(parents=True, exist_ok=True)
+    return parent
 
 
 def albedo_light(albedo_dir: str | os.PathLike) -> str:

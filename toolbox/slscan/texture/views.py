@@ -49,12 +49,7 @@ class TextureView:
                 f"view {self.name}: albedo image {self.image_file or ''} is {w}x{h} but the "
                 f"camera is {self.camera.width}x{self.camera.height}"
             )
-        m = np.asarray(self.world_from_camera, float)
-        if m.shape != (4, 4) or not np.all(np.isfinite(m)):
-            raise SlscanError(f"view {self.name}: world_from_camera must be a finite 4x4 matrix")
-        r = m[:3, :3]
-        if not np.allclose(r @ r.T, np.eye(3), atol=1e-6) or np.linalg.det(r) < 0:
-            raise SlscanError(f"view {self.name}: world_from_camera is not a rigid transform")
+        _check_pose(self.name, np.asarray(self.world_from_camera, float))
 
     @property
     def camera_from_world(self) -> np.ndarray:
@@ -63,6 +58,48 @@ class TextureView:
         out[:3, :3] = m[:3, :3].T
         out[:3, 3] = -m[:3, :3].T @ m[:3, 3]
         return out
+
+    def load(self) -> TextureView:
+        """The view itself (its albedo is in memory already; see :meth:`ViewFile.load`)."""
+        return self
+
+
+@dataclass(frozen=True, eq=False)
+class ViewFile:
+    """A registered view whose un-shaded image stays on disk until :meth:`load`: what a
+    texture task carries to the process that bakes it (a few hundred bytes instead of the
+    image, 16.6 MB at 1440 x 960), so that no process holds every view's albedo at once.
+
+    image_path, valid_path : absolute paths of ``VIEW_albedo.png`` and ``VIEW_valid.png``
+        (a Dask worker must see them at the same paths)
+    image_file : the albedo PNG as the albedo folder was named (for messages, the manifest)
+    """
+
+    name: str
+    camera: PinholeModel
+    world_from_camera: np.ndarray
+    image_path: str
+    valid_path: str
+    image_file: str = ""
+
+    def load(self) -> TextureView:
+        """Read the view's albedo: a :class:`TextureView`.
+
+        Raises
+        ------
+        SlscanError
+            An image is missing where this process looks (a worker without the albedo
+            folder at the caller's path), naming the file.
+        """
+        from slscan.colour import read_albedo_png
+
+        for f in (self.image_path, self.valid_path):
+            if not Path(f).is_file():
+                raise SlscanError(f"{f}: un-shaded image of view {self.name} not found (a worker needs the "
+                                  "albedo folder at the same path as the caller)")
+        albedo = read_albedo_png(self.image_path, self.valid_path)
+        return TextureView(self.name, self.camera, np.asarray(self.world_from_camera, float), albedo,
+                           self.image_file or self.image_path)
 
 
 def read_poses(path: str | os.PathLike) -> dict[str, np.ndarray]:
@@ -100,7 +137,19 @@ def load_views(
     *,
     session: str | os.PathLike | None = None,
 ) -> list[TextureView]:
-    """The views of an albedo-stage folder, each with its camera and pose.
+    """The views of an albedo-stage folder, each with its camera, pose and albedo in memory
+    (:func:`view_files` without reading the images: what the texture stage uses)."""
+    return [v.load() for v in view_files(albedo_dir, poses, session=session)]
+
+
+def view_files(
+    albedo_dir: str | os.PathLike,
+    poses: dict[str, np.ndarray] | str | os.PathLike | None = None,
+    *,
+    session: str | os.PathLike | None = None,
+) -> list[ViewFile]:
+    """The views of an albedo-stage folder, each with its camera and pose, their images
+    left on disk (checked to exist).
 
     poses : ``world_from_camera`` per view name, or a file/folder for :func:`read_poses`.
         None: the session's recorded object poses, the object frame being the world (as
@@ -110,7 +159,6 @@ def load_views(
     session : the capture session (default: the one ``albedo.json`` names)
     """
     from slscan.capture.session import load_session
-    from slscan.colour import read_albedo_png
 
     albedo_dir = Path(albedo_dir)
     index = albedo_dir / "albedo.json"
@@ -146,11 +194,22 @@ def load_views(
         for f in (image, valid):
             if not (albedo_dir / f).is_file():
                 raise SlscanError(f"{albedo_dir / f}: un-shaded image of view {name} not found")
-        albedo = read_albedo_png(albedo_dir / image, albedo_dir / valid)
-        views.append(TextureView(name, camera, np.asarray(poses[name], float), albedo, str(albedo_dir / image)))
+        pose = np.asarray(poses[name], float)
+        _check_pose(name, pose)
+        views.append(ViewFile(name, camera, pose, str((albedo_dir / image).resolve()),
+                              str((albedo_dir / valid).resolve()), str(albedo_dir / image)))
     if not views:
         raise SlscanError(f"{albedo_dir}: none of its views ({', '.join(e.get('view', '?') for e in entries)}) has a pose")
     return views
+
+
+def _check_pose(name: str, m: np.ndarray) -> None:
+    """The checks of :class:`TextureView` on a pose, before any image is read."""
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        raise SlscanError(f"view {name}: world_from_camera must be a finite 4x4 matrix")
+    r = m[:3, :3]
+    if not np.allclose(r @ r.T, np.eye(3), atol=1e-6) or np.linalg.det(r) < 0:
+        raise SlscanError(f"view {name}: world_from_camera is not a rigid transform")
 
 
 def _recorded_poses(sess, names: list[str], index: Path) -> dict[str, np.ndarray]:
