@@ -23,14 +23,13 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 import pytest
-from synthetic_poses import looking_from
+from synthetic_poses import sphere_scans
 
 from slscan.fuse import Mesh, read_mesh, write_mesh
 
 psutil = pytest.importorskip("psutil")
 
 TOOLBOX = Path(__file__).parents[2] / "toolbox"
-DIRECTIONS = [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]]
 FUSE = ["--voxel", "0.6", "--brick", "9.6"]  # about 60 bricks of 2 blocks a side
 SIMPLIFY = ["--faces", "10000", "--bricks", "64"]  # 56 non-empty bricks of a 250k-face sphere
 DIED = "a worker process died (out of memory?)"
@@ -42,15 +41,8 @@ TIMEOUT = 240  # s, for a run on a loaded machine
 def aligned(tmp_path_factory) -> Path:
     """Six orthographic range scans (80 x 80 px of 0.6 mm) of a 20 mm sphere, an aligned set."""
     from slscan.register.meshlab import write_scan_project
-    from slscan.register.rangescan import render_range_scan
 
-    sphere = o3d.geometry.TriangleMesh.create_sphere(radius=20.0, resolution=40)
-    v, f = np.asarray(sphere.vertices) + [3.1, -2.2, 1.7], np.asarray(sphere.triangles)
-    scans, poses = [], {}
-    for k, d in enumerate(DIRECTIONS):
-        poses[f"view{k}"] = looking_from(d)
-        scans.append(render_range_scan(v, f, poses[f"view{k}"], shape=(80, 80), pixel=0.6, name=f"view{k}",
-                                       noise=0.05, rng=np.random.default_rng(k)))
+    scans, poses = sphere_scans(shape=(80, 80), pixel=0.6, resolution=40)
     return write_scan_project(tmp_path_factory.mktemp("aligned") / "aligned", scans, poses).parent
 
 

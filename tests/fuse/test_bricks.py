@@ -3,35 +3,22 @@
 from __future__ import annotations
 
 import numpy as np
-import open3d as o3d
 import pytest
-from synthetic_poses import looking_from
+from synthetic_poses import sphere_scans
 
 from slscan.errors import SlscanError
 from slscan.executor import Executor
 from slscan.fuse import FuseConfig, fuse_bricks, fuse_scans
 from slscan.meshes import boundary_vertices
-from slscan.register.rangescan import render_range_scan
 
 RADIUS = 20.0
-DIRECTIONS = [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]]
 VOXEL = 0.8
 
 
 @pytest.fixture(scope="module")
 def sphere_views():
     """Six orthographic range scans of a 20 mm sphere off the origin, 0.8 mm pixels, noisy."""
-    sphere = o3d.geometry.TriangleMesh.create_sphere(radius=RADIUS, resolution=60)
-    v = np.asarray(sphere.vertices) + [3.1, -2.2, 1.7]  # brick planes cut it off-centre
-    f = np.asarray(sphere.triangles)
-    scans, poses = [], {}
-    for k, d in enumerate(DIRECTIONS):
-        pose = looking_from(d)
-        name = f"view{k}"
-        scans.append(render_range_scan(v, f, pose, shape=(64, 64), pixel=0.8, name=name, noise=0.05,
-                                       rng=np.random.default_rng(k)))
-        poses[name] = pose
-    return scans, poses
+    return sphere_scans(shape=(64, 64), pixel=0.8, radius=RADIUS)
 
 
 @pytest.fixture(scope="module")

@@ -4,19 +4,16 @@ bricks) hand it to the run's executor, with the same result as in one process.""
 from __future__ import annotations
 
 import numpy as np
-import open3d as o3d
 import pytest
-from synthetic_poses import looking_from
+from synthetic_poses import sphere_scans
 
 from slscan.errors import SlscanError
 from slscan.executor import Executor
 from slscan.fuse import FuseConfig, fuse_scans, read_mesh
 from slscan.recipe.runner import parse_recipe, run_recipe
-from slscan.register.rangescan import render_range_scan
 from slscan.simplify_bricks import simplify_bricks
 
 VOXEL = 0.8
-DIRECTIONS = [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]]
 
 
 class RecordingExecutor:
@@ -39,13 +36,7 @@ def aligned(tmp_path_factory):
     """Six orthographic range scans of a 20 mm sphere, written as an aligned set (.mlp)."""
     from slscan.register.meshlab import write_scan_project
 
-    sphere = o3d.geometry.TriangleMesh.create_sphere(radius=20.0, resolution=40)
-    v, f = np.asarray(sphere.vertices) + [3.1, -2.2, 1.7], np.asarray(sphere.triangles)
-    scans, poses = [], {}
-    for k, d in enumerate(DIRECTIONS):
-        poses[f"view{k}"] = looking_from(d)
-        scans.append(render_range_scan(v, f, poses[f"view{k}"], shape=(64, 64), pixel=0.8, name=f"view{k}",
-                                       noise=0.05, rng=np.random.default_rng(k)))
+    scans, poses = sphere_scans(shape=(64, 64), pixel=0.8, resolution=40)
     folder = write_scan_project(tmp_path_factory.mktemp("aligned") / "aligned", scans, poses)
     return folder.parent if folder.suffix == ".mlp" else folder, scans, poses
 

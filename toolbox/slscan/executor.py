@@ -83,6 +83,35 @@ class Executor:
         yield from _map_shared(_helpers(self._local_workers() - 1, helpers, ()), helpers, fn, items)
 
 
+
+def map_retrying(executor: Executor | None, fn: Callable[..., T], items: Sequence[Any], *,
+                 key: Callable[[Any], Any], done: Callable[[T], None] | None = None,
+                 noun: str = "task") -> dict[Any, T]:
+    """``{key(item): fn(item)}`` for every item on ``executor`` (None: in this process).
+
+    A local helper process that dies (killed, out of memory) loses only the items not yet
+    back: they run once more, on fresh helpers (tasks must write their files under
+    temporary names, so that a half-written one is never read). A second death is the
+    executor's one line ("a worker process died ..."). Dask reschedules a dead worker's
+    tasks itself. ``done(result)`` is called as each result arrives (a progress bar); a
+    result's key is ``key`` of its item, which the result must carry as ``result.index``.
+    """
+    results: dict[Any, T] = {}
+    runner = executor.map if executor is not None else map
+    for attempt in (1, 2):
+        pending = [item for item in items if key(item) not in results]
+        try:
+            for result in runner(fn, pending):
+                results[result.index] = result
+                if done is not None:
+                    done(result)
+        except SlscanError as exc:
+            if attempt == 2 or not isinstance(exc.__context__, BrokenProcessPool):
+                raise
+            log.warning("a worker process died; running its %d %s(s) again", len(items) - len(results), noun)
+            continue
+        break
+    return results
 _lock = threading.Lock()
 _pool: ProcessPoolExecutor | None = None
 _pool_size = 0

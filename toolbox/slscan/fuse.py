@@ -50,7 +50,6 @@ import shutil
 import tempfile
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -58,7 +57,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from slscan.errors import SlscanError
-from slscan.executor import Executor
+from slscan.executor import Executor, map_retrying
 from slscan.fsio import atomic_output_file, native_stderr_silenced
 from slscan.meshes import MESH_SUFFIXES, check_face_indices, check_finite_vertices, read_ply_mesh
 from slscan.register.rangescan import RangeScan
@@ -1251,21 +1250,9 @@ def _run_bricks(tasks: list[_BrickTask], *, edge: int, block: float, voxel: floa
     log.info("fusing in %d bricks of %d blocks (%.3g mm) a side", len(tasks), edge, edge * block)
     if progress_total is not None:
         progress_total(len(tasks))
-    done: dict[tuple[int, int, int], _BrickResult] = {}
-    runner = executor.map if executor is not None else map
-    for attempt in (1, 2):  # a local helper process that dies: its bricks are run once more
-        pending = [t for t in tasks if t.index not in done]
-        try:
-            for result in runner(_fuse_brick, pending):
-                done[result.index] = result
-                if progress is not None:
-                    progress(f"brick {result.index}")
-        except SlscanError as exc:
-            if attempt == 2 or not isinstance(exc.__context__, BrokenProcessPool):
-                raise
-            log.warning("a worker process died; running its %d brick(s) again", len(tasks) - len(done))
-            continue
-        break
+    # a local helper process that dies: its bricks are run once more
+    done = map_retrying(executor, _fuse_brick, tasks, key=lambda t: t.index, noun="brick",
+                        done=None if progress is None else (lambda r: progress(f"brick {r.index}")))
     results = [done[t.index] for t in tasks]
     seconds = {k: sum(r.seconds[k] for r in results) for k in ("height_maps", "integrate", "extract")}
     t0 = time.perf_counter()

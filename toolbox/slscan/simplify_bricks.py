@@ -426,20 +426,9 @@ def _run_bricks(executor, tasks: list[BrickTask]) -> tuple[BrickResult, ...]:
     (killed, out of memory) loses only the bricks not yet back: they run once more, on fresh
     helpers (each writes its file under a temporary name, so a half-written one is never read).
     A second death is the executor's one line ("a worker process died ...")."""
-    from concurrent.futures.process import BrokenProcessPool
+    from slscan.executor import map_retrying
 
-    done: dict[int, BrickResult] = {}
-    for attempt in (1, 2):
-        pending = [t for t in tasks if t.index not in done]
-        try:
-            for result in executor.map(_simplify_brick, pending):
-                done[result.index] = result
-        except SlscanError as exc:
-            if attempt == 2 or not isinstance(exc.__context__, BrokenProcessPool):
-                raise
-            log.warning("a worker process died; running its %d brick(s) again", len(tasks) - len(done))
-            continue
-        break
+    done = map_retrying(executor, _simplify_brick, tasks, key=lambda t: t.index, noun="brick")
     return tuple(done[t.index] for t in tasks)
 
 
