@@ -79,6 +79,22 @@ def test_a_brick_over_the_cap_is_one_clear_line(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["in.ply"]  # scratch removed
 
 
+def test_a_cap_alone_picks_bricks_that_fit_it(tmp_path):
+    """--max-memory without --brick/--bricks: as many bricks as keep each under the cap
+    (the default 8 would be refused here)."""
+    from slscan.simplify_bricks import TASK_BASE_BYTES, TASK_BYTES_PER_FACE, bricks_for
+
+    src = _sphere(60)
+    path = write_mesh(src, tmp_path / "in.ply")
+    cap = TASK_BASE_BYTES + src.n_faces // 16 * TASK_BYTES_PER_FACE  # a sixteenth of the faces per task
+    with pytest.raises(SlscanError, match="use a smaller --brick"):
+        simplify_bricks(path, tmp_path / "out.ply", 500, bricks=8, max_memory=cap)
+    assert bricks_for(src.n_faces, cap) == 64
+    report = simplify_bricks(path, tmp_path / "out.ply", 500, max_memory=cap)
+    assert len(report.bricks) > 8 and max(b.faces_in for b in report.bricks) <= src.n_faces // 16
+    assert bricks_for(10, 4 << 30) == 8 and bricks_for(10**12, 1 << 30) == 4096
+
+
 def test_only_binary_triangle_ply(tmp_path):
     ascii_ply = tmp_path / "a.ply"
     ascii_ply.write_text("ply\nformat ascii 1.0\nelement vertex 0\nelement face 0\n"

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import math
 import os
 import resource
 import shutil
@@ -262,6 +263,14 @@ def _boundary_vertex_count(faces: np.ndarray) -> int:
     return len(np.unique(e[count[inverse.ravel()] == 1]))
 
 
+def bricks_for(n_faces: int, max_memory: int) -> int:
+    """How many bricks to ask for when only ``max_memory`` (bytes per task) is given: enough
+    that an average brick's estimate is a quarter of the cap (a bounding-box grid over a
+    surface fills its cells unevenly), at least the default 8, at most 4096."""
+    per_brick = max(1.0, (max_memory - TASK_BASE_BYTES) / TASK_BYTES_PER_FACE)
+    return int(min(4096, max(8, math.ceil(4 * n_faces / per_brick))))
+
+
 def _grid(lo: np.ndarray, hi: np.ndarray, brick_mm: float | None, bricks: int | None) -> tuple[np.ndarray, float]:
     extent = np.maximum(hi - lo, 1e-9)
     if brick_mm is None:
@@ -296,7 +305,8 @@ def simplify_bricks(
     mesh_path : binary PLY triangle mesh (vertices in mm), never loaded whole
     out : the simplified mesh (PLY, written atomically, with vertex normals)
     faces : target face count
-    brick_mm : brick edge in mm; or ``bricks``: about this many bricks (default 8)
+    brick_mm : brick edge in mm; or ``bricks``: about this many bricks (default 8, or with
+        ``max_memory`` as many as :func:`bricks_for` says)
     executor : :class:`slscan.executor.Executor` running the brick tasks (default: this process)
     max_memory : bytes one brick task may use (estimated before it starts); None: no cap
     workdir : scratch folder for the brick files (default: a temporary one next to ``out``)
@@ -330,6 +340,8 @@ def simplify_bricks(
             if not np.isfinite(xyz).all():
                 raise SlscanError(f"{layout.path}: vertices {s}..{s + len(xyz) - 1} hold NaN or inf")
             lo, hi = np.minimum(lo, xyz.min(0)), np.maximum(hi, xyz.max(0))
+        if brick_mm is None and bricks is None and max_memory is not None:
+            bricks = bricks_for(layout.n_faces, max_memory)
         dims, edge = _grid(lo, hi, brick_mm, bricks)
         nb = int(np.prod(dims))
         if nb > 4096:
