@@ -109,10 +109,12 @@ def compare(args: argparse.Namespace, store: dict) -> None:
     ways = [w.strip() for w in args.ways.split(",") if w.strip()]
     for way in ways:
         print(f"  compare {way} ...", file=sys.stderr, flush=True)
-        dask = DaskCluster(2) if way == "dask2" else None
+        # dask2t: Dask's workers with 2 OpenMP/BLAS threads each, as the local processes have
+        dask = DaskCluster(2, threads=2 if way == "dask2t" else 1) if way.startswith("dask2") else None
         try:
             extra = {"single": [], "local2": [*bricks, "--workers", "2"],
-                     "dask2": [*bricks, "--scheduler", dask.address if dask else ""]}[way]
+                     "dask2": [*bricks, "--scheduler", dask.address if dask else ""],
+                     "dask2t": [*bricks, "--scheduler", dask.address if dask else ""]}[way]
             row = {"way": way, **run([*fuse, *extra, "--out", str(out / f"{way}.ply")], dask)}
         finally:
             if dask:
@@ -123,6 +125,10 @@ def compare(args: argparse.Namespace, store: dict) -> None:
     for row in rows:
         if row["way"] != "single" and (out / "single.ply").is_file():
             row.update(mesh_distance(out / "single.ply", out / f"{row['way']}.ply"))
+    old = store.get("compare", {})
+    if (old.get("voxel"), old.get("brick")) == (args.voxel, args.brick):  # add to the same comparison
+        rows = [r for r in old["rows"] if r["way"] not in ways] + rows
+        rows.sort(key=lambda r: ["single", "local2", "dask2", "dask2t"].index(r["way"]))
     store["compare"] = {"voxel": args.voxel, "brick": args.brick, "grid_memory": args.grid_memory,
                         "views": views_of(args.work), "rows": rows}
 
@@ -198,9 +204,10 @@ def print_compare(c: dict) -> None:
               f"{r['peak_other_gib']:10.2f} GiB {r['peak_all_gib']:5.2f} GiB {r['faces']:12,} {same:>9s} "
               f"{dv:>11s} {h:>12s} {m:>8s}")
     by = {r["way"]: r for r in c["rows"]}
-    if "dask2" in by and "local2" in by:
-        print(f"Dask vs 2 local processes: {100 * (by['dask2']['wall_s'] / by['local2']['wall_s'] - 1):+.0f} % wall, "
-              f"{100 * (by['dask2']['cpu_s'] / by['local2']['cpu_s'] - 1):+.0f} % CPU")
+    for way in ("dask2", "dask2t"):
+        if way in by and "local2" in by:
+            print(f"{way} vs 2 local processes: {100 * (by[way]['wall_s'] / by['local2']['wall_s'] - 1):+.0f} % wall, "
+                  f"{100 * (by[way]['cpu_s'] / by['local2']['cpu_s'] - 1):+.0f} % CPU")
 
 
 def print_capped(c: dict) -> None:
@@ -292,7 +299,8 @@ def main() -> None:
     p.add_argument("--brick", type=float, default=0.0, help="brick edge, mm (default 160 at 0.57 mm, 240 finer)")
     p.add_argument("--grid-memory", default="2.5GiB", help="fuse --max-memory: the cap on one brick's grid")
     p.add_argument("--worker-memory", default="4GiB", help="capped: each Dask worker's memory limit")
-    p.add_argument("--ways", default="single,local2,dask2", help="compare: which ways to run")
+    p.add_argument("--ways", default="single,local2,dask2", help="compare: which ways to run (also dask2t: "
+                   "the Dask workers with 2 OpenMP/BLAS threads each)")
     p.add_argument("--stages", default="fuse,simplify,texture", help="capped: which stages to run")
     p.add_argument("--faces", type=int, default=1_000_000)
     p.add_argument("--texture-size", type=int, default=4096)
