@@ -79,6 +79,25 @@ def test_a_brick_over_the_cap_is_one_clear_line(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["in.ply"]  # scratch removed
 
 
+def test_vertices_at_a_border_vertex_position_are_welded(tmp_path):
+    """Marching cubes leaves a few vertices at one position. A brick whose inner vertex sits
+    where a border vertex is (here: a second layer of the lowest brick's faces on copies of
+    their vertices) is simplified and stitched, not refused as "moved a locked vertex"."""
+    src = _sphere(40)
+    lo = src.vertices.min(0)
+    edge = RADIUS  # brick_mm: 2 x 2 x 2 bricks, faces by their centroid as simplify_bricks does
+    brick = np.floor((src.vertices[src.faces].mean(1) - lo) / edge).astype(int)
+    corner = src.faces[(brick == 0).all(1)]
+    used, inner = np.unique(corner, return_inverse=True)
+    v = np.concatenate([src.vertices, src.vertices[used]])
+    f = np.concatenate([src.faces, inner.reshape(-1, 3) + src.n_vertices])
+    path = write_mesh(Mesh(v, f), tmp_path / "in.ply")
+    report = simplify_bricks(path, tmp_path / "out.ply", 1500, brick_mm=edge)
+    out = read_mesh(tmp_path / "out.ply")
+    assert report.faces_out == out.n_faces and abs(out.n_faces - 1500) <= 0.05 * 1500
+    assert surface_distance(out, src)["max"] < 3.0  # mm, on the 50 mm sphere
+
+
 def test_a_cap_alone_picks_bricks_that_fit_it(tmp_path):
     """--max-memory without --brick/--bricks: as many bricks as keep each under the cap
     (the default 8 would be refused here)."""
