@@ -77,9 +77,21 @@ def run(command: list[str], dask: DaskCluster | None = None) -> dict:
             "peak_all_gib": measured.peak_bytes / GIB, "stdout": measured.stdout[-2000:]}
 
 
+def _position_faces(mesh) -> tuple[np.ndarray, int]:
+    """The mesh's triangles as sorted rows of position ids (vertices equal as float32 share
+    an id), the rows sorted; and how many vertices share a position with another."""
+    keys = np.ascontiguousarray(mesh.vertices.astype(np.float32)).view(np.dtype((np.void, 12))).ravel()
+    _, ids = np.unique(keys, return_inverse=True)
+    ids = ids.ravel()
+    f = np.sort(ids[mesh.faces], axis=1)
+    return f[np.lexsort(f.T[::-1])], int(mesh.n_vertices - (ids.max() + 1))
+
+
 def mesh_distance(a_path: Path, b_path: Path, samples: int = 300_000) -> dict:
-    """How far mesh ``b`` is from mesh ``a``: vertex for vertex (after slscan's canonical
-    order) when they have the same size, and surface to surface both ways."""
+    """How far mesh ``b`` is from mesh ``a``: the same triangles (by their vertices'
+    float32 positions: marching cubes leaves a few vertices at one position, numbered in
+    either order), the largest vertex difference after slscan's canonical order when they
+    have the same size, and surface to surface both ways (sampled; float32 ray casting)."""
     sys.path.insert(0, str(TOOLBOX))
     from slscan.fuse import canonical_order, read_mesh
 
@@ -87,8 +99,12 @@ def mesh_distance(a_path: Path, b_path: Path, samples: int = 300_000) -> dict:
     out: dict = {"same_size": a.n_vertices == b.n_vertices and a.n_faces == b.n_faces}
     if out["same_size"]:
         ca, cb = canonical_order(a), canonical_order(b)
-        out["same_faces"] = bool(np.array_equal(ca.faces, cb.faces))
         out["max_dv_mm"] = float(np.abs(ca.vertices.astype(np.float64) - cb.vertices).max())
+        del ca, cb
+        fa, out["shared_positions"] = _position_faces(a)
+        fb, _ = _position_faces(b)
+        out["same_faces"] = bool(np.array_equal(fa, fb))
+        del fa, fb
     d_ab = distances_to_mesh(surface_samples(b.vertices, b.faces, samples), a.vertices, a.faces)
     d_ba = distances_to_mesh(surface_samples(a.vertices, a.faces, samples), b.vertices, b.faces)
     out["hausdorff_mm"] = float(max(d_ab.max(), d_ba.max()))
@@ -168,7 +184,11 @@ def capped(args: argparse.Namespace, store: dict) -> None:
             if stage not in args.stages.split(","):
                 continue
             print(f"  capped {args.voxel:g} mm {stage} ...", file=sys.stderr, flush=True)
-            row = {"stage": stage, **run(command, dask)}
+            try:
+                row = {"stage": stage, **run(command, dask)}
+            except SystemExit as exc:  # keep what ran, and say what failed
+                rows.append({"stage": stage, "failed": str(exc)[:2000]})
+                break
             print(f"    {row['wall_s']:.1f} s wall, {row['cpu_s']:.1f} s CPU, worker peak "
                   f"{row['peak_other_gib']:.2f} GiB, caller {row['peak_main_gib']:.2f} GiB", file=sys.stderr)
             rows.append(row)
@@ -191,7 +211,7 @@ def print_compare(c: dict) -> None:
     print(f"\nfusion of the {c['views']}-view statue at {c['voxel']:g} mm: one volume vs bricks of "
           f"{c['brick']:g} mm (grid cap {c['grid_memory']}), 2 local processes vs 2 Dask workers")
     head = (f"{'way':8s} {'wall s':>8s} {'CPU s':>8s} {'peak caller':>12s} {'peak 1 helper':>14s} "
-            f"{'peak all':>9s} {'faces':>12s} {'same mesh':>9s} {'max |dv| mm':>11s} {'Hausdorff mm':>12s} "
+            f"{'peak all':>9s} {'faces':>12s} {'same triangles':>14s} {'max |dv| mm':>11s} {'Hausdorff mm':>12s} "
             f"{'mean mm':>8s}")
     print(head)
     print("-" * len(head))
@@ -201,9 +221,14 @@ def print_compare(c: dict) -> None:
         h = f"{r['hausdorff_mm']:.3g}" if "hausdorff_mm" in r else "-"
         m = f"{r['mean_mm']:.2g}" if "mean_mm" in r else "-"
         print(f"{r['way']:8s} {r['wall_s']:8.1f} {r['cpu_s']:8.1f} {r['peak_main_gib']:8.2f} GiB "
-              f"{r['peak_other_gib']:10.2f} GiB {r['peak_all_gib']:5.2f} GiB {r['faces']:12,} {same:>9s} "
+              f"{r['peak_other_gib']:10.2f} GiB {r['peak_all_gib']:5.2f} GiB {r['faces']:12,} {same:>14s} "
               f"{dv:>11s} {h:>12s} {m:>8s}")
     by = {r["way"]: r for r in c["rows"]}
+    shared = {r["shared_positions"] for r in c["rows"] if "shared_positions" in r}
+    if shared:
+        print(f"same triangles: by their vertices' float32 positions ({', '.join(map(str, sorted(shared)))} vertices "
+              "share a position with another one, numbered in either order); Hausdorff and mean: 300,000 sampled "
+              "points each way")
     for way in ("dask2", "dask2t"):
         if way in by and "local2" in by:
             print(f"{way} vs 2 local processes: {100 * (by[way]['wall_s'] / by['local2']['wall_s'] - 1):+.0f} % wall, "
@@ -216,6 +241,12 @@ def print_capped(c: dict) -> None:
     head = f"{'stage':9s} {'wall s':>8s} {'CPU s':>8s} {'peak/worker':>12s} {'peak caller':>12s} {'peak all':>9s}"
     print(head)
     print("-" * len(head))
+    failed = [r for r in c["rows"] if "failed" in r]
+    for r in failed:
+        print(f"{r['stage']:9s} FAILED: {r['failed'].splitlines()[-1]}")
+    c = {**c, "rows": [r for r in c["rows"] if "failed" not in r]}
+    if not c["rows"]:
+        return
     for r in c["rows"]:
         print(f"{r['stage']:9s} {r['wall_s']:8.1f} {r['cpu_s']:8.1f} {r['peak_other_gib']:8.2f} GiB "
               f"{r['peak_main_gib']:8.2f} GiB {r['peak_all_gib']:5.2f} GiB")
@@ -293,7 +324,7 @@ def extrapolate(store: dict, work: Path, facade_area: float, facade_coverage: fl
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("what", choices=("compare", "capped", "table"))
+    p.add_argument("what", choices=("compare", "capped", "table", "recheck"))
     p.add_argument("--work", type=Path, default=Path("/tmp/slscan_paper_scale"), help="paper_scale.py's --work")
     p.add_argument("--voxel", type=float, default=0.57, help="mm")
     p.add_argument("--brick", type=float, default=0.0, help="brick edge, mm (default 160 at 0.57 mm, 240 finer)")
@@ -318,6 +349,11 @@ def main() -> None:
     t0 = time.perf_counter()
     if args.what == "compare":
         compare(args, store)
+    elif args.what == "recheck":  # the stored comparison's distances again (after a change to them)
+        folder = args.work / "bricks" / f"compare_{store['compare']['voxel']:g}"
+        for row in store["compare"]["rows"]:
+            if row["way"] != "single":
+                row.update(mesh_distance(folder / "single.ply", folder / f"{row['way']}.ply"))
     elif args.what == "capped":
         capped(args, store)
     if args.what != "table":
