@@ -159,11 +159,17 @@ def capped(args: argparse.Namespace, store: dict) -> None:
 
     local = args.work / "runs" / "local"
     out = args.work / "bricks" / f"capped_{args.voxel:g}"
-    if out.exists():
-        shutil.rmtree(out)
-    out.mkdir(parents=True)
-    # model_accuracy reads out/aligned/registration.json and out/simplified.ply
-    (out / "aligned").symlink_to(local / "aligned")
+    wanted = args.stages.split(",")
+    earlier = store.get("capped", {}).get(f"{args.voxel:g}", {})
+    if "fuse" in wanted:  # a fresh run
+        if out.exists():
+            shutil.rmtree(out)
+        out.mkdir(parents=True)
+        # model_accuracy reads out/aligned/registration.json and out/simplified.ply
+        (out / "aligned").symlink_to(local / "aligned")
+        earlier = {}
+    elif not (out / "fused.ply").is_file():
+        raise SystemExit(f"{out / 'fused.ply'}: not there; run the capped fuse stage first")
     dask = DaskCluster(2, memory_limit=args.worker_memory)
     rows = []
     try:
@@ -181,7 +187,7 @@ def capped(args: argparse.Namespace, store: dict) -> None:
                          *(["--scheduler", dask.address] if args.texture_on_dask else [])]),
         ]
         for stage, command in stages:
-            if stage not in args.stages.split(","):
+            if stage not in wanted:
                 continue
             print(f"  capped {args.voxel:g} mm {stage} ...", file=sys.stderr, flush=True)
             try:
@@ -194,6 +200,9 @@ def capped(args: argparse.Namespace, store: dict) -> None:
             rows.append(row)
     finally:
         dask.close()
+    ran = {r["stage"] for r in rows}  # the stages not run again keep their earlier rows
+    rows = [r for r in earlier.get("rows", []) if r["stage"] not in ran and "failed" not in r] + rows
+    rows.sort(key=lambda r: ["fuse", "simplify", "texture"].index(r["stage"]))
     result = {"voxel": args.voxel, "brick": args.brick, "worker_memory": args.worker_memory,
               "grid_memory": args.grid_memory, "views": views_of(args.work), "rows": rows}
     if (out / "fused.ply").is_file():
