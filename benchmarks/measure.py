@@ -50,10 +50,12 @@ def _children() -> dict[int, list[int]]:
     return tree
 
 
-def _rss_bytes(pid: int) -> int:
+def _rss_bytes(pid: int, field: str = "VmRSS") -> int:
+    """Resident memory of ``pid`` now, bytes: ``VmRSS`` (all of it), or ``RssAnon`` (without
+    file pages: memory-mapped files that the kernel can drop and read again)."""
     try:
         for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
+            if line.startswith(field + ":"):
                 return int(line.split()[1]) * 1024
     except OSError:
         pass
@@ -84,6 +86,7 @@ class Measured:
     stderr: str
     peak_main_bytes: int = 0  # largest sampled resident memory of the command's own process
     peak_other_bytes: int = 0  # of any one other process (a helper, a Dask worker)
+    peak_main_anon_bytes: int = 0  # the command's own process without file pages (RssAnon)
 
 
 def run_measured(command: list[str], *, interval: float = 0.1, extra_pids: Sequence[int] = (),
@@ -97,11 +100,11 @@ def run_measured(command: list[str], *, interval: float = 0.1, extra_pids: Seque
     """
     t0 = time.perf_counter()
     proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kwargs)
-    peak = peak_main = peak_other = 0
+    peak = peak_main = peak_other = peak_main_anon = 0
     done = threading.Event()
 
     def sample() -> None:
-        nonlocal peak, peak_main, peak_other
+        nonlocal peak, peak_main, peak_other, peak_main_anon
         while not done.is_set():
             tree = _children()
             rss = tree_rss_by_pid(proc.pid, tree)
@@ -109,6 +112,7 @@ def run_measured(command: list[str], *, interval: float = 0.1, extra_pids: Seque
                 rss.update(tree_rss_by_pid(pid, tree))
             peak = max(peak, sum(rss.values()))
             peak_main = max(peak_main, rss.get(proc.pid, 0))
+            peak_main_anon = max(peak_main_anon, _rss_bytes(proc.pid, "RssAnon"))
             peak_other = max([peak_other, *(v for k, v in rss.items() if k != proc.pid)])
             done.wait(interval)
 
@@ -117,7 +121,8 @@ def run_measured(command: list[str], *, interval: float = 0.1, extra_pids: Seque
     stdout, stderr = proc.communicate()
     done.set()
     sampler.join()
-    return Measured(proc.returncode, time.perf_counter() - t0, peak, stdout, stderr, peak_main, peak_other)
+    return Measured(proc.returncode, time.perf_counter() - t0, peak, stdout, stderr, peak_main, peak_other,
+                    peak_main_anon)
 
 
 def kamino410_gray_views(src: Path):

@@ -37,6 +37,7 @@ import argparse
 import json
 import math
 import os
+import re
 import shutil
 import sys
 import time
@@ -74,6 +75,7 @@ def run(command: list[str], dask: DaskCluster | None = None) -> dict:
         raise SystemExit(f"failed (exit {measured.returncode}): {' '.join(command)}\n{measured.stderr[-4000:]}")
     return {"wall_s": measured.seconds, "cpu_s": _children_cpu() - cpu0 + ((dask.cpu() - dask_cpu0) if dask else 0),
             "peak_main_gib": measured.peak_main_bytes / GIB, "peak_other_gib": measured.peak_other_bytes / GIB,
+            "peak_main_anon_gib": measured.peak_main_anon_bytes / GIB,
             "peak_all_gib": measured.peak_bytes / GIB, "stdout": measured.stdout[-2000:]}
 
 
@@ -247,7 +249,8 @@ def print_compare(c: dict) -> None:
 def print_capped(c: dict) -> None:
     print(f"\nthe {c['views']}-view statue at {c['voxel']:g} mm on a LocalCluster of 2 workers capped at "
           f"{c['worker_memory']} (bricks of {c['brick']:g} mm, grid cap {c['grid_memory']})")
-    head = f"{'stage':9s} {'wall s':>8s} {'CPU s':>8s} {'peak/worker':>12s} {'peak caller':>12s} {'peak all':>9s}"
+    head = (f"{'stage':9s} {'wall s':>8s} {'CPU s':>8s} {'peak/worker':>12s} {'peak caller':>12s} "
+            f"{'caller anon':>12s} {'peak all':>9s}")
     print(head)
     print("-" * len(head))
     failed = [r for r in c["rows"] if "failed" in r]
@@ -257,8 +260,12 @@ def print_capped(c: dict) -> None:
     if not c["rows"]:
         return
     for r in c["rows"]:
+        anon = f"{r['peak_main_anon_gib']:8.2f} GiB" if "peak_main_anon_gib" in r else f"{'-':>12s}"
         print(f"{r['stage']:9s} {r['wall_s']:8.1f} {r['cpu_s']:8.1f} {r['peak_other_gib']:8.2f} GiB "
-              f"{r['peak_main_gib']:8.2f} GiB {r['peak_all_gib']:5.2f} GiB")
+              f"{r['peak_main_gib']:8.2f} GiB {anon} {r['peak_all_gib']:5.2f} GiB")
+        cut = re.search(r"range maps cut into pieces ([\d.]+) s", r.get("stdout", ""))
+        if cut:
+            print(f"{'':9s} (of which the caller cut the range maps into pieces, serially: {float(cut.group(1)):.1f} s)")
     rows = c["rows"]
     print(f"total: {sum(r['wall_s'] for r in rows):.1f} s wall ({sum(r['wall_s'] for r in rows) / 60:.1f} min), "
           f"{sum(r['cpu_s'] for r in rows):.1f} s CPU, largest worker {max(r['peak_other_gib'] for r in rows):.2f} GiB, "

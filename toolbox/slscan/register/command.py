@@ -396,8 +396,11 @@ def _fuse_streamed(args: argparse.Namespace, config, scans, poses, t0: float, n_
     name = f"fuse {args.aligned.name}"
     with recording_from_args(args, recording_name=name, blueprint=register_blueprint()) as rec:
         with ProgressBar(n_scans, "fusing (tsdf, bricks)", args.quiet) as bar:
-            written = fuse_bricks(scans, poses, config=config, progress=bar.step, progress_total=bar.set_total,
-                                  executor=executor_from_args(args), out=args.out).written
+            t_bricks = time.perf_counter()
+            result = fuse_bricks(scans, poses, config=config, progress=bar.step, progress_total=bar.set_total,
+                                 executor=executor_from_args(args), out=args.out)
+            t_bricks = time.perf_counter() - t_bricks
+            written = result.written
         if rec is not None:
             mesh = mesh_to_log(written)
             if mesh is not None:
@@ -408,8 +411,10 @@ def _fuse_streamed(args: argparse.Namespace, config, scans, poses, t0: float, n_
                                 "(slscan simplify with --save, --spawn or --connect)",
                                 highlight=False, soft_wrap=True)
     project = write_mesh_project(args.out)
-    console().print(f"[green]fused[/] {n_scans} scans at {args.voxel} mm in bricks, streamed: "
-                    f"{written.n_faces:,} faces in {time.perf_counter() - t0:.1f} s -> {args.out} "
+    cut, write = result.seconds.get("pieces", 0.0), result.seconds.get("stitch", 0.0)
+    console().print(f"[green]fused[/] {n_scans} scans at {args.voxel} mm in {result.n_bricks} bricks, streamed: "
+                    f"{written.n_faces:,} faces in {time.perf_counter() - t0:.1f} s (range maps cut into pieces "
+                    f"{cut:.1f} s, bricks {t_bricks - cut - write:.1f} s, PLY written {write:.1f} s) -> {args.out} "
                     f"(MeshLab: {project})", highlight=False)
     return 0
 
