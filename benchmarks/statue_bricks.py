@@ -310,6 +310,7 @@ def extrapolate(store: dict, work: Path, facade_area: float, facade_coverage: fl
           "and per voxel^2, simplification and the fused mesh per m2 and per voxel^2 (from the capped run at the "
           f"nearest voxel); the facade has {facade_coverage:g}x coverage ({seen_per_view:.2f} m2 seen per view)")
     head = (f"{'campaign':28s} {'views':>6s} {'voxel':>5s} {'per-view CPU h':>14s} {'fuse CPU h':>10s} "
+            f"{'serial h':>10s} "
             f"{'simplify CPU h':>14s} {'fused faces':>13s} {'fused PLY GiB':>13s} {'caller decode GiB':>17s} "
             f"{'caller register GiB':>19s} {'wall, 16 workers h':>18s}")
     print(head)
@@ -330,10 +331,21 @@ def extrapolate(store: dict, work: Path, facade_area: float, facade_coverage: fl
         simp_h = (simp["cpu_s"] if simp else 0.0) * surface / 3600
         decode_gib = stage["decode"]["peak_gib"] * n / views if "decode" in stage else float("nan")
         register_gib = stage["register"]["peak_gib"] * n / views if "register" in stage else float("nan")
-        wall = (per_view_h + fuse_h + simp_h) / 16
-        print(f"{name:28s} {n:6d} {voxel:5.2f} {per_view_h:14.1f} {fuse_h:10.1f} {simp_h:14.1f} "
+        # the caller cuts every range map into the bricks' pieces, one after another (not on
+        # the workers): per view and per pixel^2, from the run that printed it
+        cut_h = float("nan")
+        for k, other in sorted(store["capped"].items()):
+            f_row = next((r for r in other["rows"] if r["stage"] == "fuse"), {})
+            cut = re.search(r"range maps cut into pieces ([\d.]+) s", f_row.get("stdout", ""))
+            if cut:
+                cut_h = float(cut.group(1)) * (n / views) * (float(k) / voxel) ** 2 / 3600
+                break
+        wall = (per_view_h + fuse_h + simp_h) / 16 + (0.0 if math.isnan(cut_h) else cut_h)
+        print(f"{name:28s} {n:6d} {voxel:5.2f} {per_view_h:14.1f} {fuse_h:10.1f} {cut_h:10.2f} {simp_h:14.1f} "
               f"{res['fused_faces'] * surface:13,.0f} {res['fused_bytes'] * surface / GIB:13.1f} {decode_gib:17.1f} "
               f"{register_gib:19.1f} {wall:18.1f}")
+    print("serial h: the caller cutting the range maps into pieces (not spread over the workers), scaled from the "
+          "run that printed it; 'wall, 16 workers' = the CPU hours / 16 + the serial hours.")
     print("per worker (any size): fusion one brick's grid under --max-memory plus about 0.5 GiB; simplification one "
           "brick; decode about 1 GiB per full-size view. The callers of decode and register grow with the views.")
 
