@@ -76,7 +76,8 @@ def run(command: list[str], dask: DaskCluster | None = None) -> dict:
     return {"wall_s": measured.seconds, "cpu_s": _children_cpu() - cpu0 + ((dask.cpu() - dask_cpu0) if dask else 0),
             "peak_main_gib": measured.peak_main_bytes / GIB, "peak_other_gib": measured.peak_other_bytes / GIB,
             "peak_main_anon_gib": measured.peak_main_anon_bytes / GIB,
-            "peak_all_gib": measured.peak_bytes / GIB, "stdout": measured.stdout[-2000:]}
+            "peak_all_gib": measured.peak_bytes / GIB,
+            "stdout": (measured.stdout or "")[-2000:] + (measured.stderr or "")[-2000:]}  # slscan prints on stderr
 
 
 def _position_faces(mesh) -> tuple[np.ndarray, int]:
