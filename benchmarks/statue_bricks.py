@@ -342,11 +342,13 @@ def extrapolate(store: dict, work: Path, facade_area: float, facade_coverage: fl
                 cut_h = float(cut.group(1)) * (n / views) * (float(k) / voxel) ** 2 / 3600
                 break
         wall = (per_view_h + fuse_h + simp_h) / 16 + (0.0 if math.isnan(cut_h) else cut_h)
-        print(f"{name:28s} {n:6d} {voxel:5.2f} {per_view_h:14.1f} {fuse_h:10.1f} {cut_h:10.2f} {simp_h:14.1f} "
+        serial = "-" if math.isnan(cut_h) else f"{cut_h:.2f}"
+        print(f"{name:28s} {n:6d} {voxel:5.2f} {per_view_h:14.1f} {fuse_h:10.1f} {serial:>10s} {simp_h:14.1f} "
               f"{res['fused_faces'] * surface:13,.0f} {res['fused_bytes'] * surface / GIB:13.1f} {decode_gib:17.1f} "
               f"{register_gib:19.1f} {wall:18.1f}")
     print("serial h: the caller cutting the range maps into pieces (not spread over the workers), scaled from the "
-          "run that printed it; 'wall, 16 workers' = the CPU hours / 16 + the serial hours.")
+          "run whose `slscan fuse` printed it ('-': no stored run did); 'wall, 16 workers' = the CPU hours / 16 + "
+          "the serial hours.")
     print("per worker (any size): fusion one brick's grid under --max-memory plus about 0.5 GiB; simplification one "
           "brick; decode about 1 GiB per full-size view. The callers of decode and register grow with the views.")
 
