@@ -50,7 +50,7 @@ import shutil
 import tempfile
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -1087,9 +1087,9 @@ def _stitch(meshes: Sequence[Mesh], *, plane_spacing: float, voxel: float) -> Me
     if not vertices:
         return Mesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.float32))
     v, f, nrm = np.concatenate(vertices), np.concatenate(faces), np.concatenate(normals)
-    ratio = v / plane_spacing
-    on_plane = np.any(np.abs(ratio - np.round(ratio)) * plane_spacing < 1e-3 * voxel, axis=1)
-    candidates = np.flatnonzero(on_plane)
+    from slscan.fuse_stream import on_planes  # the streamed output's test too
+
+    candidates = np.flatnonzero(on_planes(v, plane_spacing=plane_spacing, voxel=voxel))
     if len(candidates):
         rows = np.ascontiguousarray(v[candidates].astype(np.float32)).view(np.dtype((np.void, 12))).ravel()
         _, first, inverse = np.unique(rows, return_index=True, return_inverse=True)

@@ -145,8 +145,8 @@ def write_piece(scratch: str | os.PathLike, index: tuple[int, int, int], mesh: M
 
 
 def on_planes(vertices: np.ndarray, *, plane_spacing: float, voxel: float) -> np.ndarray:
-    """(n,) bool: vertices (n, 3, mm) with a coordinate on a multiple of ``plane_spacing`` (the
-    test of :func:`slscan.fuse._stitch`)."""
+    """(n,) bool: vertices (n, 3, mm) with a coordinate on a multiple of ``plane_spacing``: those
+    that bricks beside a face both make (:func:`slscan.fuse._stitch` and the streamed writer)."""
     v = np.asarray(vertices, np.float64)
     ratio = v / plane_spacing
     return np.any(np.abs(ratio - np.round(ratio)) * plane_spacing < 1e-3 * voxel, axis=1)
